@@ -1,0 +1,29 @@
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = "epi_vo"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", glob("config/*.yaml")),
+    ],
+    install_requires=["setuptools", "numpy", "opencv-python-headless", "PyYAML", "rosbags", "mcap", "evo", "tqdm"],
+    zip_safe=True,
+    maintainer="epi_vo developers",
+    maintainer_email="dev@epi-vo.invalid",
+    description="Monocular visual odometry with honest diagnostics",
+    license="Apache-2.0",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [
+            "epi-vo = epi_vo.cli:main",
+            "vo_node = epi_vo.node:main",
+        ],
+    },
+)
