@@ -1,0 +1,86 @@
+"""``epi-vo``: the command-line front end (argparse only; the work is in replay / benchmark)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Sequence
+
+from epi_vo.errors import EpiVoError
+
+
+def _add_replay(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("replay", help="run the VO over a recorded bag and write trajectory, records and a bag",
+                       description="Replay a ROS 2 bag (directory or .mcap; MCAP or sqlite3) through the VO "
+                                   "pipeline. Every frame is processed.")
+    p.add_argument("bag", help="bag directory or .mcap file")
+    p.add_argument("--output", "-o", required=True, help="output directory")
+    p.add_argument("--params", help="ROS 2 parameter file (default: built-in defaults = config/epi_vo.yaml)")
+    p.add_argument("--image-topic", help="sensor_msgs/Image or CompressedImage topic (default: the only one)")
+    p.add_argument("--camera-info-topic", help="sensor_msgs/CameraInfo topic (default: the only one)")
+    p.add_argument("--gt", help="ground truth TUM file (default: a PoseStamped/Odometry topic in the bag, if any)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _add_benchmark(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("benchmark", help="epi_vo vs the seed article's reference pipeline on the bundled bags "
+                                         "(and the KITTI clip when present)")
+    p.add_argument("--bags", default=None, help="folder of bundled bags (default: the repo's bags/)")
+    p.add_argument("--kitti", default=None,
+                   help="KITTI clip folder (default: ../shared/data/kitti06_0-50 next to the repo, if present)")
+    p.add_argument("--params", help="ROS 2 parameter file for epi_vo")
+    p.add_argument("--output", default=None, help="also write the table as JSON here")
+
+
+def _add_params(sub: argparse._SubParsersAction) -> None:
+    sub.add_parser("params", help="print the default parameter file (ROS 2 YAML) with one comment per knob")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="epi-vo", description="Monocular visual odometry that says when a "
+                                                                "pose cannot be trusted.")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True)
+    _add_replay(sub)
+    _add_benchmark(sub)
+    _add_params(sub)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        if args.command == "replay":
+            return _replay(args)
+        if args.command == "benchmark":
+            from epi_vo.benchmark import run_benchmark
+
+            return run_benchmark(args.bags, args.kitti, args.params, args.output)
+        if args.command == "params":
+            from epi_vo.config import VoConfig, to_params_yaml
+
+            sys.stdout.write(to_params_yaml(VoConfig()))
+            return 0
+    except EpiVoError as exc:
+        print(f"epi-vo: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("epi-vo: interrupted", file=sys.stderr)
+        return 130
+    parser.error(f"unknown command {args.command}")
+    return 2
+
+
+def _replay(args: argparse.Namespace) -> int:
+    from epi_vo.config import load_config
+    from epi_vo.replay import format_summary, run_replay
+
+    cfg = load_config(args.params)
+    summary = run_replay(args.bag, args.output, cfg, image_topic=args.image_topic,
+                         camera_info_topic=args.camera_info_topic, gt_tum=args.gt,
+                         progress=not args.no_progress)
+    print(format_summary(summary))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
