@@ -62,6 +62,8 @@ class VoConfig:
     # --- degeneracy, parallax and triangulation gates ----------------------------------------
     init_min_parallax_deg: float = _knob(1.0, "median parallax needed to initialise the map (deg)", 0.01, 45.0)
     kf_min_parallax_deg: float = _knob(1.0, "median parallax that makes a new keyframe (deg)", 0.01, 45.0)
+    e_pose_min_parallax_deg: float = _knob(
+        0.5, "above this median parallax the pose comes from E (scaled by the map), below from the map", 0.0, 45.0)
     rotation_only_parallax_deg: float = _knob(
         0.15, "with H chosen, median parallax below this is treated as rotation only (deg)", 0.0, 10.0)
     min_rotation_for_rotation_only_deg: float = _knob(

@@ -469,18 +469,33 @@ class VoPipeline:
     def _track_with_map(self, kf: Keyframe, rows: NDArray[np.int64], R: F64, t_dir: F64 | None,
                         inl: NDArray[np.bool_], xn_cur: F64, uv_cur: F64, st: _FrameStats, rot_cov: float
                         ) -> _Motion | None:
-        """Pose with the map's scale: E direction scaled by the map points, refined on them (PnP LM)."""
+        """Pose with the map's scale.
+
+        E chosen with enough parallax: E's rotation and direction, scaled by the map points (robust 1-D
+        median). Otherwise (H chosen, low parallax, no usable scale): motion-only LM on the map points,
+        started from the E estimate or from the previous frame's relative pose.
+        """
         cfg = self.cfg
         K = kf.camera.K
         X = kf.X_kf[rows]
         has_depth = inl & np.isfinite(X[:, 0])
         R0, t0 = self._T_cur_kf_prev[:3, :3], self._T_cur_kf_prev[:3, 3]
+        est: geo.ScaleEstimate | None = None
         if t_dir is not None:
             R0 = R
             est = geo.scale_from_points(X[has_depth], R, t_dir, xn_cur[has_depth], cfg.min_scale_points)
             if est is not None:
                 st.relative_scale = est.scale
                 t0 = t_dir * est.scale
+        if t_dir is not None and est is not None and st.median_parallax_deg >= cfg.e_pose_min_parallax_deg:
+            # With enough parallax the essential matrix fixes rotation and direction better than the
+            # map (whose depths carry the previous pairs' noise): take them, with the map's scale.
+            par_rad = math.radians(st.median_parallax_deg)
+            n = max(st.n_inliers, 1)
+            dir_var = (cfg.score_sigma_px / (K[0, 0] * par_rad)) ** 2 / n
+            scale_var = est.rel_spread**2 / max(est.n_used, 1)
+            trans_var = est.scale**2 * (dir_var + scale_var)
+            return _Motion(TrackingState.TRACKING, R, t0, _block_cov(trans_var, rot_cov), inl)
         refined = geo.refine_pose_pnp(X[has_depth], uv_cur[has_depth], K, R0, t0, cfg.max_reprojection_error_px)
         if refined is None:
             st.reasons.append(f"too few map points to carry the scale ({int(np.count_nonzero(has_depth))})")

@@ -1,0 +1,688 @@
+"""Camera bags in, VO results out: rosbag2 reading through rosbags, MCAP writing (no rclpy).
+
+Reading: ``open_camera_bag`` opens a rosbag2 directory (MCAP or sqlite3 storage) or a bare
+``.mcap`` / ``.db3`` file, picks the image, camera_info and ground-truth topics, and yields
+``BagFrame`` records in bag order. Messages are rosbags dataclasses; ``epi_vo.msgconv`` reads
+them by field name.
+
+Writing: ``OutputBag`` writes one self-contained ``.mcap`` file: profile ``ros2``, channels ``cdr``,
+schemas ``ros2msg`` with the full message definition text, ``offered_qos_profiles`` and the RIHS01
+``topic_type_hash`` in the channel metadata, statistics and indexes. That is the layout rosbag2's
+MCAP storage plugin reads, so rosbags, ``ros2 bag info/play`` and Foxglove open it directly. It
+is written with the ``mcap`` library, not rosbags' Writer, because the latter always creates a bag
+directory (``DIR/DIR.mcap`` + ``metadata.yaml``) and we want a single file.
+
+Every failure to read or write as asked is a BagError with a one-line message naming the bag and the
+reason (the rosbags exception is chained, not leaked).
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Self
+
+import numpy as np
+from mcap.writer import CompressionType
+from mcap.writer import Writer as McapWriter
+from numpy.typing import ArrayLike, NDArray
+from rosbags.highlevel import AnyReader, AnyReaderError
+from rosbags.rosbag2 import ReaderError
+from rosbags.serde import SerdeError
+from rosbags.typesys import Stores, get_typestore
+
+from epi_vo.errors import BagError
+from epi_vo.msgconv import point_cloud2_fields
+
+if TYPE_CHECKING:
+    from collections.abc import Iterator, Sequence
+    from types import TracebackType
+
+    from rosbags.interfaces import Connection
+
+    from epi_vo.diagnostics import DiagnosticStatusRecord
+
+logger = logging.getLogger(__name__)
+
+IMAGE_TYPE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"
+CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+POSE_STAMPED_TYPE = "geometry_msgs/msg/PoseStamped"
+ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
+POINT_CLOUD2_TYPE = "sensor_msgs/msg/PointCloud2"
+PATH_TYPE = "nav_msgs/msg/Path"
+DIAGNOSTIC_ARRAY_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
+
+ODOMETRY_TOPIC = "/vo/odometry"
+POINTS_TOPIC = "/vo/points"
+PATH_TOPIC = "/vo/path"
+DIAGNOSTICS_TOPIC = "/diagnostics"
+
+# Message definitions for serialising output and for bags recorded without them (old sqlite3).
+_TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+
+# What rosbags raises for a missing, truncated or corrupt bag (it wraps its parser errors in these).
+_READ_ERRORS = (AnyReaderError, ReaderError, SerdeError, OSError)
+
+_NS_PER_S = 1_000_000_000
+
+
+# --------------------------------------------------------------------------------------------------
+# Reading
+
+
+@dataclass(frozen=True)
+class BagFrame:
+    """One image of the bag with its calibration message.
+
+    ``index`` counts images from 0 in bag order; ``stamp_ns`` is the image header stamp;
+    ``camera_info_msg`` is the associated CameraInfo (see ``CameraBag.camera_info_for``) or None
+    when the camera_info topic holds no message.
+    """
+
+    index: int
+    stamp_ns: int
+    image_msg: Any
+    camera_info_msg: Any | None
+
+
+@dataclass(frozen=True, eq=False)
+class GroundTruth:
+    """Ground-truth poses ``T_parent_child`` from a PoseStamped or Odometry topic, sorted by stamp.
+
+    ``positions`` (N, 3) is the child origin in the parent frame ``frame_id`` (header.frame_id),
+    ``quats_xyzw`` (N, 4) the child orientation in that frame, ``stamps_ns`` (N,) the header stamps.
+    Arrays are read-only.
+    """
+
+    topic: str
+    frame_id: str
+    stamps_ns: NDArray[np.int64]
+    positions: NDArray[np.float64]
+    quats_xyzw: NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class _TopicKind:
+    label: str  # for messages: 'sensor_msgs/Image or CompressedImage'
+    msgtypes: frozenset[str]
+    flag: str  # command-line flag that chooses the topic
+
+
+_IMAGE_KIND = _TopicKind(
+    "sensor_msgs/Image or CompressedImage",
+    frozenset({IMAGE_TYPE, COMPRESSED_IMAGE_TYPE}),
+    "--image-topic",
+)
+_CAMERA_INFO_KIND = _TopicKind(
+    "sensor_msgs/CameraInfo", frozenset({CAMERA_INFO_TYPE}), "--camera-info-topic"
+)
+_GT_KIND = _TopicKind(
+    "geometry_msgs/PoseStamped or nav_msgs/Odometry",
+    frozenset({POSE_STAMPED_TYPE, ODOMETRY_TYPE}),
+    "--gt-topic",
+)
+
+
+def _describe_topics(topic_types: dict[str, str | None]) -> str:
+    if not topic_types:
+        return "(none)"
+    return ", ".join(
+        f"{name} ({msgtype or 'mixed types'})" for name, msgtype in topic_types.items()
+    )
+
+
+def _camera_namespace(topic: str) -> str:
+    """'/cam0/image_raw', '/cam0/image_raw/compressed' and '/cam0/camera_info' all give '/cam0'."""
+    topic = topic.rstrip("/")
+    topic = topic.removesuffix("/compressed")
+    return topic.rsplit("/", 1)[0]
+
+
+def _choose_topic(
+    topic_types: dict[str, str | None],
+    kind: _TopicKind,
+    explicit: str | None,
+    sibling_of: str | None = None,
+) -> str | None:
+    """The topic of ``kind``: ``explicit`` if given, else the only candidate; None if none.
+
+    With several candidates and ``sibling_of`` set, the single candidate in the same namespace is
+    taken (image_transport pairs '/cam0/image_raw' with '/cam0/camera_info'); otherwise BagError
+    lists them.
+    """
+    if explicit is not None:
+        if explicit not in topic_types:
+            msg = (
+                f"{kind.flag} {explicit!r} is not in the bag; "
+                f"topics: {_describe_topics(topic_types)}"
+            )
+            raise BagError(msg)
+        if topic_types[explicit] not in kind.msgtypes:
+            msg = (
+                f"{kind.flag} {explicit!r} has type {topic_types[explicit]}, expected {kind.label}"
+            )
+            raise BagError(msg)
+        return explicit
+
+    candidates = [name for name, msgtype in topic_types.items() if msgtype in kind.msgtypes]
+    if len(candidates) <= 1:
+        return candidates[0] if candidates else None
+    if sibling_of is not None:
+        siblings = [x for x in candidates if _camera_namespace(x) == _camera_namespace(sibling_of)]
+        if len(siblings) == 1:
+            return siblings[0]
+    msg = (
+        f"bag has several {kind.label} topics: {', '.join(candidates)}; choose one with {kind.flag}"
+    )
+    raise BagError(msg)
+
+
+def _required_topic(
+    topic_types: dict[str, str | None],
+    kind: _TopicKind,
+    explicit: str | None,
+    sibling_of: str | None = None,
+) -> str:
+    """``_choose_topic`` for a kind the bag must have."""
+    topic = _choose_topic(topic_types, kind, explicit, sibling_of)
+    if topic is None:
+        msg = f"bag has no {kind.label} topic; topics: {_describe_topics(topic_types)}"
+        raise BagError(msg)
+    return topic
+
+
+def _stamp_ns(stamp: Any) -> int:
+    """builtin_interfaces/Time (sec, nanosec) as integer nanoseconds."""
+    return int(stamp.sec) * _NS_PER_S + int(stamp.nanosec)
+
+
+class CameraBag:
+    """An open camera bag: chosen topics, frame count, frames and ground truth.
+
+    Create it with ``open_camera_bag``; close it with ``close()`` or use it in a ``with`` block.
+    """
+
+    def __init__(
+        self,
+        path: Path,
+        reader: AnyReader,
+        image_topic: str,
+        camera_info_topic: str,
+        gt_topic: str | None,
+    ) -> None:
+        """Wrap an open ``reader``; reads all camera_info messages (they are small) right away."""
+        self.path = path
+        self.image_topic = image_topic
+        self.camera_info_topic = camera_info_topic
+        self.gt_topic = gt_topic
+        self._reader: AnyReader | None = reader
+        topics = reader.topics
+        self._connections: dict[str, list[Connection]] = {
+            name: list(topics[name].connections)
+            for name in (image_topic, camera_info_topic, gt_topic)
+            if name is not None
+        }
+        self.image_is_compressed = topics[image_topic].msgtype == COMPRESSED_IMAGE_TYPE
+        self.frame_count = int(topics[image_topic].msgcount)
+
+        camera_infos = [
+            (_stamp_ns(msg.header.stamp), msg) for _, msg in self._read(camera_info_topic)
+        ]
+        # Stable sort by header stamp: among equal stamps the last one is the latest recorded.
+        camera_infos.sort(key=lambda item: item[0])
+        self._camera_info_stamps_ns = [stamp for stamp, _ in camera_infos]
+        self._camera_info_msgs = [msg for _, msg in camera_infos]
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc_val: BaseException | None,
+        exc_tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the underlying reader; calling it again does nothing."""
+        reader, self._reader = self._reader, None
+        if reader is not None:
+            reader.close()
+
+    def _read(self, topic: str) -> Iterator[tuple[int, Any]]:
+        """(log time ns, deserialised message) of ``topic`` in bag order; BagError on a bad bag."""
+        if self._reader is None:
+            msg = f"bag {self.path} is closed"
+            raise BagError(msg)
+        reader = self._reader
+        try:
+            for connection, log_time_ns, rawdata in reader.messages(self._connections[topic]):
+                yield log_time_ns, reader.deserialize(rawdata, connection.msgtype)
+        except _READ_ERRORS as err:
+            msg = f"cannot read {topic} from bag {self.path}: {err}"
+            raise BagError(msg) from err
+
+    def camera_info_for(self, stamp_ns: int) -> Any | None:
+        """CameraInfo for an image stamped ``stamp_ns``.
+
+        The one with exactly that header stamp, else the latest with stamp <= ``stamp_ns``, else
+        (info recorded only after the first images) the earliest; None when the topic is empty.
+        """
+        if not self._camera_info_msgs:
+            return None
+        # bisect_right lands after every stamp <= stamp_ns, so an exact match is the one taken.
+        position = bisect.bisect_right(self._camera_info_stamps_ns, stamp_ns)
+        return self._camera_info_msgs[max(position - 1, 0)]
+
+    def iter_frames(self) -> Iterator[BagFrame]:
+        """Images in bag order, each with ``camera_info_for`` its header stamp."""
+        for index, (_, image_msg) in enumerate(self._read(self.image_topic)):
+            stamp_ns = _stamp_ns(image_msg.header.stamp)
+            yield BagFrame(index, stamp_ns, image_msg, self.camera_info_for(stamp_ns))
+
+    def read_ground_truth(self) -> GroundTruth | None:
+        """Poses of the ground-truth topic sorted by header stamp, or None when the bag has none."""
+        if self.gt_topic is None:
+            return None
+        stamps_ns: list[int] = []
+        positions: list[tuple[float, float, float]] = []
+        quats_xyzw: list[tuple[float, float, float, float]] = []
+        frame_id = ""
+        for _, msg in self._read(self.gt_topic):
+            # PoseStamped has pose.position; Odometry has pose.pose.position (PoseWithCovariance).
+            pose = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose
+            stamps_ns.append(_stamp_ns(msg.header.stamp))
+            positions.append((pose.position.x, pose.position.y, pose.position.z))
+            o = pose.orientation
+            quats_xyzw.append((o.x, o.y, o.z, o.w))
+            frame_id = frame_id or str(msg.header.frame_id)
+        order = np.argsort(np.asarray(stamps_ns, dtype=np.int64), kind="stable")
+        arrays = (
+            np.asarray(stamps_ns, dtype=np.int64)[order],
+            np.asarray(positions, dtype=np.float64).reshape(-1, 3)[order],
+            np.asarray(quats_xyzw, dtype=np.float64).reshape(-1, 4)[order],
+        )
+        for array in arrays:
+            array.setflags(write=False)
+        return GroundTruth(self.gt_topic, frame_id, *arrays)
+
+
+def open_camera_bag(
+    path: str | Path,
+    image_topic: str | None = None,
+    camera_info_topic: str | None = None,
+    gt_topic: str | None = None,
+) -> CameraBag:
+    """Open a camera bag and choose its topics.
+
+    ``path`` is a rosbag2 directory (metadata.yaml, MCAP or sqlite3 storage) or a single ``.mcap``
+    or ``.db3`` file. Topics not given are discovered by type: images are sensor_msgs/Image or
+    CompressedImage, calibration sensor_msgs/CameraInfo, ground truth geometry_msgs/PoseStamped or
+    nav_msgs/Odometry (optional). A kind with exactly one topic is taken; with several, a
+    camera_info in the image topic's namespace is taken, anything else is a BagError naming the
+    candidates and the flag that chooses. A given topic must exist with a matching type.
+
+    Raises BagError for a missing path, a non-bag, an unreadable or truncated file, an empty bag, a
+    missing image or camera_info topic, an image topic without messages and ambiguous topics.
+    """
+    path = Path(path)
+    if not path.exists():
+        msg = f"bag not found: {path}"
+        raise BagError(msg)
+    if path.is_dir() and not (path / "metadata.yaml").exists():
+        files = sorted(x.name for x in path.iterdir() if x.suffix in {".mcap", ".db3"})
+        hint = f"; to read a file in it, pass its path: {', '.join(files)}" if files else ""
+        msg = f"{path} is a directory without metadata.yaml, not a rosbag2 bag{hint}"
+        raise BagError(msg)
+    if path.is_file() and path.suffix not in {".mcap", ".db3"}:
+        msg = f"{path} is not a rosbag2 bag: expected a bag directory, a .mcap or a .db3 file"
+        raise BagError(msg)
+
+    try:
+        reader = AnyReader([path], default_typestore=_TYPESTORE)
+        reader.open()
+    except _READ_ERRORS as err:
+        msg = f"cannot open bag {path}: {err}"
+        raise BagError(msg) from err
+
+    try:
+        if reader.message_count == 0:
+            msg = f"bag {path} is empty (no messages)"
+            raise BagError(msg)
+        topic_types = {name: info.msgtype for name, info in reader.topics.items()}
+        chosen_image = _required_topic(topic_types, _IMAGE_KIND, image_topic)
+        if reader.topics[chosen_image].msgcount == 0:
+            msg = f"image topic {chosen_image} in bag {path} has no messages"
+            raise BagError(msg)
+        chosen_info = _required_topic(
+            topic_types, _CAMERA_INFO_KIND, camera_info_topic, sibling_of=chosen_image
+        )
+        chosen_gt = _choose_topic(topic_types, _GT_KIND, gt_topic)
+        bag = CameraBag(path, reader, chosen_image, chosen_info, chosen_gt)
+    except BaseException:
+        reader.close()
+        raise
+    logger.info(
+        "bag %s: %d frames on %s, camera_info %s, ground truth %s",
+        path,
+        bag.frame_count,
+        bag.image_topic,
+        bag.camera_info_topic,
+        bag.gt_topic or "(none)",
+    )
+    return bag
+
+
+# --------------------------------------------------------------------------------------------------
+# TUM trajectories
+
+
+def read_tum(
+    path: str | Path,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Read a TUM trajectory: lines ``timestamp tx ty tz qx qy qz qw``, whitespace separated.
+
+    Returns ``stamps_s`` (N,), ``positions`` (N, 3), ``quats_xyzw`` (N, 4). Blank lines and lines
+    starting with '#' are skipped. Raises BagError for a missing file or a malformed line (with its
+    line number).
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        msg = f"cannot read TUM file {path}: {err}"
+        raise BagError(msg) from err
+    rows: list[list[float]] = []
+    for line_number, line in enumerate(text.splitlines(), start=1):
+        stripped = line.strip()
+        if not stripped or stripped.startswith("#"):
+            continue
+        tokens = stripped.split()
+        if len(tokens) != 8:
+            msg = (
+                f'{path}:{line_number}: expected 8 values "timestamp tx ty tz qx qy qz qw", '
+                f"got {len(tokens)}"
+            )
+            raise BagError(msg)
+        try:
+            values = [float(token) for token in tokens]
+        except ValueError:
+            msg = f"{path}:{line_number}: not a number in {stripped!r}"
+            raise BagError(msg) from None
+        if not all(np.isfinite(values)):
+            msg = f"{path}:{line_number}: non-finite value in {stripped!r}"
+            raise BagError(msg)
+        rows.append(values)
+    table = np.asarray(rows, dtype=np.float64).reshape(-1, 8)
+    return table[:, 0].copy(), table[:, 1:4].copy(), table[:, 4:8].copy()
+
+
+def write_tum(
+    path: str | Path,
+    stamps_s: ArrayLike,
+    positions: ArrayLike,
+    quats_xyzw: ArrayLike,
+) -> None:
+    """Write a TUM trajectory (``timestamp tx ty tz qx qy qz qw`` per line, '#' header line).
+
+    ``stamps_s`` (N,) in seconds, ``positions`` (N, 3), ``quats_xyzw`` (N, 4). Stamps are written
+    with 9 decimals, other values with the shortest text that reads back to the same float.
+    """
+    stamps = _checked_array(stamps_s, (None,), "stamps_s")
+    xyz = _checked_array(positions, (stamps.shape[0], 3), "positions")
+    quats = _checked_array(quats_xyzw, (stamps.shape[0], 4), "quats_xyzw")
+    lines = ["# timestamp tx ty tz qx qy qz qw"]
+    for stamp, position, quat in zip(stamps, xyz, quats, strict=True):
+        values = " ".join(repr(float(v)) for v in (*position, *quat))
+        lines.append(f"{float(stamp):.9f} {values}")
+    try:
+        Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
+    except OSError as err:
+        msg = f"cannot write TUM file {path}: {err}"
+        raise BagError(msg) from err
+
+
+# --------------------------------------------------------------------------------------------------
+# Writing
+
+
+# Offered QoS of every output channel. Empty on purpose: rosbag2 parses a non-empty profile list as
+# integers (metadata v8, the default when the file has no rosbag2 metadata record) or as names (v9),
+# so no text suits every distro, while '' means "none recorded" everywhere and ``ros2 bag play``
+# then publishes with rclcpp's default profile (reliable, volatile, keep last 10).
+_OFFERED_QOS_PROFILES = ""
+
+_OUTPUT_TOPICS: dict[str, str] = {
+    ODOMETRY_TOPIC: ODOMETRY_TYPE,
+    POINTS_TOPIC: POINT_CLOUD2_TYPE,
+    PATH_TOPIC: PATH_TYPE,
+    DIAGNOSTICS_TOPIC: DIAGNOSTIC_ARRAY_TYPE,
+}
+
+
+def _checked_array(
+    value: ArrayLike, shape: tuple[int | None, ...], name: str
+) -> NDArray[np.float64]:
+    """``value`` as float64 of ``shape`` (None = any length); BagError naming ``name`` otherwise."""
+    array = np.asarray(value, dtype=np.float64)
+    if array.ndim != len(shape) or any(
+        want is not None and want != have for want, have in zip(shape, array.shape, strict=True)
+    ):
+        expected = ", ".join("N" if x is None else str(x) for x in shape)
+        expected = f"({expected},)" if len(shape) == 1 else f"({expected})"
+        msg = f"{name} has shape {array.shape}, expected {expected}"
+        raise BagError(msg)
+    return array
+
+
+def _ros_time(stamp_ns: int) -> Any:
+    """builtin_interfaces/Time of integer nanoseconds (numpy integers accepted)."""
+    stamp_ns = int(stamp_ns)
+    Time = _TYPESTORE.types["builtin_interfaces/msg/Time"]
+    return Time(sec=stamp_ns // _NS_PER_S, nanosec=stamp_ns % _NS_PER_S)
+
+
+def _header(stamp_ns: int, frame_id: str) -> Any:
+    return _TYPESTORE.types["std_msgs/msg/Header"](stamp=_ros_time(stamp_ns), frame_id=frame_id)
+
+
+def _pose(position: NDArray[np.float64], quat_xyzw: NDArray[np.float64]) -> Any:
+    types = _TYPESTORE.types
+    x, y, z = (float(v) for v in position)
+    qx, qy, qz, qw = (float(v) for v in quat_xyzw)
+    return types["geometry_msgs/msg/Pose"](
+        position=types["geometry_msgs/msg/Point"](x=x, y=y, z=z),
+        orientation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
+    )
+
+
+def _vector3(vector: NDArray[np.float64]) -> Any:
+    x, y, z = (float(v) for v in vector)
+    return _TYPESTORE.types["geometry_msgs/msg/Vector3"](x=x, y=y, z=z)
+
+
+class OutputBag:
+    """Write VO results to one MCAP file with the ROS 2 profile (see the module docstring).
+
+    Topics: /vo/odometry (nav_msgs/Odometry), /vo/points (sensor_msgs/PointCloud2), /vo/path
+    (nav_msgs/Path), /diagnostics (diagnostic_msgs/DiagnosticArray); all four channels are declared
+    up front. Stamps are integer nanoseconds (>= 0); each message is logged at its header stamp.
+
+    Use as a context manager: leaving the block, also by an exception or KeyboardInterrupt, writes
+    the summary and index so the file stays readable.
+    """
+
+    def __init__(self, path: str | Path, *, overwrite: bool = False) -> None:
+        """Create ``path`` (must end in .mcap; parent directories are made); refuse to replace an
+        existing file unless ``overwrite``."""
+        self.path = Path(path)
+        if self.path.suffix != ".mcap":
+            msg = f"output bag {self.path} must be a .mcap file"
+            raise BagError(msg)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._stream = self.path.open("wb" if overwrite else "xb")
+        except FileExistsError:
+            msg = f"output bag {self.path} exists already (pass overwrite=True to replace it)"
+            raise BagError(msg) from None
+        except OSError as err:
+            msg = f"cannot create output bag {self.path}: {err}"
+            raise BagError(msg) from err
+
+        writer = McapWriter(self._stream, compression=CompressionType.ZSTD)
+        writer.start(profile="ros2", library="epi_vo")
+        schema_ids: dict[str, int] = {}
+        self._channel_ids: dict[str, int] = {}
+        for topic, msgtype in _OUTPUT_TOPICS.items():
+            if msgtype not in schema_ids:
+                msgdef, _ = _TYPESTORE.generate_msgdef(msgtype, ros_version=2)
+                schema_ids[msgtype] = writer.register_schema(
+                    name=msgtype, encoding="ros2msg", data=msgdef.encode()
+                )
+            self._channel_ids[topic] = writer.register_channel(
+                topic=topic,
+                message_encoding="cdr",
+                schema_id=schema_ids[msgtype],
+                metadata={
+                    "offered_qos_profiles": _OFFERED_QOS_PROFILES,
+                    "topic_type_hash": _TYPESTORE.hash_rihs01(msgtype),
+                },
+            )
+        self._writer: McapWriter | None = writer
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc_val: BaseException | None,
+        exc_tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Write the summary and close the file; calling it again does nothing."""
+        writer, self._writer = self._writer, None
+        if writer is None:
+            return
+        try:
+            writer.finish()
+        finally:
+            self._stream.close()
+
+    def _write(self, topic: str, stamp_ns: int, message: object) -> None:
+        if self._writer is None:
+            msg = f"output bag {self.path} is closed"
+            raise BagError(msg)
+        stamp_ns = int(stamp_ns)
+        if stamp_ns < 0:
+            msg = f"{topic}: stamp_ns {stamp_ns} is negative"
+            raise BagError(msg)
+        data = _TYPESTORE.serialize_cdr(message, _OUTPUT_TOPICS[topic], little_endian=True)
+        self._writer.add_message(
+            self._channel_ids[topic], log_time=stamp_ns, data=bytes(data), publish_time=stamp_ns
+        )
+
+    def write_odometry(
+        self,
+        stamp_ns: int,
+        frame_id: str,
+        child_frame_id: str,
+        position: ArrayLike,
+        quat_xyzw: ArrayLike,
+        pose_covariance: ArrayLike,
+        linear_velocity: ArrayLike,
+        angular_velocity: ArrayLike,
+        twist_covariance: ArrayLike,
+    ) -> None:
+        """nav_msgs/Odometry on /vo/odometry.
+
+        Pose ``T_frame_child``: ``position`` (3,) and ``quat_xyzw`` (4,) of ``child_frame_id`` in
+        ``frame_id``; twist (3,) + (3,) in ``child_frame_id``; covariances (6, 6) in the ROS order
+        (x, y, z, rot x, rot y, rot z), written row-major.
+        """
+        types = _TYPESTORE.types
+        pose = _pose(
+            _checked_array(position, (3,), "position"),
+            _checked_array(quat_xyzw, (4,), "quat_xyzw"),
+        )
+        twist = types["geometry_msgs/msg/Twist"](
+            linear=_vector3(_checked_array(linear_velocity, (3,), "linear_velocity")),
+            angular=_vector3(_checked_array(angular_velocity, (3,), "angular_velocity")),
+        )
+        message = types[ODOMETRY_TYPE](
+            header=_header(stamp_ns, frame_id),
+            child_frame_id=child_frame_id,
+            pose=types["geometry_msgs/msg/PoseWithCovariance"](
+                pose=pose,
+                covariance=_checked_array(pose_covariance, (6, 6), "pose_covariance").reshape(36),
+            ),
+            twist=types["geometry_msgs/msg/TwistWithCovariance"](
+                twist=twist,
+                covariance=_checked_array(twist_covariance, (6, 6), "twist_covariance").reshape(36),
+            ),
+        )
+        self._write(ODOMETRY_TOPIC, stamp_ns, message)
+
+    def write_points(self, stamp_ns: int, frame_id: str, points_xyz: ArrayLike) -> None:
+        """sensor_msgs/PointCloud2 (x, y, z float32) on /vo/points; ``points_xyz`` (N, 3) in
+        ``frame_id``. Points with a non-finite coordinate are dropped (see point_cloud2_fields)."""
+        types = _TYPESTORE.types
+        cloud = point_cloud2_fields(_checked_array(points_xyz, (None, 3), "points_xyz"))
+        PointField = types["sensor_msgs/msg/PointField"]
+        message = types[POINT_CLOUD2_TYPE](
+            header=_header(stamp_ns, frame_id),
+            height=cloud["height"],
+            width=cloud["width"],
+            fields=[PointField(*field) for field in cloud["fields"]],
+            is_bigendian=cloud["is_bigendian"],
+            point_step=cloud["point_step"],
+            row_step=cloud["row_step"],
+            data=cloud["data"],
+            is_dense=cloud["is_dense"],
+        )
+        self._write(POINTS_TOPIC, stamp_ns, message)
+
+    def write_path(
+        self,
+        stamp_ns: int,
+        frame_id: str,
+        stamps_ns: ArrayLike,
+        positions: ArrayLike,
+        quats_xyzw: ArrayLike,
+    ) -> None:
+        """nav_msgs/Path on /vo/path: M poses of the camera in ``frame_id``, ``stamps_ns`` (M,),
+        ``positions`` (M, 3), ``quats_xyzw`` (M, 4)."""
+        types = _TYPESTORE.types
+        stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+        xyz = _checked_array(positions, (stamps.shape[0], 3), "positions")
+        quats = _checked_array(quats_xyzw, (stamps.shape[0], 4), "quats_xyzw")
+        PoseStamped = types[POSE_STAMPED_TYPE]
+        poses = [
+            PoseStamped(header=_header(int(stamp), frame_id), pose=_pose(position, quat))
+            for stamp, position, quat in zip(stamps, xyz, quats, strict=True)
+        ]
+        message = types[PATH_TYPE](header=_header(stamp_ns, frame_id), poses=poses)
+        self._write(PATH_TOPIC, stamp_ns, message)
+
+    def write_diagnostics(self, stamp_ns: int, statuses: Sequence[DiagnosticStatusRecord]) -> None:
+        """diagnostic_msgs/DiagnosticArray on /diagnostics, one DiagnosticStatus per record."""
+        types = _TYPESTORE.types
+        KeyValue = types["diagnostic_msgs/msg/KeyValue"]
+        status = [
+            types["diagnostic_msgs/msg/DiagnosticStatus"](
+                level=int(record.level),
+                name=record.name,
+                message=record.message,
+                hardware_id=record.hardware_id,
+                values=[KeyValue(key=key, value=value) for key, value in record.values],
+            )
+            for record in statuses
+        ]
+        message = types[DIAGNOSTIC_ARRAY_TYPE](header=_header(stamp_ns, ""), status=status)
+        self._write(DIAGNOSTICS_TOPIC, stamp_ns, message)
