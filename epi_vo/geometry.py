@@ -32,6 +32,9 @@ Mask = NDArray[np.bool_]
 CHI2_1DOF = 3.841
 CHI2_2DOF = 5.991
 
+# Distance (in baselines) beyond which recoverPose calls a point 'at infinity'.
+_CHEIRALITY_MAX_DISTANCE = 1.0e7
+
 ROBUST_METHOD_FLAGS = {
     "magsac": cv2.USAC_MAGSAC,
     "ransac": cv2.RANSAC,
@@ -189,7 +192,11 @@ def recover_pose(E: F64, uv_ref: F64, uv_cur: F64, K: F64, inliers: Mask) -> tup
     ``(R_cur_ref, t_cur_ref (3,) unit, mask of inliers passing cheirality)``.
     """
     mask_in = inliers.astype(np.uint8).reshape(-1, 1).copy()
-    _, R, t, mask_out = cv2.recoverPose(E, uv_ref, uv_cur, K, mask=mask_in)
+    # The plain overload drops points farther than 50 baselines as 'at infinity', which with video
+    # frame rates (short baselines, depths of 100+ baselines) discards most good inliers; only the
+    # sign of the depth matters here, so the distance limit is lifted.
+    _, R, t, mask_out, _ = cv2.recoverPose(E, uv_ref, uv_cur, cameraMatrix=K,
+                                           distanceThresh=_CHEIRALITY_MAX_DISTANCE, mask=mask_in)
     return (np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64).reshape(3),
             mask_out.reshape(-1).astype(bool))
 
