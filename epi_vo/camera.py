@@ -97,6 +97,9 @@ class CameraModel:
             raise CameraModelError("camera is uncalibrated: camera_info K[0] (fx) is 0")
         if K[0, 0] <= 0.0 or K[1, 1] <= 0.0 or K[2, 2] != 1.0 or np.any(K[2, :2] != 0.0) or K[1, 0] != 0.0:
             raise CameraModelError(f"camera_info K is not an intrinsic matrix: {K.reshape(-1).tolist()}")
+        if K[0, 1] != 0.0:
+            # OpenCV's distortion functions ignore skew; accepting it would silently mis-project.
+            raise CameraModelError(f"camera_info K has skew K[1] = {K[0, 1]}; skewed intrinsics are not supported")
         if not np.all(np.isfinite(D)):
             raise CameraModelError(f"camera_info D is not finite: {D.tolist()}")
         try:
@@ -139,7 +142,6 @@ class CameraModel:
         K = self.K.copy()
         K[0, 0] *= factor
         K[1, 1] *= factor
-        K[0, 1] *= factor
         K[0, 2] = (K[0, 2] + 0.5) * factor - 0.5
         K[1, 2] = (K[1, 2] + 0.5) * factor - 0.5
         return CameraModel.create(round(self.width * factor), round(self.height * factor), K, self.D.copy(),
@@ -153,6 +155,8 @@ class CameraModel:
         if self.model is DistortionModel.EQUIDISTANT:
             if not self.is_distorted:
                 return self._normalize_pinhole(pts)
+            # Limitation: cv2.fisheye caps the distorted angle at pi/2; rays beyond ~86 deg off axis
+            # come back wrong. Such rays carry no usable two-view geometry for a pinhole-model VO.
             out = cv2.fisheye.undistortPoints(pts.reshape(-1, 1, 2), self.K, self.D,
                                               R=np.eye(3), P=np.eye(3), criteria=_UNDISTORT_CRITERIA)
             return np.asarray(out, dtype=np.float64).reshape(-1, 2)
@@ -162,7 +166,7 @@ class CameraModel:
 
     def _normalize_pinhole(self, pts: NDArray[np.float64]) -> NDArray[np.float64]:
         y = (pts[:, 1] - self.K[1, 2]) / self.K[1, 1]
-        x = (pts[:, 0] - self.K[0, 2] - self.K[0, 1] * y) / self.K[0, 0]
+        x = (pts[:, 0] - self.K[0, 2]) / self.K[0, 0]
         return np.stack([x, y], axis=1)
 
     def undistort(self, pts: NDArray[np.floating[Any]]) -> NDArray[np.float64]:
@@ -172,7 +176,7 @@ class CameraModel:
     def to_pixels(self, xn: NDArray[np.float64]) -> NDArray[np.float64]:
         """(N, 2) normalized coordinates -> (N, 2) ideal pinhole pixels."""
         K = self.K
-        u = K[0, 0] * xn[:, 0] + K[0, 1] * xn[:, 1] + K[0, 2]
+        u = K[0, 0] * xn[:, 0] + K[0, 2]
         v = K[1, 1] * xn[:, 1] + K[1, 2]
         return np.stack([u, v], axis=1)
 
@@ -180,7 +184,7 @@ class CameraModel:
         """(N, 3) points in the camera optical frame -> (N, 2) raw (distorted) pixels."""
         X_c = np.asarray(X_c, dtype=np.float64).reshape(-1, 1, 3)
         zero = np.zeros(3)
-        if self.model is DistortionModel.EQUIDISTANT:
+        if self.model is DistortionModel.EQUIDISTANT and self.is_distorted:
             out, _ = cv2.fisheye.projectPoints(X_c, zero, zero, self.K, self.D)
         else:
             out, _ = cv2.projectPoints(X_c, zero, zero, self.K, self.D)

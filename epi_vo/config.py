@@ -123,10 +123,22 @@ def validate(cfg: VoConfig) -> None:
             problems.append(f"{f.name}={value!r} (minimum {lo})")
         if hi is not None and value > hi:
             problems.append(f"{f.name}={value!r} (maximum {hi})")
-    if cfg.klt_window_px % 2 == 0:
+    if isinstance(cfg.klt_window_px, int) and cfg.klt_window_px % 2 == 0:
         problems.append(f"klt_window_px={cfg.klt_window_px} (must be odd)")
     if problems:
         raise ConfigError("invalid epi_vo parameters: " + "; ".join(problems))
+
+
+def _as_float(value: Any) -> Any:
+    """Widen ints, and read strings like '1e4' as ROS 2's YAML parser does (PyYAML leaves them str)."""
+    if isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if isinstance(value, str):
+        try:
+            return float(value)
+        except ValueError:
+            return value
+    return value
 
 
 def from_dict(values: dict[str, Any], base: VoConfig | None = None) -> VoConfig:
@@ -136,9 +148,8 @@ def from_dict(values: dict[str, Any], base: VoConfig | None = None) -> VoConfig:
     unknown = sorted(set(values) - set(known))
     kwargs: dict[str, Any] = {}
     for name, value in values.items():
-        if name in known and isinstance(known[name].default, float) and isinstance(value, int) \
-                and not isinstance(value, bool):
-            value = float(value)
+        if name in known and isinstance(known[name].default, float):
+            value = _as_float(value)
         if name in known:
             kwargs[name] = value
     cfg = dataclasses.replace(base, **kwargs)

@@ -393,8 +393,12 @@ def refine_pose_pnp(X_ref: F64, uv_cur: F64, K: F64, R_cur_ref: F64, t_cur_ref: 
         proj, _ = cv2.projectPoints(obj, rvec, tvec, K, zero_d)
         return np.linalg.norm(proj.reshape(-1, 2) - uv_cur, axis=1)
 
-    for gate in (4.0, 2.0, 1.0):
-        keep = errors() <= gate * max_reproj_err_px
+    for i, gate in enumerate((4.0, 2.0, 1.0)):
+        err = errors()
+        # The first gate also scales with the median error, so that a coarse start (a degree off)
+        # keeps the consistent majority rather than nothing.
+        limit = gate * max_reproj_err_px if i else max(gate * max_reproj_err_px, 2.0 * float(np.median(err)))
+        keep = err <= limit
         if np.count_nonzero(keep) < 6:
             return None
         rvec, tvec = cv2.solvePnPRefineLM(obj[keep], img[keep], K, zero_d, rvec, tvec)
