@@ -549,7 +549,10 @@ class VoPipeline:
             X_cur[good] = new[good]
             if not parallax and st.n_triangulated == 0:
                 st.reasons.append("keyframe without parallax: no new depth")
-        elif motion.state in (TrackingState.ROTATION_ONLY, TrackingState.INITIALIZING) and (weak or too_old):
+        elif (motion.state is TrackingState.ROTATION_ONLY and (weak or too_old)) or (
+                motion.state is TrackingState.INITIALIZING and (too_old or st.n_tracked < 2 * cfg.min_inliers)):
+            # While initialising the keyframe is kept as long as enough features survive: re-anchoring
+            # on the tracked ratio alone (ORB matches ~half the keyframe) would reset the parallax.
             # Re-anchor without triangulating: under rotation the existing depths stay valid (t = 0).
             X_cur = kf.X_kf[rows] @ R.T
         if X_cur is None:

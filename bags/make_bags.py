@@ -1,0 +1,905 @@
+#!/usr/bin/env python3
+"""Render synthetic scenes with exact camera motion and write them as small ROS 2 bags (MCAP).
+
+Each bag holds a compressed mono image stream, its camera_info and the ground-truth pose, so the tests
+and the demo have sequences whose answer is known exactly. Everything is deterministic: the scenes, the
+trajectories and the sensor noise (seeded per bag) give the same bytes on every run with the same
+OpenCV and numpy.
+
+Conventions
+-----------
+- World frame of every scene: x right, y down, z forward (a level camera's optical frame). The ground
+  plane is ``y = GROUND_Y_M``.
+- ``T_w_c`` (4, 4) maps points from the camera optical frame (x right, y down, z forward) into the world.
+- The written ground truth is ``T_c0_ci = inv(T_w_c0) @ T_w_ci``: the pose of frame i in the optical
+  frame of frame 0, so frame 0 is the identity. Quaternions are written ``quat_xyzw``.
+- Pixel coordinates follow OpenCV: the centre of the top-left pixel is (0, 0).
+
+Rendering
+---------
+Scenes are planar textured rectangles ("quads"). For every supersampled pixel the renderer casts the
+pixel's ray, intersects it analytically with each quad's plane, keeps the nearest hit in front of the
+near plane (a per-pixel z-buffer on the depth along the optical axis), and samples the quad's texture at
+the hit point with trilinear mipmapping (``cv2.remap`` on a Gaussian pyramid). Ray casting makes
+perspective and occlusion exact and clips quads that reach behind the camera without special cases.
+A lens-distorted camera is rendered the same way: each distorted pixel's ray is its undistorted
+normalized coordinate, so the image is the exact plumb_bob image of the scene with no second
+resampling. The 2x supersampled image is reduced with ``INTER_AREA`` (2x2 box anti-aliasing), blurred
+by a small Gaussian point-spread function (the optics; it also keeps the JPEG frames small) and Gaussian
+sensor noise is added.
+
+Run ``.venv/bin/python bags/make_bags.py`` (``--only NAME``, ``--out DIR``) to regenerate the bags.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import math
+import shutil
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import skimage.data
+from numpy.typing import NDArray
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+# --- camera and stream --------------------------------------------------------------------------------
+
+IMAGE_WIDTH = 640
+IMAGE_HEIGHT = 480
+FX = FY = 500.0
+CX = 319.5
+CY = 239.5
+# plumb_bob order: k1, k2, p1, p2, k3. Mild barrel distortion with a little decentring.
+DISTORTION_GENERAL = (-0.08, 0.02, 0.0005, -0.0005, 0.0)
+FPS = 15
+START_NS = 1_000 * 1_000_000_000  # first stamp: 1000.0 s
+NS_PER_S = 1_000_000_000
+JPEG_QUALITY = 90
+LENS_BLUR_SIGMA_PX = 0.6  # Gaussian point-spread function of the optics, in output pixels
+NOISE_SIGMA = 1.5  # gray levels, Gaussian, added after the optics like a real sensor's read noise
+SUPERSAMPLE = 2  # render at 2x and reduce with INTER_AREA: 2x2 box anti-aliasing
+NEAR_M = 0.1  # near plane in the camera frame: hits closer than this along z are discarded
+MIN_CLEARANCE_M = 1.5  # no quad may come nearer than this to any camera centre
+ROS_BAG_VERSION = 8  # rosbag2 metadata version, as in shared/data/kitti06_0-50
+
+IMAGE_TOPIC = "/camera/image_raw/compressed"
+CAMERA_INFO_TOPIC = "/camera/camera_info"
+GROUND_TRUTH_TOPIC = "/ground_truth/pose"
+CAMERA_FRAME_ID = "camera_optical_frame"
+WORLD_FRAME_ID = "world"
+
+GROUND_Y_M = 1.6  # the camera starts 1.6 m above the ground (y points down)
+
+Matrix4 = NDArray[np.float64]
+FloatImage = NDArray[np.float32]
+
+
+class SceneError(Exception):
+    """A scene or trajectory that breaks the rules the bags promise (clearance, full coverage)."""
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """Pinhole camera with optional plumb_bob distortion.
+
+    ``K`` (3, 3) intrinsics; ``D`` (5,) plumb_bob coefficients k1, k2, p1, p2, k3.
+    """
+
+    width: int
+    height: int
+    K: NDArray[np.float64]
+    D: NDArray[np.float64]
+
+    @property
+    def is_distorted(self) -> bool:
+        return bool(np.any(self.D != 0.0))
+
+
+def make_camera(distortion: Sequence[float] = (0.0, 0.0, 0.0, 0.0, 0.0)) -> CameraModel:
+    """The 640x480 camera of every bag, fx = fy = 500, principal point at the image centre."""
+    K = np.array([[FX, 0.0, CX], [0.0, FY, CY], [0.0, 0.0, 1.0]])
+    return CameraModel(IMAGE_WIDTH, IMAGE_HEIGHT, K, np.asarray(distortion, dtype=np.float64))
+
+
+@dataclass(frozen=True)
+class Quad:
+    """A textured rectangle in the world.
+
+    The texture's top-left corner sits at ``origin_w`` (3,), its columns run along ``edge_u_w`` (3,)
+    and its rows along ``edge_v_w`` (3,); the two edges are orthogonal and span the whole rectangle
+    (metres, world frame). The texture repeats ``repeat_u`` x ``repeat_v`` times, mirrored at each
+    seam so tiles join without edges. Rendered intensity is ``gain * texture + offset``.
+    """
+
+    origin_w: tuple[float, float, float]
+    edge_u_w: tuple[float, float, float]
+    edge_v_w: tuple[float, float, float]
+    texture: str
+    repeat_u: float = 1.0
+    repeat_v: float = 1.0
+    gain: float = 1.0
+    offset: float = 0.0
+
+    def __post_init__(self) -> None:
+        eu, ev = np.asarray(self.edge_u_w), np.asarray(self.edge_v_w)
+        # Texture coordinates are projections on the edges: only exact for a rectangle.
+        if abs(float(eu @ ev)) > 1e-9 * float(np.linalg.norm(eu) * np.linalg.norm(ev)):
+            msg = f"quad edges are not orthogonal: {self.edge_u_w} and {self.edge_v_w}"
+            raise SceneError(msg)
+
+
+@dataclass(frozen=True)
+class BagSpec:
+    """Everything one bag is made from: scene, camera, trajectory ``T_w_c`` (N, 4, 4) and noise seed."""
+
+    name: str
+    quads: tuple[Quad, ...]
+    camera: CameraModel
+    T_w_c: NDArray[np.float64]
+    noise_seed: int
+
+
+# --- small geometry helpers -----------------------------------------------------------------------------
+
+
+def rot_x(angle_rad: float) -> NDArray[np.float64]:
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def rot_y(angle_rad: float) -> NDArray[np.float64]:
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rot_z(angle_rad: float) -> NDArray[np.float64]:
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def camera_rotation(yaw_rad: float, pitch_rad: float, roll_rad: float) -> NDArray[np.float64]:
+    """``R_w_c`` of a camera that pans by yaw (about world y, positive turns right), then tilts by pitch
+    (about its x, positive looks down) and rolls (about its z)."""
+    return rot_y(yaw_rad) @ rot_x(pitch_rad) @ rot_z(roll_rad)
+
+
+def se3(R: NDArray[np.float64], t: Sequence[float] | NDArray[np.float64]) -> Matrix4:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t, dtype=np.float64)
+    return T
+
+
+def invert_se3(T: Matrix4) -> Matrix4:
+    R = T[:3, :3]
+    return se3(R.T, -R.T @ T[:3, 3])
+
+
+def quat_xyzw_from_rotation(R: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Unit quaternion (x, y, z, w) of rotation matrix ``R`` (3, 3), with w >= 0 (Shepperd's method)."""
+    trace = float(np.trace(R))
+    if trace > 0.0:
+        s = 2.0 * math.sqrt(trace + 1.0)
+        q = np.array([(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s])
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        q = np.array([0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s])
+    elif R[1, 1] > R[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        q = np.array([(R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s])
+    else:
+        s = 2.0 * math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        q = np.array([(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s, (R[1, 0] - R[0, 1]) / s])
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0.0 else q
+
+
+def poses_relative_to_first(T_w_c: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``T_c0_ci = inv(T_w_c0) @ T_w_ci`` for every pose in ``T_w_c`` (N, 4, 4): frame 0 becomes identity.
+
+    The translation is formed as ``R_w_c0^T (c_i - c_0)`` so that a camera centre that does not move
+    gives exactly zero (the pure-rotation bag relies on it).
+    """
+    R_w_c0, c0 = T_w_c[0, :3, :3], T_w_c[0, :3, 3]
+    relative = np.empty_like(T_w_c)
+    for i, T in enumerate(T_w_c):
+        relative[i] = se3(R_w_c0.T @ T[:3, :3], R_w_c0.T @ (T[:3, 3] - c0) + 0.0)  # + 0.0 turns -0.0 into 0.0
+    return relative
+
+
+def stamp_ns(frame_index: int) -> int:
+    """Stamp of frame i: 1000 s + i / 15 s, rounded to the nearest integer nanosecond."""
+    return START_NS + (frame_index * NS_PER_S + FPS // 2) // FPS
+
+
+# --- textures ---------------------------------------------------------------------------------------------
+
+# Photographs bundled with scikit-image (public domain or CC0, see bags/README.md).
+PHOTO_TEXTURES = (
+    "astronaut",
+    "brick",
+    "camera",
+    "chelsea",
+    "coffee",
+    "coins",
+    "grass",
+    "gravel",
+    "hubble_deep_field",
+    "rocket",
+    "text",
+)
+MOSAIC_TEXTURE = "poster_mosaic"
+MOSAIC_GRID = (6, 9)  # rows, columns of photographs on the poster wall
+MOSAIC_TILE_PX = 256
+MOSAIC_SEED = 7
+
+
+def _poster_mosaic() -> NDArray[np.uint8]:
+    """A wall of square photo crops (``MOSAIC_GRID`` of ``MOSAIC_TILE_PX`` pixels), seeded.
+
+    Each tile is a different crop (60-100 % of the short side, random position) of the photographs in
+    turn, so no two tiles are alike and every view of the wall holds several photographs: small tiles
+    keep large uniform regions (a cup's black inside) from filling the image.
+    """
+    rng = np.random.default_rng(MOSAIC_SEED)
+    rows, cols = MOSAIC_GRID
+    tiles = []
+    for index in range(rows * cols):
+        photo = load_texture(PHOTO_TEXTURES[index % len(PHOTO_TEXTURES)])
+        h, w = photo.shape
+        side = int(min(h, w) * rng.uniform(0.6, 1.0))
+        top, left = int(rng.integers(0, h - side + 1)), int(rng.integers(0, w - side + 1))
+        crop = photo[top : top + side, left : left + side]
+        shrink = cv2.INTER_AREA if side >= MOSAIC_TILE_PX else cv2.INTER_LINEAR
+        tiles.append(cv2.resize(crop, (MOSAIC_TILE_PX, MOSAIC_TILE_PX), interpolation=shrink))
+    return np.vstack([np.hstack(tiles[r * cols : (r + 1) * cols]) for r in range(rows)])
+
+
+@functools.cache
+def load_texture(name: str) -> NDArray[np.uint8]:
+    """Grayscale uint8 texture by name: a scikit-image photograph or the poster mosaic built from them."""
+    if name == MOSAIC_TEXTURE:
+        return _poster_mosaic()
+    if name not in PHOTO_TEXTURES:
+        msg = f"unknown texture {name!r}; expected one of {(*PHOTO_TEXTURES, MOSAIC_TEXTURE)}"
+        raise SceneError(msg)
+    image = np.asarray(getattr(skimage.data, name)())
+    if image.ndim == 3:
+        image = cv2.cvtColor(image[..., :3], cv2.COLOR_RGB2GRAY)
+    return np.ascontiguousarray(image, dtype=np.uint8)
+
+
+def texture_aspect(name: str) -> float:
+    """Height over width of a texture."""
+    h, w = load_texture(name).shape
+    return h / w
+
+
+@functools.cache
+def texture_pyramid(name: str) -> tuple[FloatImage, ...]:
+    """Mipmap pyramid (float32, level 0 full size) of a texture, down to about 8 pixels."""
+    levels = [load_texture(name).astype(np.float32)]
+    while min(levels[-1].shape) >= 16:
+        levels.append(cv2.pyrDown(levels[-1]))
+    return tuple(levels)
+
+
+# --- scene building ---------------------------------------------------------------------------------------
+
+DOWN_W = np.array([0.0, 1.0, 0.0])
+
+
+def wall_quad(
+    center_w: Sequence[float],
+    facing_w: Sequence[float],
+    width_m: float,
+    height_m: float | None,
+    texture: str,
+    *,
+    tile_m: float | None = None,
+    gain: float = 1.0,
+    offset: float = 0.0,
+) -> Quad:
+    """An upright rectangle centred at ``center_w`` whose front faces the horizontal direction ``facing_w``.
+
+    The texture reads upright and unmirrored from the front. ``height_m=None`` keeps the texture's
+    aspect ratio; ``tile_m`` repeats the texture every ``tile_m`` metres horizontally (None: stretch once).
+    """
+    facing = np.asarray(facing_w, dtype=np.float64)
+    facing = facing / np.linalg.norm(facing)
+    right = np.cross(DOWN_W, -facing)  # viewer looks along -facing with y down: right = down x forward
+    aspect = texture_aspect(texture)
+    if height_m is None:
+        height_m = width_m * aspect
+    if tile_m is None:
+        repeat_u, repeat_v = 1.0, 1.0
+    else:
+        repeat_u, repeat_v = width_m / tile_m, height_m / (tile_m * aspect)
+    origin = np.asarray(center_w, dtype=np.float64) - 0.5 * width_m * right - 0.5 * height_m * DOWN_W
+    return Quad(
+        tuple(origin), tuple(width_m * right), tuple(height_m * DOWN_W), texture, repeat_u, repeat_v, gain, offset
+    )
+
+
+def horizontal_quad(
+    y_m: float,
+    x_range: tuple[float, float],
+    z_range: tuple[float, float],
+    texture: str,
+    tile_m: float,
+    gain: float = 1.0,
+    offset: float = 0.0,
+) -> Quad:
+    """A horizontal rectangle at height ``y_m`` (ground or ceiling), texture tiled every ``tile_m`` metres."""
+    width, depth = x_range[1] - x_range[0], z_range[1] - z_range[0]
+    return Quad(
+        (x_range[0], y_m, z_range[1]),
+        (width, 0.0, 0.0),
+        (0.0, 0.0, -depth),
+        texture,
+        width / tile_m,
+        depth / (tile_m * texture_aspect(texture)),
+        gain,
+        offset,
+    )
+
+
+def box_quads(
+    center_x: float,
+    center_z: float,
+    size_x: float,
+    size_z: float,
+    height: float,
+    texture: str,
+    gain: float = 1.0,
+    offset: float = 0.0,
+) -> list[Quad]:
+    """An axis-aligned box standing on the ground: four sides facing outwards and a tiled top.
+
+    The side faces (normals along x) are shaded 15 % darker and the top 10 % brighter, as under sky light.
+    """
+    cy = GROUND_Y_M - 0.5 * height
+    hx, hz = 0.5 * size_x, 0.5 * size_z
+    sides = [
+        wall_quad((center_x, cy, center_z - hz), (0, 0, -1), size_x, height, texture, gain=gain, offset=offset),
+        wall_quad((center_x, cy, center_z + hz), (0, 0, 1), size_x, height, texture, gain=gain, offset=offset),
+        wall_quad((center_x - hx, cy, center_z), (-1, 0, 0), size_z, height, texture, gain=0.85 * gain, offset=offset),
+        wall_quad((center_x + hx, cy, center_z), (1, 0, 0), size_z, height, texture, gain=0.85 * gain, offset=offset),
+    ]
+    top = horizontal_quad(
+        GROUND_Y_M - height,
+        (center_x - hx, center_x + hx),
+        (center_z - hz, center_z + hz),
+        texture,
+        max(size_x, size_z),
+        1.1 * gain,
+        offset,
+    )
+    return [*sides, top]
+
+
+def courtyard_scene() -> tuple[Quad, ...]:
+    """A closed courtyard 14 m wide (ground, four facades, a ceiling that is never in view) with posters
+    on the facades, and boxes, pillars and a free-standing billboard spread over 2.5-13 m in front of the
+    start pose, so tracked points cover many depths rather than crowding on the far wall."""
+    x_wall, z_back, z_front, y_top = 7.0, 16.0, -8.0, GROUND_Y_M - 18.0
+    wall_h, wall_cy = GROUND_Y_M - y_top, 0.5 * (GROUND_Y_M + y_top)
+    z_mid, z_len = 0.5 * (z_back + z_front), z_back - z_front
+    quads: list[Quad] = [
+        horizontal_quad(GROUND_Y_M, (-x_wall, x_wall), (z_front, z_back), "gravel", 3.0, 0.9),
+        horizontal_quad(y_top, (-x_wall, x_wall), (z_front, z_back), "hubble_deep_field", 12.0, 0.6),
+        # The back wall's bricks are toned down: at full contrast they would take most corners.
+        wall_quad((0.0, wall_cy, z_back), (0, 0, -1), 2 * x_wall, wall_h, "brick", tile_m=3.0, gain=0.6, offset=40.0),
+        wall_quad((0.0, wall_cy, z_front), (0, 0, 1), 2 * x_wall, wall_h, "brick", tile_m=3.0, gain=0.8),
+        wall_quad((-x_wall, wall_cy, z_mid), (1, 0, 0), z_len, wall_h, "brick", tile_m=2.5, gain=0.7, offset=20.0),
+        wall_quad((x_wall, wall_cy, z_mid), (-1, 0, 0), z_len, wall_h, "grass", tile_m=3.5, gain=1.1),
+        # posters 5 cm in front of the facades
+        wall_quad((-4.0, -1.0, z_back - 0.05), (0, 0, -1), 5.0, None, "rocket"),
+        wall_quad((1.0, -3.8, z_back - 0.05), (0, 0, -1), 4.5, None, "astronaut"),
+        wall_quad((4.8, -0.3, z_back - 0.05), (0, 0, -1), 3.5, None, "hubble_deep_field"),
+        wall_quad((-x_wall + 0.05, -1.0, 9.0), (1, 0, 0), 4.0, None, "chelsea"),
+        wall_quad((-x_wall + 0.05, -2.0, 13.5), (1, 0, 0), 3.5, None, "camera"),
+        wall_quad((x_wall - 0.05, -1.0, 8.0), (-1, 0, 0), 4.0, None, "coffee"),
+        wall_quad((x_wall - 0.05, -2.5, 13.0), (-1, 0, 0), 3.5, None, "coins"),
+        # a free-standing billboard with open space below it (occlusion edges against the back wall)
+        wall_quad((2.2, -0.6, 11.0), (0, 0, -1), 3.0, None, "text", gain=0.9, offset=15.0),
+    ]
+    quads += box_quads(2.0, 3.1, 1.0, 1.0, 1.0, "coffee")
+    quads += box_quads(-2.7, 5.0, 1.0, 1.0, 1.4, "chelsea")
+    quads += box_quads(-3.6, 7.4, 0.8, 0.8, 0.9, "coffee", gain=0.9)
+    quads += box_quads(1.3, 6.2, 0.8, 0.8, 1.6, "gravel", gain=1.1)
+    quads += box_quads(-1.8, 6.5, 0.5, 0.5, 3.5, "brick", gain=0.9)
+    quads += box_quads(3.25, 7.0, 1.5, 1.0, 2.6, "coins", gain=1.2)
+    quads += box_quads(-0.1, 9.0, 1.4, 1.2, 2.0, "camera")
+    quads += box_quads(-4.25, 10.0, 1.5, 1.5, 3.0, "rocket")
+    quads += box_quads(4.6, 11.5, 1.2, 1.2, 1.8, "hubble_deep_field", gain=1.3, offset=20.0)
+    quads += box_quads(0.9, 12.5, 0.6, 0.6, 4.5, "grass")
+    return tuple(quads)
+
+
+def smooth_trajectory(
+    n_frames: int, position: Callable[[float], Sequence[float]], angles: Callable[[float], Sequence[float]]
+) -> NDArray[np.float64]:
+    """``T_w_c`` (N, 4, 4) sampled at s = i / (N - 1) from a position and (yaw, pitch, roll) in radians."""
+    poses = []
+    for i in range(n_frames):
+        s = i / (n_frames - 1)
+        yaw, pitch, roll = angles(s)
+        poses.append(se3(camera_rotation(yaw, pitch, roll), position(s)))
+    return np.stack(poses)
+
+
+def general_motion_spec(n_frames: int = 52) -> BagSpec:
+    """Courtyard scene, distorted camera, walking pace (about 1.2 m/s) along a gentle S curve: 3.8 m
+    forward, +-0.5 m sideways, 0.12 m up (4.4 m path). The camera keeps looking towards a point about
+    6 m ahead (yaw against the sideways motion, +-5 deg) as a person walking would; pitch and roll stay
+    within 1.5 deg."""
+    deg = math.pi / 180.0
+
+    def position(s: float) -> tuple[float, float, float]:
+        return 0.5 * math.sin(2 * math.pi * s), -0.12 * math.sin(math.pi * s), 3.8 * s
+
+    def angles(s: float) -> tuple[float, float, float]:
+        yaw = -5.0 * deg * math.sin(2 * math.pi * s) + 1.5 * deg * math.sin(math.pi * s)
+        pitch = 1.5 * deg * math.sin(3 * math.pi * s)
+        roll = 1.5 * deg * math.sin(math.pi * s + 0.3)
+        return yaw, pitch, roll
+
+    return BagSpec(
+        "general_motion",
+        courtyard_scene(),
+        make_camera(DISTORTION_GENERAL),
+        smooth_trajectory(n_frames, position, angles),
+        noise_seed=1,
+    )
+
+
+def pure_rotation_spec(n_frames: int = 52) -> BagSpec:
+    """Courtyard scene, camera centre fixed at (0.3, -0.1, 1.0): pan -11 -> +11 deg, tilt within 3 deg."""
+    deg = math.pi / 180.0
+
+    def position(s: float) -> tuple[float, float, float]:
+        return 0.3, -0.1, 1.0
+
+    def angles(s: float) -> tuple[float, float, float]:
+        yaw = 22.0 * deg * (s - 0.5) + 1.0 * deg * math.sin(2 * math.pi * s)
+        pitch = 3.0 * deg * math.sin(math.pi * s) - 1.0 * deg
+        roll = 1.0 * deg * math.sin(2 * math.pi * s)
+        return yaw, pitch, roll
+
+    return BagSpec(
+        "pure_rotation", courtyard_scene(), make_camera(), smooth_trajectory(n_frames, position, angles), noise_seed=2
+    )
+
+
+def planar_scene() -> tuple[Quad, ...]:
+    """One 12 m x 8 m poster wall (9 x 6 photographs) 3.5 m ahead, turned 15 deg about the vertical, so the
+    part in view lies 3-4 m away."""
+    facing = rot_y(15.0 * math.pi / 180.0) @ np.array([0.0, 0.0, -1.0])
+    return (wall_quad((0.0, 0.0, 3.5), facing, 12.0, None, MOSAIC_TEXTURE),)
+
+
+def planar_spec(n_frames: int = 60) -> BagSpec:
+    """Single plane; camera moves 0.7 m sideways and 0.35 m forward (0.78 m) with a few degrees of rotation."""
+    deg = math.pi / 180.0
+
+    def position(s: float) -> tuple[float, float, float]:
+        return -0.35 + 0.7 * s, 0.05 * math.sin(math.pi * s), 0.35 * s
+
+    def angles(s: float) -> tuple[float, float, float]:
+        yaw = -2.0 * deg + 5.0 * deg * s
+        pitch = 1.5 * deg * math.sin(2 * math.pi * s)
+        roll = 1.0 * deg * math.sin(math.pi * s)
+        return yaw, pitch, roll
+
+    return BagSpec("planar", planar_scene(), make_camera(), smooth_trajectory(n_frames, position, angles), noise_seed=3)
+
+
+SPECS: dict[str, Callable[[], BagSpec]] = {
+    "general_motion": general_motion_spec,
+    "pure_rotation": pure_rotation_spec,
+    "planar": planar_spec,
+}
+
+
+def quad_distance(quad: Quad, point_w: NDArray[np.float64]) -> float:
+    """Euclidean distance (m) from ``point_w`` (3,) to the nearest point of the rectangle."""
+    origin, eu, ev = (np.asarray(v) for v in (quad.origin_w, quad.edge_u_w, quad.edge_v_w))
+    rel = point_w - origin
+    a = float(np.clip(rel @ eu / (eu @ eu), 0.0, 1.0))
+    b = float(np.clip(rel @ ev / (ev @ ev), 0.0, 1.0))
+    return float(np.linalg.norm(rel - a * eu - b * ev))
+
+
+def min_clearance_m(quads: Sequence[Quad], T_w_c: NDArray[np.float64]) -> float:
+    """Smallest distance between any camera centre of ``T_w_c`` (N, 4, 4) and any quad."""
+    return min(quad_distance(q, T[:3, 3]) for T in T_w_c for q in quads)
+
+
+# --- renderer -------------------------------------------------------------------------------------------
+
+
+def distort_normalized(
+    xn: NDArray[np.float64], yn: NDArray[np.float64], D: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """plumb_bob forward model on normalized coordinates (the model cv2.projectPoints applies)."""
+    k1, k2, p1, p2, k3 = D
+    r2 = xn * xn + yn * yn
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn)
+    yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
+    return xd, yd
+
+
+def pixel_rays(camera: CameraModel, supersample: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Normalized ray coordinates (x/z, y/z), each (H*s, W*s), of the supersampled pixel centres.
+
+    Sub-pixel j of pixel u sits at u + (j + 0.5) / s - 0.5. For a distorted camera the coordinates
+    are undistorted: ``cv2.undistortPoints`` gives the start, fixed-point iterations of the plumb_bob
+    model polish it to below 1e-10 (5e-8 px) so the rendered image is the exact distorted image of the scene.
+    """
+    offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
+    us = (np.arange(camera.width)[:, None] + offsets[None, :]).ravel()
+    vs = (np.arange(camera.height)[:, None] + offsets[None, :]).ravel()
+    u_grid, v_grid = np.meshgrid(us, vs)
+    K = camera.K
+    if not camera.is_distorted:
+        return (u_grid - K[0, 2]) / K[0, 0], (v_grid - K[1, 2]) / K[1, 1]
+    pixels = np.stack([u_grid.ravel(), v_grid.ravel()], axis=1).reshape(-1, 1, 2)
+    xn_start = cv2.undistortPoints(pixels, K, camera.D).reshape(-1, 2)
+    xd_target = (u_grid.ravel() - K[0, 2]) / K[0, 0]
+    yd_target = (v_grid.ravel() - K[1, 2]) / K[1, 1]
+    xn, yn = xn_start[:, 0].astype(np.float64), xn_start[:, 1].astype(np.float64)
+    for _ in range(50):
+        xd, yd = distort_normalized(xn, yn, camera.D)
+        xn, yn = xn + (xd_target - xd), yn + (yd_target - yd)
+    xd, yd = distort_normalized(xn, yn, camera.D)
+    residual = max(float(np.abs(xd - xd_target).max()), float(np.abs(yd - yd_target).max()))
+    if residual > 1e-10:
+        msg = f"undistortion did not converge (normalized residual {residual:.2e}); distortion too strong"
+        raise SceneError(msg)
+    return xn.reshape(u_grid.shape), yn.reshape(u_grid.shape)
+
+
+def _clip_near(corners_c: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Sutherland-Hodgman clip of a polygon (M, 3) in the camera frame to z >= NEAR_M."""
+    out = []
+    m = len(corners_c)
+    for i in range(m):
+        a, b = corners_c[i], corners_c[(i + 1) % m]
+        a_in, b_in = a[2] >= NEAR_M, b[2] >= NEAR_M
+        if a_in:
+            out.append(a)
+        if a_in != b_in:
+            out.append(a + (NEAR_M - a[2]) / (b[2] - a[2]) * (b - a))
+    return np.array(out).reshape(-1, 3)
+
+
+def _sample_trilinear(
+    pyramid: Sequence[FloatImage], fu: FloatImage, fv: FloatImage, level: FloatImage, inside: NDArray[np.bool_]
+) -> FloatImage:
+    """Sample a mipmap pyramid at fractional texture coordinates ``fu``, ``fv`` in [0, 1] with per-pixel
+    level of detail ``level`` (0 = full resolution), blending the two nearest levels."""
+    level = np.clip(level, 0.0, len(pyramid) - 1.0)
+    lo = int(np.floor(level[inside].min()))
+    hi = min(int(np.ceil(level[inside].max())), len(pyramid) - 1)
+    result = np.zeros(fu.shape, np.float32)
+    for index in range(lo, hi + 1):
+        weight = np.clip(1.0 - np.abs(level - index), 0.0, 1.0).astype(np.float32)
+        tex = pyramid[index]
+        h, w = tex.shape
+        map_x = (fu * w - 0.5).astype(np.float32)
+        map_y = (fv * h - 0.5).astype(np.float32)
+        result += weight * cv2.remap(tex, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    return result
+
+
+def _mirror_fold(x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Fold a coordinate in texture repeats onto [0, 1], mirroring every other tile (seamless tiling)."""
+    m = np.mod(x, 2.0)
+    return np.where(m > 1.0, 2.0 - m, m)
+
+
+def sensor_image(ideal: FloatImage, noise_rng: np.random.Generator | None) -> NDArray[np.uint8]:
+    """Quantize an ideal image (H, W) to uint8, first adding Gaussian noise of ``NOISE_SIGMA`` gray levels
+    drawn from ``noise_rng`` (if given)."""
+    image = ideal
+    if noise_rng is not None:
+        image = ideal + noise_rng.normal(0.0, NOISE_SIGMA, ideal.shape).astype(np.float32)
+    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+@dataclass(frozen=True)
+class RenderResult:
+    """A noise-free rendering: ``image`` (H, W) float32 gray levels after the optics, ``coverage`` (H, W) fraction of
+    sub-pixels that hit a quad, ``depth`` (H, W) mean z in the camera frame of the covered sub-pixels."""
+
+    image: FloatImage
+    coverage: FloatImage
+    depth: FloatImage
+
+
+class Renderer:
+    """Ray-casting renderer of a fixed scene for a fixed camera; ``render(T_w_c)`` gives the uint8 image."""
+
+    def __init__(self, quads: Sequence[Quad], camera: CameraModel, supersample: int = SUPERSAMPLE) -> None:
+        self.quads = tuple(quads)
+        self.camera = camera
+        self.supersample = supersample
+        self._xn, self._yn = pixel_rays(camera, supersample)
+
+    def render_ideal(self, T_w_c: Matrix4) -> RenderResult:
+        """Noise-free image of the scene seen from ``T_w_c`` (4, 4), with coverage and depth."""
+        T_c_w = invert_se3(np.asarray(T_w_c, dtype=np.float64))
+        R_c_w, t_c_w = T_c_w[:3, :3], T_c_w[:3, 3]
+        shape = self._xn.shape
+        zbuf = np.full(shape, np.inf)
+        image = np.zeros(shape, np.float32)
+        for quad in self.quads:
+            self._draw_quad(quad, R_c_w, t_c_w, zbuf, image)
+        covered = np.isfinite(zbuf)
+        s = self.supersample
+        size = (self.camera.width, self.camera.height)
+        coverage = cv2.resize(covered.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+        depth_sum = cv2.resize(np.where(covered, zbuf, 0.0).astype(np.float32), size, interpolation=cv2.INTER_AREA)
+        depth = np.where(coverage > 0, depth_sum / np.maximum(coverage, 1.0 / (s * s)), np.inf).astype(np.float32)
+        small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        blurred = cv2.GaussianBlur(small, (0, 0), LENS_BLUR_SIGMA_PX, borderType=cv2.BORDER_REFLECT)
+        return RenderResult(blurred, coverage, depth)
+
+    def render(self, T_w_c: Matrix4, noise_rng: np.random.Generator | None = None) -> NDArray[np.uint8]:
+        """uint8 image from ``T_w_c`` (4, 4); sensor noise when a generator is given, none otherwise."""
+        return sensor_image(self.render_ideal(T_w_c).image, noise_rng)
+
+    def _draw_quad(
+        self,
+        quad: Quad,
+        R_c_w: NDArray[np.float64],
+        t_c_w: NDArray[np.float64],
+        zbuf: NDArray[np.float64],
+        image: FloatImage,
+    ) -> None:
+        """Ray-cast one quad into the supersampled ``image`` where it is nearer than ``zbuf`` (both updated)."""
+        origin_c = R_c_w @ np.asarray(quad.origin_w) + t_c_w
+        eu_c = R_c_w @ np.asarray(quad.edge_u_w)
+        ev_c = R_c_w @ np.asarray(quad.edge_v_w)
+        corners_c = np.array([origin_c, origin_c + eu_c, origin_c + eu_c + ev_c, origin_c + ev_c])
+        polygon_c = _clip_near(corners_c)
+        if len(polygon_c) < 3:
+            return  # entirely behind the near plane
+        # Rays can only hit the quad inside the bounding box of its (near-clipped) projection.
+        x_proj, y_proj = polygon_c[:, 0] / polygon_c[:, 2], polygon_c[:, 1] / polygon_c[:, 2]
+        in_box = (
+            (self._xn >= x_proj.min())
+            & (self._xn <= x_proj.max())
+            & (self._yn >= y_proj.min())
+            & (self._yn <= y_proj.max())
+        )
+        rows, cols = np.flatnonzero(in_box.any(axis=1)), np.flatnonzero(in_box.any(axis=0))
+        if rows.size == 0 or cols.size == 0:
+            return
+        window = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+        xn, yn = self._xn[window], self._yn[window]
+
+        # Plane n . X = d in the camera frame; the ray X = z (xn, yn, 1) meets it at z = d / (n . ray).
+        normal_c = np.cross(eu_c, ev_c)
+        plane_d = float(normal_c @ origin_c)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = plane_d / (normal_c[0] * xn + normal_c[1] * yn + normal_c[2])
+            # Rectangle coordinates of the hit: a = (X - origin) . eu / |eu|^2, likewise b along ev.
+            a = (z * (eu_c[0] * xn + eu_c[1] * yn + eu_c[2]) - eu_c @ origin_c) / (eu_c @ eu_c)
+            b = (z * (ev_c[0] * xn + ev_c[1] * yn + ev_c[2]) - ev_c @ origin_c) / (ev_c @ ev_c)
+        zbuf_window = zbuf[window]
+        visible = (z > NEAR_M) & (z < zbuf_window) & (a >= 0.0) & (a <= 1.0) & (b >= 0.0) & (b <= 1.0)
+        if not visible.any():
+            return
+
+        # Texture coordinates in repeats (unfolded) drive the level of detail: texels per sub-pixel.
+        tex_h, tex_w = load_texture(quad.texture).shape
+        u_rep, v_rep = a * quad.repeat_u, b * quad.repeat_v
+        safe_u, safe_v = np.where(visible, u_rep, 0.0), np.where(visible, v_rep, 0.0)
+        dux, duy = (np.abs(g) * tex_w for g in _gradients(safe_u, visible))
+        dvx, dvy = (np.abs(g) * tex_h for g in _gradients(safe_v, visible))
+        footprint = np.maximum(np.hypot(dux, dvx), np.hypot(duy, dvy))
+        level = np.log2(np.maximum(footprint, 1.0)).astype(np.float32)
+        fu = _mirror_fold(safe_u).astype(np.float32)
+        fv = _mirror_fold(safe_v).astype(np.float32)
+        sample = _sample_trilinear(texture_pyramid(quad.texture), fu, fv, level, visible)
+        shaded = quad.gain * sample + quad.offset
+        image_window = image[window]
+        image_window[visible] = shaded[visible]
+        zbuf_window[visible] = z[visible]
+
+
+def _gradients(
+    values: NDArray[np.float64], valid: NDArray[np.bool_]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Per-pixel derivatives along x and y of a field defined where ``valid``; one-sided at the edges
+    of the valid region so a silhouette does not inflate the footprint."""
+    gx = np.zeros_like(values)
+    gy = np.zeros_like(values)
+    if values.shape[1] > 1:
+        dx = np.diff(values, axis=1)
+        ok = valid[:, 1:] & valid[:, :-1]
+        dx = np.where(ok, dx, np.nan)
+        fwd = np.concatenate([dx, np.full((values.shape[0], 1), np.nan)], axis=1)
+        bwd = np.concatenate([np.full((values.shape[0], 1), np.nan), dx], axis=1)
+        gx = np.where(np.isnan(fwd), np.nan_to_num(bwd), fwd)
+    if values.shape[0] > 1:
+        dy = np.diff(values, axis=0)
+        ok = valid[1:, :] & valid[:-1, :]
+        dy = np.where(ok, dy, np.nan)
+        fwd = np.concatenate([dy, np.full((1, values.shape[1]), np.nan)], axis=0)
+        bwd = np.concatenate([np.full((1, values.shape[1]), np.nan), dy], axis=0)
+        gy = np.where(np.isnan(fwd), np.nan_to_num(bwd), fwd)
+    return gx, gy
+
+
+# --- bag writing ----------------------------------------------------------------------------------------
+
+TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+IMAGE_MSGTYPE = "sensor_msgs/msg/CompressedImage"
+CAMERA_INFO_MSGTYPE = "sensor_msgs/msg/CameraInfo"
+POSE_MSGTYPE = "geometry_msgs/msg/PoseStamped"
+
+
+def _header(stamp: int, frame_id: str) -> object:
+    types = TYPESTORE.types
+    time_msg = types["builtin_interfaces/msg/Time"](sec=stamp // NS_PER_S, nanosec=stamp % NS_PER_S)
+    return types["std_msgs/msg/Header"](stamp=time_msg, frame_id=frame_id)
+
+
+def camera_info_msg(camera: CameraModel, stamp: int) -> object:
+    """sensor_msgs/CameraInfo: plumb_bob, R = identity, P = [K | 0], no binning, empty ROI."""
+    types = TYPESTORE.types
+    P = np.hstack([camera.K, np.zeros((3, 1))])
+    roi = types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    return types[CAMERA_INFO_MSGTYPE](
+        header=_header(stamp, CAMERA_FRAME_ID),
+        height=camera.height,
+        width=camera.width,
+        distortion_model="plumb_bob",
+        d=camera.D.astype(np.float64).copy(),
+        k=camera.K.ravel().astype(np.float64),
+        r=np.eye(3).ravel(),
+        p=P.ravel(),
+        binning_x=0,
+        binning_y=0,
+        roi=roi,
+    )
+
+
+def compressed_image_msg(image: NDArray[np.uint8], stamp: int) -> object:
+    """sensor_msgs/CompressedImage with a mono JPEG (quality ``JPEG_QUALITY``)."""
+    ok, encoded = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    if not ok:
+        msg = "cv2.imencode failed to encode a JPEG frame"
+        raise SceneError(msg)
+    return TYPESTORE.types[IMAGE_MSGTYPE](
+        header=_header(stamp, CAMERA_FRAME_ID), format="jpeg", data=np.asarray(encoded, dtype=np.uint8).ravel()
+    )
+
+
+def pose_msg(T_c0_ci: Matrix4, stamp: int) -> object:
+    """geometry_msgs/PoseStamped in frame ``world`` (= optical frame of frame 0)."""
+    types = TYPESTORE.types
+    qx, qy, qz, qw = quat_xyzw_from_rotation(T_c0_ci[:3, :3])
+    tx, ty, tz = T_c0_ci[:3, 3]
+    pose = types["geometry_msgs/msg/Pose"](
+        position=types["geometry_msgs/msg/Point"](x=float(tx), y=float(ty), z=float(tz)),
+        orientation=types["geometry_msgs/msg/Quaternion"](x=float(qx), y=float(qy), z=float(qz), w=float(qw)),
+    )
+    return types[POSE_MSGTYPE](header=_header(stamp, WORLD_FRAME_ID), pose=pose)
+
+
+def format_stamp(stamp: int) -> str:
+    return f"{stamp // NS_PER_S}.{stamp % NS_PER_S:09d}"
+
+
+def tum_lines(T_c0_ci: NDArray[np.float64]) -> list[str]:
+    """TUM ground truth lines for ``T_c0_ci`` (N, 4, 4), with the convention as a leading comment."""
+    lines = [
+        "# timestamp tx ty tz qx qy qz qw: camera optical frame (x right, y down, z forward) pose relative to "
+        "frame 0 (T_c0_ci), metres; stamps equal the bag image stamps"
+    ]
+    for i, T in enumerate(T_c0_ci):
+        q = quat_xyzw_from_rotation(T[:3, :3])
+        values = " ".join(f"{v:.9f}" for v in (*T[:3, 3], *q))
+        lines.append(f"{format_stamp(stamp_ns(i))} {values}")
+    return lines
+
+
+@dataclass(frozen=True)
+class BagSummary:
+    """What ``make_bag`` wrote: frame count, path length (m), largest rotation from frame 0 (deg), bytes,
+    clearance (m), seconds taken."""
+
+    name: str
+    frames: int
+    path_length_m: float
+    max_rotation_deg: float
+    bag_bytes: int
+    min_clearance_m: float
+    seconds: float
+
+
+def make_bag(spec: BagSpec, out_dir: Path) -> BagSummary:
+    """Render ``spec`` and write ``out_dir/<name>/bag/`` (MCAP) and ``out_dir/<name>/groundtruth_tum.txt``.
+
+    Raises SceneError when a camera comes nearer than ``MIN_CLEARANCE_M`` to the scene or a frame has a
+    pixel that sees no quad.
+    """
+    started = time.monotonic()
+    clearance = min_clearance_m(spec.quads, spec.T_w_c)
+    if clearance < MIN_CLEARANCE_M:
+        msg = f"{spec.name}: a camera comes {clearance:.2f} m from the scene (minimum {MIN_CLEARANCE_M} m)"
+        raise SceneError(msg)
+    renderer = Renderer(spec.quads, spec.camera)
+    rng = np.random.default_rng(spec.noise_seed)
+    T_c0_ci = poses_relative_to_first(spec.T_w_c)
+
+    bag_root = out_dir / spec.name
+    bag_dir = bag_root / "bag"
+    if bag_dir.exists():
+        shutil.rmtree(bag_dir)  # rosbags' Writer refuses to overwrite
+    bag_root.mkdir(parents=True, exist_ok=True)
+    with Writer(bag_dir, version=ROS_BAG_VERSION, storage_plugin=StoragePlugin.MCAP) as writer:
+        image_conn = writer.add_connection(IMAGE_TOPIC, IMAGE_MSGTYPE, typestore=TYPESTORE)
+        info_conn = writer.add_connection(CAMERA_INFO_TOPIC, CAMERA_INFO_MSGTYPE, typestore=TYPESTORE)
+        pose_conn = writer.add_connection(GROUND_TRUTH_TOPIC, POSE_MSGTYPE, typestore=TYPESTORE)
+        for i, T_w_c in enumerate(spec.T_w_c):
+            ideal = renderer.render_ideal(T_w_c)
+            if float(ideal.coverage.min()) < 1.0:
+                msg = f"{spec.name}: frame {i} has pixels that see no quad"
+                raise SceneError(msg)
+            image = sensor_image(ideal.image, rng)
+            stamp = stamp_ns(i)
+            for conn, message, msgtype in (
+                (image_conn, compressed_image_msg(image, stamp), IMAGE_MSGTYPE),
+                (info_conn, camera_info_msg(spec.camera, stamp), CAMERA_INFO_MSGTYPE),
+                (pose_conn, pose_msg(T_c0_ci[i], stamp), POSE_MSGTYPE),
+            ):
+                writer.write(conn, stamp, TYPESTORE.serialize_cdr(message, msgtype))
+    (bag_root / "groundtruth_tum.txt").write_text("\n".join(tum_lines(T_c0_ci)) + "\n")
+
+    steps = np.diff(spec.T_w_c[:, :3, 3], axis=0)
+    cos_angles = (np.trace(T_c0_ci[:, :3, :3], axis1=1, axis2=2) - 1.0) / 2.0
+    max_rotation = math.degrees(math.acos(float(np.clip(cos_angles, -1.0, 1.0).min())))
+    size = sum(f.stat().st_size for f in bag_dir.iterdir())
+    return BagSummary(
+        spec.name,
+        len(spec.T_w_c),
+        float(np.linalg.norm(steps, axis=1).sum()),
+        max_rotation,
+        size,
+        clearance,
+        time.monotonic() - started,
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent, help="output folder")
+    parser.add_argument("--only", choices=sorted(SPECS), action="append", help="make only this bag (repeatable)")
+    args = parser.parse_args(argv)
+    names = args.only or list(SPECS)
+    for name in names:
+        summary = make_bag(SPECS[name](), args.out)
+        print(
+            f"{summary.name}: {summary.frames} frames, path {summary.path_length_m:.2f} m, "
+            f"max rotation from frame 0 {summary.max_rotation_deg:.1f} deg, clearance {summary.min_clearance_m:.2f} m, "
+            f"{summary.bag_bytes / 1e6:.2f} MB, {summary.seconds:.0f} s"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
