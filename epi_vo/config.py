@@ -35,12 +35,12 @@ class VoConfig:
     # --- frontend -------------------------------------------------------------------------
     frontend: str = _knob("klt", "feature frontend: 'klt' (track + re-detect, fast) or 'orb' (descriptor matching)",
                           choices=FRONTENDS)
-    max_features: int = _knob(300, "features kept per keyframe, spread over the grid", 20, 5000)
+    max_features: int = _knob(200, "features kept per keyframe, spread over the grid", 20, 5000)
     grid_rows: int = _knob(6, "rows of the bucketing grid that spreads features over the image", 1, 64)
     grid_cols: int = _knob(8, "columns of the bucketing grid", 1, 64)
     min_feature_distance_px: float = _knob(12.0, "minimum distance between detected corners (px)", 1.0, 200.0)
     corner_quality: float = _knob(0.005, "Shi-Tomasi quality level relative to the best corner", 1e-5, 1.0)
-    klt_window_px: int = _knob(21, "KLT window size (px, odd)", 5, 101)
+    klt_window_px: int = _knob(15, "KLT window size (px, odd)", 5, 101)
     klt_levels: int = _knob(3, "KLT pyramid levels above the base image", 0, 8)
     klt_max_fb_error_px: float = _knob(1.0, "forward-backward KLT consistency gate (px)", 0.01, 50.0)
     orb_features: int = _knob(1500, "ORB features detected per frame (frontend 'orb')", 50, 20000)
@@ -60,7 +60,7 @@ class VoConfig:
     min_inliers: int = _knob(25, "fewer model inliers than this: the frame gives no pose", 8, 10000)
 
     # --- degeneracy, parallax and triangulation gates ----------------------------------------
-    init_min_parallax_deg: float = _knob(1.0, "median parallax needed to initialise the map (deg)", 0.01, 45.0)
+    init_min_parallax_deg: float = _knob(0.5, "median parallax needed to initialise the map (deg)", 0.01, 45.0)
     kf_min_parallax_deg: float = _knob(1.0, "median parallax that makes a new keyframe (deg)", 0.01, 45.0)
     e_pose_min_parallax_deg: float = _knob(
         0.5, "above this median parallax the pose comes from E (scaled by the map), below from the map", 0.0, 45.0)

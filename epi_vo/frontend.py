@@ -89,8 +89,10 @@ def track_klt(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_pre
     p0 = pts_prev.reshape(-1, 1, 2).astype(np.float32)
     p1, st1, _ = cv2.calcOpticalFlowPyrLK(gray_prev, gray_cur, p0, None, winSize=win, maxLevel=cfg.klt_levels,
                                           criteria=_LK_CRITERIA)
-    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(gray_cur, gray_prev, p1, None, winSize=win, maxLevel=cfg.klt_levels,
-                                           criteria=_LK_CRITERIA)
+    # Backward pass seeded with the start points: a good track converges there at once, so one
+    # pyramid level suffices (half the cost of a second full search); a bad one does not come back.
+    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(gray_cur, gray_prev, p1, p0.copy(), winSize=win, maxLevel=1,
+                                           criteria=_LK_CRITERIA, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
     p1 = p1.reshape(-1, 2)
     fb = np.linalg.norm(p0b.reshape(-1, 2) - pts_prev, axis=1)
     h, w = gray_cur.shape[:2]

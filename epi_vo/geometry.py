@@ -185,20 +185,56 @@ def estimate_homography(uv_ref: F64, uv_cur: F64, method: str = "usac_fast", thr
     return np.asarray(H, dtype=np.float64), mask.reshape(-1).astype(bool)
 
 
-def recover_pose(E: F64, uv_ref: F64, uv_cur: F64, K: F64, inliers: Mask) -> tuple[F64, F64, Mask]:
+def recover_pose(E: F64, uv_ref: F64, uv_cur: F64, K: F64, inliers: Mask, max_points: int = 100
+                 ) -> tuple[F64, F64, Mask]:
     """Decompose E and pick the candidate with most points in front of both cameras (cheirality).
 
-    ``cv2.recoverPose(E, uv_ref, uv_cur, K)`` returns the motion ref -> cur. Returns
-    ``(R_cur_ref, t_cur_ref (3,) unit, mask of inliers passing cheirality)``.
+    ``cv2.recoverPose(E, uv_ref, uv_cur, K)`` returns the motion ref -> cur. It chooses among the four
+    candidates on at most ``max_points`` inliers spread evenly through the list (the vote is not
+    close for a correct E, and recoverPose triangulates every point four times); the cheirality of
+    every inlier is then checked against the chosen motion. Returns
+    ``(R_cur_ref, t_cur_ref (3,) unit, mask of inliers in front of both cameras)``.
     """
-    mask_in = inliers.astype(np.uint8).reshape(-1, 1).copy()
+    idx = np.flatnonzero(inliers)
+    if idx.size < 5:
+        return np.eye(3), np.zeros(3), np.zeros(inliers.shape[0], dtype=bool)
+    if idx.size > max_points:
+        idx = idx[np.linspace(0, idx.size - 1, max_points).astype(np.int64)]
     # The plain overload drops points farther than 50 baselines as 'at infinity', which with video
     # frame rates (short baselines, depths of 100+ baselines) discards most good inliers; only the
     # sign of the depth matters here, so the distance limit is lifted.
-    _, R, t, mask_out, _ = cv2.recoverPose(E, uv_ref, uv_cur, cameraMatrix=K,
-                                           distanceThresh=_CHEIRALITY_MAX_DISTANCE, mask=mask_in)
-    return (np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64).reshape(3),
-            mask_out.reshape(-1).astype(bool))
+    _, R, t, _, _ = cv2.recoverPose(E, uv_ref[idx], uv_cur[idx], cameraMatrix=K,
+                                    distanceThresh=_CHEIRALITY_MAX_DISTANCE,
+                                    mask=np.ones((idx.size, 1), np.uint8))
+    R = np.asarray(R, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64).reshape(3)
+    K_inv = np.linalg.inv(K)
+    xn_ref = (homogeneous(uv_ref) @ K_inv.T)[:, :2]
+    xn_cur = (homogeneous(uv_cur) @ K_inv.T)[:, :2]
+    d_ref, d_cur = ray_depths(R, t, xn_ref, xn_cur)
+    return R, t, inliers & (d_ref > 0.0) & (d_cur > 0.0)
+
+
+def ray_depths(R_cur_ref: F64, t_cur_ref: F64, xn_ref: F64, xn_cur: F64) -> tuple[F64, F64]:
+    """Depths (d_ref, d_cur) along both rays of each correspondence, in the least-squares sense.
+
+    Solves ``d_cur b_cur = d_ref R b_ref + t`` per point (2x2 normal equations, vectorised), with
+    ``b = [xn, 1]``; the signs are the cheirality test (H&Z 9.6.3). Parallel rays give depth 0.
+    """
+    a = homogeneous(xn_ref) @ R_cur_ref.T  # R b_ref
+    b = homogeneous(xn_cur)
+    aa = np.einsum("ij,ij->i", a, a)
+    bb = np.einsum("ij,ij->i", b, b)
+    ab = np.einsum("ij,ij->i", a, b)
+    at = a @ t_cur_ref
+    bt = b @ t_cur_ref
+    det = ab * ab - aa * bb
+    ok = np.abs(det) > 1e-15
+    safe = np.where(ok, det, 1.0)
+    # d_ref a - d_cur b = -t  ->  [aa -ab; ab -bb] [d_ref d_cur]^T = [-at; -bt]
+    d_ref = np.where(ok, (at * bb - ab * bt) / safe, 0.0)
+    d_cur = np.where(ok, (ab * at - aa * bt) / safe, 0.0)
+    return d_ref, d_cur
 
 
 def nearest_rotation(M: F64) -> F64:

@@ -40,7 +40,7 @@ def test_defaults_validate() -> None:
     cfg = VoConfig()
     validate(cfg)  # raises on any bad default
     assert cfg.essential_method == "magsac"
-    assert cfg.max_features == 300
+    assert cfg.max_features == 200
     assert cfg.klt_window_px % 2 == 1
 
 
@@ -232,7 +232,7 @@ def test_to_params_yaml_layout_and_extra(tmp_path: Path) -> None:
     lines = text.splitlines()
     assert lines[:2] == ["/**:", "  ros__parameters:"]
     assert "    # features kept per keyframe, spread over the grid" in lines
-    assert "    max_features: 300" in lines
+    assert "    max_features: 200" in lines
     assert "    essential_method: magsac" in lines
     assert "..." not in text
     params = load_params_file(_write(tmp_path, text))
