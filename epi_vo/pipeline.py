@@ -70,6 +70,28 @@ def _frozen(a: F64) -> F64:
 
 
 @dataclass(frozen=True)
+class Matches:
+    """The correspondences of one frame with its keyframe, for drawing and inspection.
+
+    ``pts_kf``/``pts_cur`` raw pixels, ``uv_kf``/``uv_cur`` undistorted pixels (N, 2); ``inliers`` of
+    the chosen model; ``F`` (from E) and ``H`` in undistorted pixels, zero matrices when not estimated.
+    """
+
+    pts_kf: F64
+    pts_cur: F64
+    uv_kf: F64
+    uv_cur: F64
+    inliers: NDArray[np.bool_]
+    F: F64
+    H: F64
+
+    @staticmethod
+    def empty() -> Matches:
+        z2 = np.zeros((0, 2))
+        return Matches(z2, z2, z2, z2, np.zeros(0, bool), np.zeros((3, 3)), np.zeros((3, 3)))
+
+
+@dataclass(frozen=True)
 class FrameResult:
     """Everything known about one input frame. Every field is always set.
 
@@ -101,6 +123,7 @@ class FrameResult:
     points_w: F64
     timings_ms: dict[str, float]
     reason: str
+    matches: Matches
 
     @property
     def position(self) -> F64:
@@ -188,6 +211,9 @@ class _FrameStats:
     median_reproj_err_px: float = math.nan
     relative_scale: float = math.nan
     points_w: F64 = field(default_factory=lambda: np.zeros((0, 3)))
+    matches: Matches = field(default_factory=Matches.empty)
+    F: F64 = field(default_factory=lambda: np.zeros((3, 3)))
+    H: F64 = field(default_factory=lambda: np.zeros((3, 3)))
     reasons: list[str] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
 
@@ -275,6 +301,9 @@ class VoPipeline:
         else:
             motion = self._estimate_motion(kf, rows, xn_cur, uv_cur, st)
 
+        inl = motion.inliers if motion is not None else np.zeros(rows.shape[0], bool)
+        st.matches = Matches(kf.pts[rows].astype(np.float64), pts_cur.astype(np.float64), kf.uv[rows], uv_cur, inl,
+                             st.F, st.H)
         t0 = time.perf_counter()
         is_kf = False
         if motion is None:
@@ -344,6 +373,10 @@ class VoPipeline:
         s_h, in_h = (geo.score_homography(H, uv_kf, uv_cur, cfg.score_sigma_px)
                      if H is not None else (0.0, None))
         st.rh = geo.rh_ratio(s_h, s_e)
+        if E is not None:
+            st.F = geo.fundamental_from_essential(E, K)
+        if H is not None:
+            st.H = H
         st.timings["models"] = _ms(t0)
         t0 = time.perf_counter()
         try:
@@ -658,7 +691,7 @@ class VoPipeline:
             positive_depth_ratio=st.positive_depth_ratio, median_reproj_err_px=st.median_reproj_err_px,
             relative_scale=st.relative_scale, n_keyframes=self._n_keyframes, T_w_c=_frozen(self._T_w_c),
             covariance=_frozen(cov), points_w=_frozen(st.points_w), timings_ms=dict(st.timings),
-            reason="; ".join(st.reasons))
+            reason="; ".join(st.reasons), matches=st.matches)
         self._index += 1
         return res
 

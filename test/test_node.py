@@ -1,0 +1,278 @@
+"""vo_node end to end: a real node process, bags played into it over real DDS on loopback.
+
+Every process here gets ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and this test's own ROS_DOMAIN_ID
+(test/ros_fixtures.py) before rclpy starts.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from ros_fixtures import RosSession, rclpy_session, spin_until
+
+from epi_vo.replay import run_replay
+
+REPO = Path(__file__).resolve().parent.parent
+BAG = REPO / "bags" / "general_motion" / "bag"
+PLAYBACK_ARGS = ["-p", "image_transport:=compressed", "-p", "process_every_frame:=true",
+                 "-p", "qos_reliability:=reliable", "-p", "qos_depth:=100"]
+
+
+@pytest.fixture(scope="module")
+def ros() -> Iterator[RosSession]:
+    with rclpy_session() as session:
+        yield session
+
+
+class NodeProcess:
+    """``vo_node`` as a child process; stopped (SIGINT, then kill) when the block ends."""
+
+    def __init__(self, env: dict[str, str], *ros_args: str) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-m", "epi_vo.node", "--ros-args", *ros_args], env=env,
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    def __enter__(self) -> NodeProcess:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(2)
+            try:
+                self.proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+class Probe:
+    """A test-side node subscribing to the VO outputs (reliable, deep queues: nothing may be lost)."""
+
+    def __init__(self, ros: RosSession, name: str) -> None:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from nav_msgs.msg import Odometry, Path
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import PointCloud2
+
+        self.node = rclpy.create_node(name, context=ros.context)
+        self.executor = SingleThreadedExecutor(context=ros.context)
+        self.executor.add_node(self.node)
+        qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        self.odom: list[Any] = []
+        self.diag: list[Any] = []
+        self.points: list[Any] = []
+        self.paths: list[Any] = []
+        self.node.create_subscription(Odometry, "vo/odometry", self.odom.append, qos)
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self.diag.append, qos)
+        self.node.create_subscription(PointCloud2, "vo/points", self.points.append, qos)
+        self.node.create_subscription(Path, "vo/path", self.paths.append, qos)
+
+    def wait_for_node(self, timeout_s: float = 20.0) -> bool:
+        return spin_until(self.executor, lambda: self.node.count_publishers("vo/odometry") > 0, timeout_s)
+
+    def spin_until(self, predicate: Any, timeout_s: float) -> bool:
+        return spin_until(self.executor, predicate, timeout_s)
+
+    def frame_statuses(self) -> list[Any]:
+        """Per-frame tracking statuses (the watchdog's 'stalled' ones excluded)."""
+        return [s for a in self.diag for s in a.status
+                if s.name.endswith(": tracking") and not s.message.startswith("stalled")]
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+
+
+def _play(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "epi_vo.cli", "play", str(BAG), *args], env=env,
+                          capture_output=True, text=True, timeout=120)
+
+
+def _bag_frames() -> int:
+    from epi_vo import bagio
+
+    with bagio.open_camera_bag(BAG) as bag:
+        return bag.frame_count
+
+
+def _odom_pose(msg: Any) -> np.ndarray:
+    p, q = msg.pose.pose.position, msg.pose.pose.orientation
+    return np.array([p.x, p.y, p.z, q.x, q.y, q.z, q.w])
+
+
+@pytest.fixture(scope="module")
+def offline(tmp_path_factory: pytest.TempPathFactory) -> dict[int, np.ndarray]:
+    """Odometry of the offline replay of the same bag, by stamp."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    out = tmp_path_factory.mktemp("offline")
+    run_replay(BAG, out)
+    poses = {}
+    with AnyReader([out / "output.mcap"], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        for con, _, raw in reader.messages():
+            if con.topic == "/vo/odometry":
+                m = reader.deserialize(raw, con.msgtype)
+                poses[m.header.stamp.sec * 10**9 + m.header.stamp.nanosec] = _odom_pose(m)
+    return poses
+
+
+def test_live_playback_equals_offline_replay(ros: RosSession, offline: dict[int, np.ndarray]) -> None:
+    n = _bag_frames()
+    probe = Probe(ros, "probe_playback")
+    try:
+        with NodeProcess(ros.env, *PLAYBACK_ARGS) as node:
+            assert probe.wait_for_node(), node.proc.stderr
+            played = _play(ros.env, "--rate", "1.0")
+            assert played.returncode == 0, played.stderr
+            assert probe.spin_until(lambda: len(probe.odom) >= n and len(probe.frame_statuses()) >= n, 60.0), \
+                (len(probe.odom), len(probe.frame_statuses()))
+            probe.spin_until(lambda: False, 0.5)  # nothing extra may arrive
+        assert len(probe.odom) == n
+        assert len(probe.frame_statuses()) == n
+        for msg in probe.odom:
+            stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+            np.testing.assert_allclose(_odom_pose(msg), offline[stamp], atol=1e-6)
+            assert msg.header.frame_id == "odom" and msg.child_frame_id == "base_link"
+            cov = np.asarray(msg.pose.covariance).reshape(6, 6)
+            assert np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0)
+        levels = [s.level[0] if isinstance(s.level, bytes) else s.level for s in probe.frame_statuses()]
+        assert levels.count(0) >= 0.8 * n  # OK while tracking
+        assert probe.points, "no point cloud published"
+        _assert_points_in_front(probe)
+        assert probe.paths and len(probe.paths[-1].poses) == sum(1 for _ in probe.odom)
+    finally:
+        probe.close()
+
+
+def _assert_points_in_front(probe: Probe) -> None:
+    """Point clouds are finite and in front of the camera that triangulated them (camera z > 0)."""
+    from epi_vo.msgconv import read_points_xyz
+    from epi_vo.odometry import default_T_base_cam
+    from epi_vo.transforms import invert_T, make_T, rotation_from_quat_xyzw
+
+    odom_by_stamp = {(m.header.stamp.sec, m.header.stamp.nanosec): m for m in probe.odom}
+    T_cam_base = invert_T(default_T_base_cam())
+    for cloud in probe.points:
+        pts = read_points_xyz(cloud).astype(np.float64)
+        assert pts.shape[0] > 0 and np.all(np.isfinite(pts))
+        pose = _odom_pose(odom_by_stamp[(cloud.header.stamp.sec, cloud.header.stamp.nanosec)])
+        T_odom_base = make_T(rotation_from_quat_xyzw(pose[3:]), pose[:3])
+        T_cam_odom = T_cam_base @ invert_T(T_odom_base)
+        z = (pts @ T_cam_odom[:3, :3].T + T_cam_odom[:3, 3])[:, 2]
+        assert np.mean(z > 0) >= 0.99
+
+
+def test_reset_service_mid_stream_continues_from_last_pose(ros: RosSession) -> None:
+    from std_srvs.srv import Trigger
+
+    n = _bag_frames()
+    probe = Probe(ros, "probe_reset")
+    client = probe.node.create_client(Trigger, "vo/reset")
+    try:
+        with NodeProcess(ros.env, *PLAYBACK_ARGS) as node:
+            assert probe.wait_for_node(), node.proc.stderr
+            player = subprocess.Popen([sys.executable, "-m", "epi_vo.cli", "play", str(BAG), "--rate", "0.5"],
+                                      env=ros.env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            try:
+                assert probe.spin_until(lambda: len(probe.odom) >= n // 2, 60.0)
+                assert client.wait_for_service(timeout_sec=10.0)
+                future = client.call_async(Trigger.Request())
+                assert probe.spin_until(future.done, 10.0)
+                assert future.result().success
+                before = _odom_pose(probe.odom[-1])[:3]
+                assert probe.spin_until(lambda: len(probe.odom) >= n, 60.0)
+            finally:
+                player.wait(timeout=60)
+        reset_statuses = [s for s in probe.frame_statuses() if "reset service called" in s.message]
+        assert len(reset_statuses) == 1
+        i = next(i for i, s in enumerate(probe.frame_statuses()) if "reset service called" in s.message)
+        after = _odom_pose(probe.odom[i])[:3]
+        assert np.linalg.norm(after - before) < 0.5  # held at the last pose, not back at the origin
+        assert np.linalg.norm(before) > 1.0
+        assert any(s.message == "tracking" or s.message.startswith("tracking") for s in probe.frame_statuses()[i + 5:])
+    finally:
+        probe.close()
+
+
+def test_late_camera_info_and_params_file(ros: RosSession, tmp_path: Path) -> None:
+    """camera_info published after its image still pairs; a parameter file is honoured."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import CameraInfo, CompressedImage
+
+    from epi_vo import bagio
+
+    params = tmp_path / "params.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    max_features: 120\n    frame_id: my_odom\n"
+                      "    image_transport: compressed\n    process_every_frame: true\n"
+                      "    qos_reliability: reliable\n    qos_depth: 50\n")
+    probe = Probe(ros, "probe_late")
+    qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+    pub_img = probe.node.create_publisher(CompressedImage, "camera/image_raw/compressed", qos)
+    pub_info = probe.node.create_publisher(CameraInfo, "camera/camera_info", qos)
+    frames = []
+    with bagio.open_camera_bag(BAG) as bag:
+        for f in bag.iter_frames():
+            if f.index >= 12:
+                break
+            frames.append((_to_rclpy(f.image_msg, CompressedImage), _to_rclpy(f.camera_info_msg, CameraInfo)))
+    try:
+        with NodeProcess(ros.env, "--params-file", str(params)) as node:
+            assert probe.wait_for_node(), node.proc.stderr
+            assert probe.spin_until(lambda: pub_img.get_subscription_count() > 0, 10.0)
+            for img, info in frames:
+                pub_img.publish(img)
+                probe.spin_until(lambda: False, 0.03)
+                pub_info.publish(info)  # after its image
+                probe.spin_until(lambda: False, 0.03)
+            assert probe.spin_until(lambda: len(probe.odom) >= len(frames), 30.0), len(probe.odom)
+        assert all(m.header.frame_id == "my_odom" for m in probe.odom)
+        stamps = [(m.header.stamp.sec, m.header.stamp.nanosec) for m in probe.odom]
+        assert stamps == [(i.header.stamp.sec, i.header.stamp.nanosec) for i, _ in frames]
+        for s in probe.frame_statuses():
+            values = {kv.key: kv.value for kv in s.values}
+            assert int(values["n_features"]) <= 120
+    finally:
+        probe.close()
+
+
+def _to_rclpy(msg: Any, msg_type: Any) -> Any:
+    """A rosbags message as the rclpy message of the same type (via CDR)."""
+    from rclpy.serialization import deserialize_message
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    return deserialize_message(bytes(ts.serialize_cdr(msg, msg.__msgtype__)), msg_type)
+
+
+def test_bad_parameters_are_refused_with_every_name(ros: RosSession) -> None:
+    proc = subprocess.run([sys.executable, "-m", "epi_vo.node", "--ros-args", "-p", "max_features:=-5",
+                           "-p", "essential_method:=foo", "-p", "image_transport:=mjpeg"],
+                          env=ros.env, capture_output=True, text=True, timeout=60)
+    assert proc.returncode != 0
+    for name in ("max_features", "essential_method", "image_transport"):
+        assert name in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_watchdog_reports_a_stalled_camera(ros: RosSession) -> None:
+    probe = Probe(ros, "probe_watchdog")
+    try:
+        with NodeProcess(ros.env, "-p", "watchdog_timeout_s:=0.3") as node:
+            assert probe.wait_for_node(), node.proc.stderr
+            start = time.monotonic()
+            assert probe.spin_until(lambda: any(s.level in (b"\x03", 3) for a in probe.diag for s in a.status),
+                                    15.0), node.proc.stderr
+            assert time.monotonic() - start < 15.0
+        stale = [s for a in probe.diag for s in a.status if s.message.startswith("stalled")]
+        assert stale and "no image" in stale[-1].message
+    finally:
+        probe.close()
