@@ -33,8 +33,38 @@ def _add_benchmark(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--output", default=None, help="also write the table as JSON here")
 
 
+def _add_latency(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("latency", help="live latency of vo_node (image publish -> odometry) over DDS on loopback")
+    p.add_argument("--rates", default="30,60,90,120", help="comma-separated publish rates (Hz) to try")
+    p.add_argument("--seconds", type=float, default=8.0, help="duration of each rate")
+
+
 def _add_params(sub: argparse._SubParsersAction) -> None:
     sub.add_parser("params", help="print the default parameter file (ROS 2 YAML) with one comment per knob")
+
+
+def _add_play(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("play", help="publish a bag's image and camera_info topics over ROS 2 (ros2 bag play stand-in)",
+                       description="Publish the image and camera_info topics of a bag (and /clock) in real time or "
+                                   "scaled, as recorded. DDS settings come from the environment (ROS_DOMAIN_ID, "
+                                   "ROS_AUTOMATIC_DISCOVERY_RANGE).")
+    p.add_argument("bag", help="bag directory or .mcap file")
+    p.add_argument("--rate", type=float, default=1.0,
+                   help="speed multiplier (default 1; 0: as fast as subscribers acknowledge, nothing dropped)")
+    p.add_argument("--image-topic", help="bag topic of the images (default: the only Image/CompressedImage one)")
+    p.add_argument("--camera-info-topic", help="bag topic of camera_info (default: the only one)")
+    p.add_argument("--remap-image", metavar="TOPIC",
+                   help="published image topic (default camera/image_raw, or camera/image_raw/compressed)")
+    p.add_argument("--remap-camera-info", metavar="TOPIC", default="camera/camera_info",
+                   help="published camera_info topic (default camera/camera_info)")
+    p.add_argument("--namespace", default="", help="namespace of the player node (applies to relative topics)")
+    p.add_argument("--clock", action="store_true", help="publish /clock with the bag time before each message")
+    p.add_argument("--qos-reliability", choices=("reliable", "best_effort"), default="reliable",
+                   help="default reliable (matches reliable and best-effort subscribers)")
+    p.add_argument("--qos-depth", type=int, default=10, help="publisher history depth (default 10)")
+    p.add_argument("--start-delay", type=float, metavar="S",
+                   help="seconds to wait before playing (default: until an image subscriber matches, at most 5 s)")
+    p.add_argument("--loop", action="store_true", help="play again from the start until Ctrl-C")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -45,6 +75,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     _add_replay(sub)
     _add_benchmark(sub)
     _add_params(sub)
+    _add_latency(sub)
+    _add_play(sub)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
@@ -55,11 +87,17 @@ def main(argv: Sequence[str] | None = None) -> int:
             from epi_vo.benchmark import run_benchmark
 
             return run_benchmark(args.bags, args.kitti, args.params, args.output)
+        if args.command == "latency":
+            from epi_vo.live_bench import main as latency_main
+
+            return latency_main([float(r) for r in args.rates.split(",")], args.seconds)
         if args.command == "params":
             from epi_vo.config import VoConfig, to_params_yaml
 
             sys.stdout.write(to_params_yaml(VoConfig()))
             return 0
+        if args.command == "play":
+            return _play(args)
     except EpiVoError as exc:
         print(f"epi-vo: error: {exc}", file=sys.stderr)
         return 2
@@ -79,6 +117,17 @@ def _replay(args: argparse.Namespace) -> int:
                          camera_info_topic=args.camera_info_topic, gt_tum=args.gt,
                          progress=not args.no_progress)
     print(format_summary(summary))
+    return 0
+
+
+def _play(args: argparse.Namespace) -> int:
+    from epi_vo.play import PlayOptions, Reliability, format_summary, run_play
+
+    options = PlayOptions(rate=args.rate, image_topic=args.image_topic, camera_info_topic=args.camera_info_topic,
+                          remap_image=args.remap_image, remap_camera_info=args.remap_camera_info, clock=args.clock,
+                          qos_reliability=Reliability(args.qos_reliability), qos_depth=args.qos_depth,
+                          start_delay_s=args.start_delay, loop=args.loop)
+    print(format_summary(run_play(args.bag, options, namespace=args.namespace)))
     return 0
 
 

@@ -120,6 +120,9 @@ class VoNode(Node):
         self._last_image_wall: float | None = None
         self._last_stamp_ns: int | None = None
         self._path: collections.deque[PoseStamped] = collections.deque(maxlen=self.opts.path_max_length)
+        self._path_published = 0.0
+        self._arrival: dict[int, float] = {}  # image stamp -> monotonic arrival time, for the latency figure
+        self._last_latency_ms = math.nan
         self._cameras: dict[tuple[Any, ...], CameraModel] = {}
         self._warned: set[str] = set()
 
@@ -215,6 +218,9 @@ class VoNode(Node):
             now = time.monotonic()
             self._arrivals.append(now)
             self._last_image_wall = now
+            if len(self._arrival) > 1000:  # frames dropped or never paired must not grow this
+                self._arrival.clear()
+            self._arrival[stamp] = now
             self._enqueue(self._assoc.add_image(stamp, msg))
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
@@ -306,15 +312,24 @@ class VoNode(Node):
         ang.x, ang.y, ang.z = (float(v) for v in s.angular_velocity)
         odom.twist.covariance = [float(v) for v in s.twist_covariance.ravel()]
         self._pub_odom.publish(odom)
+        with self._lock:
+            arrived = self._arrival.pop(r.stamp_ns, None)
+        if arrived is not None:
+            self._last_latency_ms = (time.monotonic() - arrived) * 1e3
         if r.has_pose:
             ps = PoseStamped()
             ps.header = odom.header
             ps.pose = odom.pose.pose
             self._path.append(ps)
-            path = Path()
-            path.header = odom.header
-            path.poses = list(self._path)
-            self._pub_path.publish(path)
+            now = time.monotonic()
+            # The path grows to path_max_length poses: serialising it every frame would cost more than
+            # the VO itself, so it goes out at keyframes and at least once a second.
+            if r.is_keyframe or now - self._path_published >= 1.0:
+                self._path_published = now
+                path = Path()
+                path.header = odom.header
+                path.poses = list(self._path)
+                self._pub_path.publish(path)
             if self._tf is not None:
                 tf = TransformStamped()
                 tf.header = odom.header
@@ -337,7 +352,8 @@ class VoNode(Node):
         rate = (len(arrivals) - 1) / (arrivals[-1] - arrivals[0]) if len(arrivals) > 1 and \
             arrivals[-1] > arrivals[0] else 0.0
         since = time.monotonic() - last if last is not None else math.inf
-        return (("input_rate_hz", f"{rate:.2f}"), ("frames_received", str(received)),
+        return (("input_rate_hz", f"{rate:.2f}"), ("latency_ms", f"{self._last_latency_ms:.2f}"),
+                ("frames_received", str(received)),
                 ("dropped_frames", str(dropped)), ("queue_depth", str(queued)),
                 ("time_since_last_image_s", f"{since:.3f}" if math.isfinite(since) else "never"))
 
