@@ -211,31 +211,17 @@ def test_reset_service_mid_stream_continues_from_last_pose(ros: RosSession) -> N
 
 def test_late_camera_info_and_params_file(ros: RosSession, tmp_path: Path) -> None:
     """camera_info published after its image still pairs; a parameter file is honoured."""
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import CameraInfo, CompressedImage
-
-    from epi_vo import bagio
-
     params = tmp_path / "params.yaml"
     params.write_text("/**:\n  ros__parameters:\n    max_features: 120\n    frame_id: my_odom\n"
                       "    image_transport: compressed\n    process_every_frame: true\n"
                       "    qos_reliability: reliable\n    qos_depth: 50\n")
     probe = Probe(ros, "probe_late")
-    qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
-    pub_img = probe.node.create_publisher(CompressedImage, "camera/image_raw/compressed", qos)
-    pub_info = probe.node.create_publisher(CameraInfo, "camera/camera_info", qos)
-    frames = []
-    with bagio.open_camera_bag(BAG) as bag:
-        for f in bag.iter_frames():
-            if f.index >= 12:
-                break
-            frames.append((_to_rclpy(f.image_msg, CompressedImage), _to_rclpy(f.camera_info_msg, CameraInfo)))
+    pub_img, pub_info = _camera_publishers(probe)
+    frames = _rclpy_frames(12)
     try:
         with NodeProcess(ros.env, "--params-file", str(params)) as node:
             assert probe.wait_for_node(), node.proc.stderr
-            assert probe.spin_until(lambda: pub_img.get_subscription_count() > 0
-                                    and pub_info.get_subscription_count() > 0, 10.0)
-            probe.spin_until(lambda: False, 0.3)  # let both reliable endpoints finish matching
+            _wait_matched(probe, pub_img, pub_info)
             for img, info in frames:
                 pub_img.publish(img)
                 probe.spin_until(lambda: False, 0.03)
@@ -250,6 +236,111 @@ def test_late_camera_info_and_params_file(ros: RosSession, tmp_path: Path) -> No
             assert int(values["n_features"]) <= 120
     finally:
         probe.close()
+
+
+def _camera_publishers(probe: Probe, depth: int = 100) -> tuple[Any, Any]:
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import CameraInfo, CompressedImage
+
+    qos = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
+    return (probe.node.create_publisher(CompressedImage, "camera/image_raw/compressed", qos),
+            probe.node.create_publisher(CameraInfo, "camera/camera_info", qos))
+
+
+def _wait_matched(probe: Probe, pub_img: Any, pub_info: Any) -> None:
+    assert probe.spin_until(lambda: pub_img.get_subscription_count() > 0 and pub_info.get_subscription_count() > 0,
+                            10.0)
+    probe.spin_until(lambda: False, 0.3)  # let both reliable endpoints finish matching
+
+
+def _rclpy_frames(n: int) -> list[tuple[Any, Any]]:
+    """The first n (image, camera_info) pairs of the bag as rclpy messages."""
+    from sensor_msgs.msg import CameraInfo, CompressedImage
+
+    from epi_vo import bagio
+
+    frames = []
+    with bagio.open_camera_bag(BAG) as bag:
+        for f in bag.iter_frames():
+            if f.index >= n:
+                break
+            frames.append((_to_rclpy(f.image_msg, CompressedImage), _to_rclpy(f.camera_info_msg, CameraInfo)))
+    return frames
+
+
+def test_equal_and_backward_stamps_are_reported_and_odometry_stays_continuous(ros: RosSession) -> None:
+    probe = Probe(ros, "probe_stamps")
+    pub_img, pub_info = _camera_publishers(probe)
+    frames = _rclpy_frames(30)
+    # 0..19, then frame 19 again (equal stamp), then frames 20..29 stamped 5 s in the past.
+    sequence = [*frames[:20], frames[19]]
+    for img, info in frames[20:]:
+        img, info = _to_rclpy_copy(img), _to_rclpy_copy(info)
+        for m in (img, info):
+            m.header.stamp.sec -= 5
+        sequence.append((img, info))
+    try:
+        with NodeProcess(ros.env, *PLAYBACK_ARGS) as node:
+            assert probe.wait_for_node(), node.proc.stderr
+            _wait_matched(probe, pub_img, pub_info)
+            for img, info in sequence:
+                pub_info.publish(info)
+                pub_img.publish(img)
+                probe.spin_until(lambda: False, 0.02)
+            assert probe.spin_until(lambda: len(probe.frame_statuses()) >= len(sequence), 30.0)
+        messages = [s.message for s in probe.frame_statuses()]
+        assert sum("duplicate image stamp" in m for m in messages) == 1
+        assert sum("time jumped backwards by 4.9" in m for m in messages) == 1
+        assert len(probe.odom) == len(sequence) - 1  # the duplicate is reported, not processed
+        jump = np.linalg.norm(_odom_pose(probe.odom[20])[:3] - _odom_pose(probe.odom[19])[:3])
+        assert np.linalg.norm(_odom_pose(probe.odom[19])[:3]) > 0.3
+        assert jump < 0.05  # tracking restarted at the held pose: odometry continuous
+    finally:
+        probe.close()
+
+
+def test_live_mode_drops_oldest_frames_and_counts_them(ros: RosSession) -> None:
+    probe = Probe(ros, "probe_drops")
+    pub_img, pub_info = _camera_publishers(probe)
+    frames = _rclpy_frames(40)
+    try:
+        with NodeProcess(ros.env, "-p", "image_transport:=compressed", "-p", "qos_reliability:=reliable",
+                         "-p", "qos_depth:=100", "-p", "queue_size:=1") as node:
+            assert probe.wait_for_node(), node.proc.stderr
+            _wait_matched(probe, pub_img, pub_info)
+            for img, info in frames:  # as fast as possible: far faster than the VO
+                pub_info.publish(info)
+                pub_img.publish(img)
+            probe.spin_until(lambda: False, 3.0)
+        statuses = probe.frame_statuses()
+        dropped = max(int({kv.key: kv.value for kv in s.values}["dropped_frames"]) for s in statuses)
+        assert dropped > 0
+        assert len(probe.odom) + dropped == len(frames)
+        stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in probe.odom]
+        assert stamps == sorted(stamps)  # newest kept, order preserved
+        last = frames[-1][0].header.stamp
+        assert stamps[-1] == last.sec * 10**9 + last.nanosec
+    finally:
+        probe.close()
+
+
+def test_namespace_and_remapping(ros: RosSession) -> None:
+    probe = Probe(ros, "probe_ns")
+    try:
+        with NodeProcess(ros.env, "-r", "__ns:=/robot1", "-r", "vo/odometry:=odom_vo") as node:
+            for check in (lambda: probe.node.count_publishers("/robot1/odom_vo") > 0,
+                          lambda: probe.node.count_subscribers("/robot1/camera/image_raw") > 0,
+                          lambda: probe.node.count_publishers("/robot1/vo/points") > 0,
+                          lambda: probe.node.count_publishers("/diagnostics") > 0):
+                assert probe.spin_until(check, 20.0), node.proc.stderr
+    finally:
+        probe.close()
+
+
+def _to_rclpy_copy(msg: Any) -> Any:
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    return deserialize_message(serialize_message(msg), type(msg))
 
 
 def _to_rclpy(msg: Any, msg_type: Any) -> Any:
