@@ -50,12 +50,12 @@ def _add_play(sub: argparse._SubParsersAction) -> None:
                                    "ROS_AUTOMATIC_DISCOVERY_RANGE).")
     p.add_argument("bag", help="bag directory or .mcap file")
     p.add_argument("--rate", type=float, default=1.0,
-                   help="speed multiplier (default 1; 0: as fast as subscribers acknowledge, nothing dropped)")
+                   help="speed multiplier (default 1; 0: as fast as subscribers acknowledge)")
     p.add_argument("--image-topic", help="bag topic of the images (default: the only Image/CompressedImage one)")
     p.add_argument("--camera-info-topic", help="bag topic of camera_info (default: the only one)")
     p.add_argument("--remap-image", metavar="TOPIC",
                    help="published image topic (default camera/image_raw, or camera/image_raw/compressed)")
-    p.add_argument("--remap-camera-info", metavar="TOPIC", default="camera/camera_info",
+    p.add_argument("--remap-camera-info", metavar="TOPIC",
                    help="published camera_info topic (default camera/camera_info)")
     p.add_argument("--namespace", default="", help="namespace of the player node (applies to relative topics)")
     p.add_argument("--clock", action="store_true", help="publish /clock with the bag time before each message")

@@ -16,6 +16,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -66,6 +67,10 @@ def run_latency(rates: list[float], seconds: float = 8.0, bag: str | Path | None
     node = rclpy.create_node("epi_vo_latency_bench")
     ex = SingleThreadedExecutor()
     ex.add_node(node)
+    # Receive on a thread of its own; the publishing loop sleeps between frames (a busy spin would
+    # take one of the two cores away from the node under test).
+    spinner = threading.Thread(target=ex.spin, daemon=True)
+    spinner.start()
     pub_img = node.create_publisher(Image, "camera/image_raw", qos_profile_sensor_data)
     pub_info = node.create_publisher(CameraInfo, "camera/camera_info", qos_profile_sensor_data)
     received: dict[int, float] = {}
@@ -80,7 +85,7 @@ def run_latency(rates: list[float], seconds: float = 8.0, bag: str | Path | None
             try:
                 deadline = time.monotonic() + 20
                 while node.count_subscribers("camera/image_raw") == 0 or node.count_publishers("vo/odometry") == 0:
-                    ex.spin_once(timeout_sec=0.05)
+                    time.sleep(0.05)
                     if time.monotonic() > deadline:
                         raise RuntimeError("vo_node did not start")
                 time.sleep(0.5)
@@ -100,15 +105,13 @@ def run_latency(rates: list[float], seconds: float = 8.0, bag: str | Path | None
                     img.data = gray.tobytes()
                     info = info_msgs[0]
                     info.header.stamp = img.header.stamp
-                    target = t0 + i * period
-                    while time.perf_counter() < target:
-                        ex.spin_once(timeout_sec=max(0.0, min(0.002, target - time.perf_counter())))
+                    delay = t0 + i * period - time.perf_counter()
+                    if delay > 0:
+                        time.sleep(delay)
                     pub_info.publish(info)
                     sent[stamp] = time.perf_counter()
                     pub_img.publish(img)
-                end = time.perf_counter() + 1.0
-                while time.perf_counter() < end:
-                    ex.spin_once(timeout_sec=0.01)
+                time.sleep(1.0)
                 lat = np.array([(received[s] - t) * 1e3 for s, t in sent.items() if s in received])
                 results.append(LatencyResult(rate, len(sent), len(lat), *(
                     (float(np.percentile(lat, 50)), float(np.percentile(lat, 95)), float(lat.max()))
@@ -120,6 +123,7 @@ def run_latency(rates: list[float], seconds: float = 8.0, bag: str | Path | None
                 except subprocess.TimeoutExpired:
                     proc.kill()
     finally:
+        ex.shutdown()
         node.destroy_node()
         rclpy.try_shutdown()
     return results

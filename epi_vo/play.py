@@ -10,12 +10,14 @@ the image topic (sensor_msgs/Image or CompressedImage) and its camera_info, opti
 - Timing follows the bag's log time relative to the first message, on a monotonic clock, divided by
   ``rate``; ``rate`` 0 publishes as fast as possible, still in bag order. With ``clock``,
   rosgraph_msgs/Clock carrying the message's log time is published on /clock before each message.
-- At ``rate`` 0 reliable publishers are flow-controlled: every ``qos_depth`` messages the player waits
+- Reliable publishers are flow-controlled: every ``qos_depth`` messages on a topic the player waits
   (bounded) until reliable subscribers acknowledged them, so KEEP_LAST history never drops a message a
-  subscriber still needs: every message arrives, as fast as the slowest reliable subscriber takes them.
-  At ``rate`` > 0 timing comes first, as with ros2 bag play: a subscriber that cannot keep up, or whose
-  side of discovery completes late, misses messages. At the end the player waits (bounded) for the last
-  acknowledgements before its publishers go away.
+  subscriber has not received. That matters at ``rate`` 0, and at start-up at any rate: a subscriber's
+  side of discovery can complete seconds after the player's (a lost discovery packet waits for the next
+  heartbeat), and until then it ignores the data; the wait holds the samples until it has caught up.
+  A wait that leaves playback more than ``_PAUSE_TOLERANCE_S`` behind schedule pauses it (the schedule
+  shifts, no catch-up burst; ``PlaySummary.paused_s``). At the end the player waits (bounded) for the
+  last acknowledgements before its publishers go away.
 
 :class:`BagPlayer` takes an rclpy Node (usable in-process, e.g. from tests); :func:`run_play` owns the
 rclpy lifecycle for the command line. DDS settings (ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE) come
@@ -78,6 +80,9 @@ _NS_PER_S = 1_000_000_000
 # side of discovery completes late acknowledges only then (seen up to ~3 s on loopback). Long enough for
 # both, short enough that a subscriber that died without unmatching stalls playback only briefly.
 _ACK_TIMEOUT_S = 5.0
+# Acknowledgements of healthy subscribers take milliseconds (they fit in the gap between frames); a wait
+# that puts playback further behind than this is a pause, and the schedule shifts by it.
+_PAUSE_TOLERANCE_S = 0.1
 _SUBSCRIBER_POLL_S = 0.01
 # After the image topic is matched, how long to give the camera_info subscriber (usually the same node,
 # discovered a moment later) so that the pair starts together.
@@ -99,11 +104,11 @@ class Reliability(enum.Enum):
 class PlayOptions:
     """How to play a bag; every field has a default. Bad values raise ConfigError naming all of them."""
 
-    rate: float = 1.0  # playback speed multiplier of bag time; 0: as fast as possible, flow-controlled
+    rate: float = 1.0  # playback speed multiplier of bag time; 0: as fast as subscribers acknowledge
     image_topic: str | None = None  # bag topic of the images (default: the only Image/CompressedImage topic)
     camera_info_topic: str | None = None  # bag topic of the calibration (default: the only/sibling one)
     remap_image: str | None = None  # published name (default camera/image_raw, or .../compressed)
-    remap_camera_info: str = CAMERA_INFO_OUT_TOPIC  # published name of camera_info
+    remap_camera_info: str | None = None  # published name of camera_info (default camera/camera_info)
     clock: bool = False  # publish rosgraph_msgs/Clock (bag log time) on /clock before each message
     qos_reliability: Reliability = Reliability.RELIABLE
     qos_depth: int = 10  # KEEP_LAST history depth of the publishers
@@ -226,6 +231,7 @@ class PlaySummary:
     passes: int  # passes started (loop)
     wall_s: float  # from the first published message to the last
     bag_s: float
+    paused_s: float  # of wall_s, playback held for subscribers' acknowledgements (rate > 0)
     interrupted: bool
 
     @property
@@ -234,18 +240,21 @@ class PlaySummary:
 
     @property
     def effective_rate(self) -> float:
-        """Bag time per wall time (nan when nothing or a single instant was played)."""
-        return self.bag_s / self.wall_s if self.wall_s > 0 and self.bag_s > 0 else math.nan
+        """Bag time per wall time outside pauses (nan when nothing or a single instant was played)."""
+        playing_s = self.wall_s - self.paused_s
+        return self.bag_s / playing_s if playing_s > 0 and self.bag_s > 0 else math.nan
 
 
 def format_summary(summary: PlaySummary) -> str:
     """One line for the terminal."""
     clock = f" + {summary.clocks} /clock" if summary.clocks else ""
-    loops = f", {summary.passes} passes" if summary.passes > 1 else ""
+    passes = f", {summary.passes} passes" if summary.passes > 1 else ""
+    paused = f" ({summary.paused_s:.2f} s paused for acknowledgements)" if summary.paused_s > 0 else ""
     stopped = " (interrupted)" if summary.interrupted else ""
     rate = "n/a" if math.isnan(summary.effective_rate) else f"{summary.effective_rate:.2f}x"
     return (f"published {summary.messages} messages ({summary.images} on {summary.image_topic}, "
-            f"{summary.camera_infos} on {summary.camera_info_topic}{clock}) in {summary.wall_s:.2f} s{loops}: "
+            f"{summary.camera_infos} on {summary.camera_info_topic}{clock}) in {summary.wall_s:.2f} s"
+            f"{paused}{passes}: "
             f"bag time {summary.bag_s:.2f} s, effective rate {rate}{stopped}")
 
 
@@ -267,7 +276,8 @@ class BagPlayer:
         self._publishers: dict[str, Publisher] = {
             self.bag.image_topic: node.create_publisher(
                 _MSG_CLASSES[self.bag.image_msgtype], self.options.remap_image or default_image_out, qos),
-            self.bag.camera_info_topic: node.create_publisher(CameraInfo, self.options.remap_camera_info, qos),
+            self.bag.camera_info_topic: node.create_publisher(
+                CameraInfo, self.options.remap_camera_info or CAMERA_INFO_OUT_TOPIC, qos),
         }
         self.clock_publisher = node.create_publisher(Clock, CLOCK_TOPIC, qos) if self.options.clock else None
         self._stop = threading.Event()
@@ -275,6 +285,7 @@ class BagPlayer:
         self._clocks = 0
         self._passes = 0
         self._bag_ns = 0
+        self._paused_s = 0.0
         self._first_publish: float | None = None
         self._last_publish: float | None = None
 
@@ -354,14 +365,14 @@ class BagPlayer:
             camera_info_topic=self.camera_info_publisher.topic_name,
             images=self._counts[self.bag.image_topic], camera_infos=self._counts[self.bag.camera_info_topic],
             clocks=self._clocks, passes=self._passes, wall_s=wall_s, bag_s=self._bag_ns / _NS_PER_S,
-            interrupted=interrupted or self._stop.is_set())
+            paused_s=self._paused_s, interrupted=interrupted or self._stop.is_set())
 
     def _play_pass(self) -> None:
         """One pass over the bag: the schedule restarts at the first message."""
         self._passes += 1
         rate = self.options.rate
         first_log_ns: int | None = None
-        start = time.monotonic()
+        start = time.monotonic()  # wall time of the pass's first message; shifted by pauses
         since_ack: dict[str, int] = {}  # messages published per topic since the last acknowledgement wait
         covered_ns = 0  # bag time of this pass already added to self._bag_ns
         for message in self.bag.messages():
@@ -374,12 +385,19 @@ class BagPlayer:
                     return
             if self._stop.is_set() or not self._context_ok():
                 return
-            self._publish(message, since_ack)
+            waited_s = self._publish(message, since_ack)
+            if rate > 0 and waited_s > 0:
+                behind_s = time.monotonic() - (start + elapsed_bag_ns / _NS_PER_S / rate)
+                if behind_s > _PAUSE_TOLERANCE_S:
+                    start += behind_s
+                    self._paused_s += behind_s
             # Counted per message, so an interrupted pass reports the bag time it covered.
             self._bag_ns += elapsed_bag_ns - covered_ns
             covered_ns = elapsed_bag_ns
 
-    def _publish(self, message: BagMessage, since_ack: dict[str, int]) -> None:
+    def _publish(self, message: BagMessage, since_ack: dict[str, int]) -> float:
+        """Publish /clock (option) and the message; return the seconds spent waiting for acknowledgements."""
+        waited_s = 0.0
         msgtype = self.bag.msgtype(message.topic)
         try:
             msg = deserialize_message(message.rawdata, _MSG_CLASSES[msgtype])
@@ -391,7 +409,7 @@ class BagPlayer:
             sec, nanosec = divmod(message.log_time_ns, _NS_PER_S)
             self.clock_publisher.publish(Clock(clock=Time(sec=sec, nanosec=nanosec)))
             self._clocks += 1
-            self._flow_control(self.clock_publisher, CLOCK_TOPIC, since_ack)
+            waited_s += self._flow_control(self.clock_publisher, CLOCK_TOPIC, since_ack)
         publisher = self._publishers[message.topic]
         publisher.publish(msg)
         now = time.monotonic()
@@ -399,20 +417,26 @@ class BagPlayer:
             self._first_publish = now
         self._last_publish = now
         self._counts[message.topic] += 1
-        self._flow_control(publisher, message.topic, since_ack)
+        return waited_s + self._flow_control(publisher, message.topic, since_ack)
 
-    def _flow_control(self, publisher: Publisher, key: str, since_ack: dict[str, int]) -> None:
-        """At rate 0, every ``qos_depth`` messages wait (bounded) until reliable subscribers acknowledged all.
+    def _flow_control(self, publisher: Publisher, key: str, since_ack: dict[str, int]) -> float:
+        """Every ``qos_depth`` messages on ``key``, wait (bounded) until reliable subscribers acknowledged all.
 
         A KEEP_LAST writer drops its oldest sample once ``depth`` are unacknowledged, even one a reliable
-        subscriber has not received yet. Returns at once for best-effort publishers.
+        subscriber has not received yet. The history is then full, which makes Fast DDS send a heartbeat
+        with the data, so healthy subscribers acknowledge within milliseconds. Returns at once for
+        best-effort publishers. Returns the seconds waited.
         """
-        if self.options.rate > 0:
-            return
         since_ack[key] = since_ack.get(key, 0) + 1
-        if since_ack[key] >= self.options.qos_depth:
-            publisher.wait_for_all_acked(Duration(seconds=_ACK_TIMEOUT_S))
-            since_ack[key] = 0
+        if since_ack[key] < self.options.qos_depth:
+            return 0.0
+        since_ack[key] = 0
+        started = time.monotonic()
+        if not publisher.wait_for_all_acked(Duration(seconds=_ACK_TIMEOUT_S)):
+            self._node.get_logger().warning(
+                f"{publisher.topic_name}: subscribers did not acknowledge within {_ACK_TIMEOUT_S:g} s; "
+                "older messages may be lost to them")
+        return time.monotonic() - started
 
     def _wait_acked(self, timeout_s: float) -> None:
         publishers = [*self._publishers.values(), *([self.clock_publisher] if self.clock_publisher else [])]

@@ -210,11 +210,12 @@ def test_reset_service_mid_stream_continues_from_last_pose(ros: RosSession) -> N
 
 
 def test_late_camera_info_and_params_file(ros: RosSession, tmp_path: Path) -> None:
-    """camera_info published after its image still pairs; a parameter file is honoured."""
+    """camera_info published after its image still pairs; a parameter file is honoured (with use_sim_time:
+    outputs are stamped with the image stamps, so no /clock is needed for them)."""
     params = tmp_path / "params.yaml"
     params.write_text("/**:\n  ros__parameters:\n    max_features: 120\n    frame_id: my_odom\n"
                       "    image_transport: compressed\n    process_every_frame: true\n"
-                      "    qos_reliability: reliable\n    qos_depth: 50\n")
+                      "    qos_reliability: reliable\n    qos_depth: 50\n    use_sim_time: true\n")
     probe = Probe(ros, "probe_late")
     pub_img, pub_info = _camera_publishers(probe)
     frames = _rclpy_frames(12)

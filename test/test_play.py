@@ -139,20 +139,24 @@ def test_play_publishes_every_image_as_recorded(ros: RosSession, probe: Probe, b
     summary = done.stdout.strip()
     assert "\n" not in summary
     assert re.match(rf"published {2 * n} messages \({n} on /camera/image_raw/compressed, {n} on "
-                    r"/camera/camera_info\) in [0-9.]+ s: bag time 3\.40 s", summary), summary
+                    rf"/camera/camera_info\) in [0-9.]+ s: bag time {bag_images.duration_s:.2f} s", summary), summary
 
 
 def test_play_rate_scales_time(ros: RosSession, probe: Probe, bag_images: BagImages) -> None:
     n = len(bag_images.stamps_ns)
     done = _play_subprocess(ros, probe, n, "--rate", "2.0")
     assert done.returncode == 0, done.stderr
-    arrivals = [t for _, _, t in probe.received.images]
-    assert len(arrivals) == n
-    span = arrivals[-1] - arrivals[0]
-    # Functional check of the scaling (about 0.5x), loose for a loaded machine.
-    assert 0.35 * bag_images.duration_s <= span <= 0.9 * bag_images.duration_s, span
-    rate = float(re.search(r"effective rate ([0-9.]+)x", done.stdout).group(1))  # type: ignore[union-attr]
-    assert 1.5 <= rate <= 2.5
+    images = probe.received.images
+    assert [stamp for stamp, _, _ in images] == bag_images.stamps_ns
+    # Wall time between images over bag time between them: about 0.5. Medians, because playback pauses
+    # once when the probe's side of discovery completes late (see epi_vo.play); loose for a loaded machine.
+    wall_gaps = np.diff([arrival for _, _, arrival in images])
+    bag_gaps = np.diff(bag_images.stamps_ns) / NS_PER_S
+    assert 0.35 <= np.median(wall_gaps) / np.median(bag_gaps) <= 0.9
+    summary = re.search(r"in ([0-9.]+) s.*effective rate ([0-9.]+)x", done.stdout)
+    assert summary is not None, done.stdout
+    assert 1.5 <= float(summary.group(2)) <= 2.5  # pauses excluded
+    assert 0.35 * bag_images.duration_s <= float(summary.group(1))  # not faster than asked
 
 
 def test_missing_bag_is_a_one_line_error(ros: RosSession, tmp_path: Path) -> None:
