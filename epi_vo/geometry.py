@@ -113,26 +113,26 @@ def transfer_errors_sq(H: F64, uv_ref: F64, uv_cur: F64) -> tuple[F64, F64]:
     return _transfer(H, uv_ref, uv_cur), _transfer(H_inv, uv_cur, uv_ref)
 
 
-def score_fundamental(F: F64, uv_ref: F64, uv_cur: F64, sigma_px: float) -> tuple[float, Mask]:
-    """ORB-SLAM CheckFundamental: sum over both images of ``CHI2_2DOF - d^2/sigma^2`` for points whose
-    line distance passes the 1-DoF gate in both images; returns (score, inlier mask)."""
-    d_cur, d_ref = epipolar_distances_sq(F, uv_ref, uv_cur)
+def _chi2_score(err_sq_cur: F64, err_sq_ref: F64, sigma_px: float, gate: float) -> tuple[float, Mask]:
+    """ORB-SLAM scoring of squared errors in both images: each error within the chi-square ``gate``
+    adds ``CHI2_2DOF - e^2/sigma^2``; inliers pass the gate in both images."""
     inv_s2 = 1.0 / (sigma_px * sigma_px)
-    chi_cur, chi_ref = d_cur * inv_s2, d_ref * inv_s2
-    ok_cur, ok_ref = chi_cur <= CHI2_1DOF, chi_ref <= CHI2_1DOF
+    chi_cur, chi_ref = err_sq_cur * inv_s2, err_sq_ref * inv_s2
+    ok_cur, ok_ref = chi_cur <= gate, chi_ref <= gate
     score = float(np.sum(CHI2_2DOF - chi_cur[ok_cur]) + np.sum(CHI2_2DOF - chi_ref[ok_ref]))
     return score, ok_cur & ok_ref
+
+
+def score_fundamental(F: F64, uv_ref: F64, uv_cur: F64, sigma_px: float) -> tuple[float, Mask]:
+    """ORB-SLAM CheckFundamental: point-to-epipolar-line distances in both images, 1-DoF gate, scored
+    with the 2-DoF constant; returns (score, inlier mask)."""
+    return _chi2_score(*epipolar_distances_sq(F, uv_ref, uv_cur), sigma_px, CHI2_1DOF)
 
 
 def score_homography(H: F64, uv_ref: F64, uv_cur: F64, sigma_px: float) -> tuple[float, Mask]:
-    """ORB-SLAM CheckHomography: sum over both transfer directions of ``CHI2_2DOF - e^2/sigma^2`` for
-    points passing the 2-DoF gate; returns (score, inlier mask: gate passed in both directions)."""
-    e_cur, e_ref = transfer_errors_sq(H, uv_ref, uv_cur)
-    inv_s2 = 1.0 / (sigma_px * sigma_px)
-    chi_cur, chi_ref = e_cur * inv_s2, e_ref * inv_s2
-    ok_cur, ok_ref = chi_cur <= CHI2_2DOF, chi_ref <= CHI2_2DOF
-    score = float(np.sum(CHI2_2DOF - chi_cur[ok_cur]) + np.sum(CHI2_2DOF - chi_ref[ok_ref]))
-    return score, ok_cur & ok_ref
+    """ORB-SLAM CheckHomography: transfer errors in both directions, 2-DoF gate; returns (score, inlier
+    mask: gate passed in both directions)."""
+    return _chi2_score(*transfer_errors_sq(H, uv_ref, uv_cur), sigma_px, CHI2_2DOF)
 
 
 def rh_ratio(score_h: float, score_e: float) -> float:
