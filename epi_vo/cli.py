@@ -21,6 +21,7 @@ def _add_replay(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--camera-info-topic", help="sensor_msgs/CameraInfo topic (default: the only one)")
     p.add_argument("--gt", help="ground truth TUM file (default: a PoseStamped/Odometry topic in the bag, if any)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--report", action="store_true", help="also write plots and report.html into the output")
 
 
 def _add_benchmark(sub: argparse._SubParsersAction) -> None:
@@ -37,6 +38,32 @@ def _add_latency(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("latency", help="live latency of vo_node (image publish -> odometry) over DDS on loopback")
     p.add_argument("--rates", default="30,60,90,120", help="comma-separated publish rates (Hz) to try")
     p.add_argument("--seconds", type=float, default=8.0, help="duration of each rate")
+
+
+def _add_monitor(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("monitor", help="live terminal view of a running vo_node (from /diagnostics)")
+    p.add_argument("--once", action="store_true", help="print one snapshot and exit")
+    p.add_argument("--timeout", type=float, default=None,
+                   help="exit non-zero if no VO status arrived within this many seconds")
+    p.add_argument("--odometry-topic", default="vo/odometry", help="odometry topic (for distance travelled)")
+    p.add_argument("--node-name", default=None, help="only statuses of this node ('<name>: tracking')")
+
+
+def _add_report(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("report", help="plots and a self-contained HTML report of a replay output directory")
+    p.add_argument("dir", help="output directory of 'epi-vo replay'")
+
+
+def _add_inspect(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("inspect", help="picture of one frame pair: matches, inliers, epipolar lines, residuals")
+    p.add_argument("bag", help="bag directory or .mcap file")
+    which = p.add_mutually_exclusive_group(required=True)
+    which.add_argument("--frame", type=int, help="frame index (0-based, as in frames.jsonl)")
+    which.add_argument("--stamp", type=float, help="image stamp in seconds (nearest frame)")
+    p.add_argument("--output", "-o", default=None, help="PNG to write (default: frame_<N>.png)")
+    p.add_argument("--params", help="ROS 2 parameter file for the pipeline")
+    p.add_argument("--image-topic", help="image topic (default: the only one)")
+    p.add_argument("--camera-info-topic", help="camera_info topic (default: the only one)")
 
 
 def _add_params(sub: argparse._SubParsersAction) -> None:
@@ -76,6 +103,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     _add_benchmark(sub)
     _add_params(sub)
     _add_latency(sub)
+    _add_monitor(sub)
+    _add_report(sub)
+    _add_inspect(sub)
     _add_play(sub)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
@@ -87,6 +117,18 @@ def main(argv: Sequence[str] | None = None) -> int:
             from epi_vo.benchmark import run_benchmark
 
             return run_benchmark(args.bags, args.kitti, args.params, args.output)
+        if args.command == "monitor":
+            from epi_vo.monitor import run as monitor_run
+
+            return monitor_run(args)
+        if args.command == "report":
+            from epi_vo.report import run as report_run
+
+            return report_run(args)
+        if args.command == "inspect":
+            from epi_vo.inspect_frame import run as inspect_run
+
+            return inspect_run(args)
         if args.command == "latency":
             from epi_vo.live_bench import main as latency_main
 
@@ -117,6 +159,10 @@ def _replay(args: argparse.Namespace) -> int:
                          camera_info_topic=args.camera_info_topic, gt_tum=args.gt,
                          progress=not args.no_progress)
     print(format_summary(summary))
+    if args.report:
+        from epi_vo.report import write_report
+
+        print(f"  report        {write_report(args.output)}")
     return 0
 
 

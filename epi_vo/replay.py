@@ -5,7 +5,8 @@ Writes into the output directory:
   frame relative to the first frame (the pipeline's ``T_w_c``), stamp = image header stamp in seconds;
 - ``frames.jsonl``: one JSON object per input frame (:meth:`FrameResult.to_record`), flushed per line;
 - ``output.mcap``: /vo/odometry, /vo/points, /vo/path, /diagnostics stamped with the image stamps;
-- ``stats.json``: run totals, per-stage median times and, with ground truth, evo metrics.
+- ``stats.json``: run totals, per-stage median times and, with ground truth, evo metrics;
+- ``groundtruth.tum``: the ground truth used (when there is one), in the same TUM form.
 """
 
 from __future__ import annotations
@@ -122,6 +123,8 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
             (out / "frames.jsonl").open("w") as frames_f, (out / "trajectory.tum").open("w") as tum_f, \
             bagio.OutputBag(out / "output.mcap", overwrite=True) as obag:
         gt = _ground_truth(bag, gt_tum)
+        if gt is not None:  # kept beside the estimate so that reports can be made from DIR alone
+            bagio.write_tum(out / "groundtruth.tum", *gt[1])
         frames = bag.iter_frames()
         if progress:
             from tqdm import tqdm
