@@ -215,8 +215,15 @@ def test_late_camera_info_and_params_file(ros: RosSession, tmp_path: Path) -> No
     params = tmp_path / "params.yaml"
     params.write_text("/**:\n  ros__parameters:\n    max_features: 120\n    frame_id: my_odom\n"
                       "    image_transport: compressed\n    process_every_frame: true\n"
-                      "    qos_reliability: reliable\n    qos_depth: 50\n    use_sim_time: true\n")
+                      "    qos_reliability: reliable\n    qos_depth: 50\n    use_sim_time: true\n"
+                      "    publish_debug_image: true\n")
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Image
+
     probe = Probe(ros, "probe_late")
+    debug_images: list[Any] = []
+    probe.node.create_subscription(Image, "vo/debug_image", debug_images.append,
+                                   QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
     pub_img, pub_info = _camera_publishers(probe)
     frames = _rclpy_frames(12)
     try:
@@ -230,6 +237,8 @@ def test_late_camera_info_and_params_file(ros: RosSession, tmp_path: Path) -> No
                 probe.spin_until(lambda: False, 0.03)
             assert probe.spin_until(lambda: len(probe.odom) >= len(frames), 30.0), len(probe.odom)
         assert all(m.header.frame_id == "my_odom" for m in probe.odom)
+        assert debug_images and debug_images[-1].encoding == "bgr8"
+        assert (debug_images[-1].width, debug_images[-1].height) == (640, 480)
         stamps = [(m.header.stamp.sec, m.header.stamp.nanosec) for m in probe.odom]
         assert stamps == [(i.header.stamp.sec, i.header.stamp.nanosec) for i, _ in frames]
         for s in probe.frame_statuses():
