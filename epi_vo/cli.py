@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 from collections.abc import Sequence
 
@@ -150,20 +151,31 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 2
 
 
+def _raise_interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
 def _replay(args: argparse.Namespace) -> int:
     from epi_vo.config import load_config
     from epi_vo.replay import format_summary, run_replay
+
+    # SIGTERM ends a replay like Ctrl-C: the output bag is finalised and frames.jsonl stays complete
+    # up to the last processed frame (both are closed by their context managers).
+    signal.signal(signal.SIGTERM, _raise_interrupt)
 
     cfg = load_config(args.params)
     summary = run_replay(args.bag, args.output, cfg, image_topic=args.image_topic,
                          camera_info_topic=args.camera_info_topic, gt_tum=args.gt,
                          progress=not args.no_progress)
     print(format_summary(summary))
+    if summary.rejected:
+        n = sum(int(r.split(" ", 1)[0]) for r in summary.rejected)
+        print(f"epi-vo: error: {n} of {summary.frames} frames rejected: {summary.rejected[0]}", file=sys.stderr)
     if args.report:
         from epi_vo.report import write_report
 
         print(f"  report        {write_report(args.output)}")
-    return 0
+    return 3 if summary.rejected else 0
 
 
 def _play(args: argparse.Namespace) -> int:

@@ -40,7 +40,7 @@ from epi_vo.camera import CameraModel
 from epi_vo.config import VoConfig, config_fields, field_doc, from_dict
 from epi_vo.debug_image import draw_matches
 from epi_vo.diagnostics import DiagnosticLevel, DiagnosticStatusRecord
-from epi_vo.errors import ConfigError, EpiVoError
+from epi_vo.errors import CameraModelError, ConfigError, EpiVoError
 from epi_vo.odometry import OdometryConverter, T_base_cam_from_params
 from epi_vo.pipeline import FrameResult, VoPipeline
 from epi_vo.status import frame_status
@@ -260,16 +260,18 @@ class VoNode(Node):
             try:
                 self._process(item)
             except EpiVoError as exc:
-                self._publish_problem(item.stamp_ns, DiagnosticLevel.ERROR, str(exc))
+                # Bad input in this frame: it is accounted for like any other (held pose, reason).
+                self.get_logger().warning(f"frame rejected: {exc}", throttle_duration_sec=5.0)
+                self._publish(self._pipeline.reject(item.stamp_ns, str(exc)), item.image.header.stamp, None)
             except Exception as exc:  # never let one frame kill the node; say what happened
                 self.get_logger().error(f"frame at {item.stamp_ns * 1e-9:.6f} s failed: {exc!r}")
-                self._publish_problem(item.stamp_ns, DiagnosticLevel.ERROR, f"internal error: {exc!r}")
+                self._publish(self._pipeline.reject(item.stamp_ns, f"internal error: {exc!r}"),
+                              item.image.header.stamp, None)
 
     def _process(self, item: Ready) -> None:
         stamp = item.stamp_ns
         if item.info is None:
-            self._publish_problem(stamp, DiagnosticLevel.ERROR, "no camera_info received yet on camera/camera_info")
-            return
+            raise CameraModelError("no camera_info received yet on camera/camera_info")
         if item.first_mismatch:
             self.get_logger().warning("camera_info stamps do not match image stamps; using the latest camera_info")
         if self._last_stamp_ns is not None and stamp == self._last_stamp_ns:
@@ -297,7 +299,7 @@ class VoNode(Node):
         return cam
 
     # -- output -------------------------------------------------------------------------------------------
-    def _publish(self, r: FrameResult, stamp_msg: Any, gray: np.ndarray) -> None:
+    def _publish(self, r: FrameResult, stamp_msg: Any, gray: np.ndarray | None) -> None:
         s = self._converter.convert(r.stamp_ns, r.T_w_c, r.covariance, r.has_pose)
         odom = Odometry()
         odom.header.stamp = stamp_msg
@@ -341,7 +343,7 @@ class VoNode(Node):
             T = self._converter.T_base_cam
             self._pub_points.publish(_point_cloud(odom.header, r.points_w @ T[:3, :3].T + T[:3, 3]))
         self._publish_status(frame_status(r, self.get_name(), self.opts.hardware_id), stamp_msg)
-        if self._pub_debug is not None:
+        if self._pub_debug is not None and gray is not None:
             self._pub_debug.publish(_bgr_image(odom.header, draw_matches(r, gray)))
 
     def _input_values(self) -> tuple[tuple[str, str], ...]:

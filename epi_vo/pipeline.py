@@ -263,6 +263,20 @@ class VoPipeline:
         self._kf = None
         self._pending_reason = reason
 
+    def reject(self, stamp_ns: int, reason: str) -> FrameResult:
+        """Account for a frame that could not be used (corrupt image, unusable calibration, ...).
+
+        The frame gets its record like any other: no pose (held), a large covariance, the reason.
+        It counts as a frame without a pose, so persistent bad input ends in a restart from the held
+        pose, exactly as lost tracking does.
+        """
+        st = _FrameStats(stamp_ns=int(stamp_ns))
+        st.reasons.append(f"frame rejected: {reason}")
+        t_start = time.perf_counter()
+        if self._on_failure(st):
+            self._kf = None
+        return self._result(stamp_ns, TrackingState.LOST, False, False, st, t_start)
+
     def process(self, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int) -> FrameResult:
         """Process one grayscale frame taken with ``camera`` at ``stamp_ns``.
 
@@ -435,14 +449,13 @@ class VoPipeline:
             if planar is None:
                 st.reasons.append("planar scene: homography decomposition ambiguous, waiting for parallax")
                 return _Motion(TrackingState.INITIALIZING, R_h, zero, _block_cov(1e-6, rot_cov), in_h)
-            R_p, t_p, tri = planar
+            R_p, t_p, _ = planar
             if st.median_parallax_deg < cfg.init_min_parallax_deg:
                 st.reasons.append(f"planar scene, low parallax ({st.median_parallax_deg:.2f} deg < "
                                   f"{cfg.init_min_parallax_deg}): waiting for baseline, position held")
                 return _Motion(TrackingState.INITIALIZING, R_p, zero, _block_cov(1e-6, rot_cov), in_h)
             norm = float(np.linalg.norm(t_p))
-            return self._initialize(R_p, t_p / norm, in_h & tri.positive_depth, xn_kf, xn_cur, K, st,
-                                    "homography (planar scene)")
+            return self._initialize(R_p, t_p / norm, in_h, xn_kf, xn_cur, K, st, "homography (planar scene)")
         st.reasons.append(f"planar or low-parallax view (RH {st.rh:.2f}): pose from map points")
         return self._track_with_map(kf, rows, R_h, None, in_h, xn_cur, uv_cur, st, rot_cov)
 

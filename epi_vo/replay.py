@@ -58,6 +58,7 @@ class ReplaySummary:
     gt_source: str = ""
     output_dir: str = ""
     notes: list[str] = field(default_factory=list)
+    rejected: list[str] = field(default_factory=list)  # one line per distinct problem of rejected frames
 
     def to_json(self) -> dict[str, Any]:
         return _jsonable(asdict(self))
@@ -99,10 +100,12 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                on_result: Callable[[FrameResult], None] | None = None) -> ReplaySummary:
     """Replay every image of a bag through the pipeline and write the outputs (see module doc).
 
+    A frame that cannot be used (undecodable image, unsupported encoding, unusable calibration, no
+    camera_info) is recorded with its reason (``FrameResult`` of state lost) and replay goes on;
+    ``ReplaySummary.rejected`` lists the problems.
+
     Raises:
-        BagError: unreadable bag, missing or ambiguous topics, an image without camera_info.
-        ImageConversionError / CameraModelError: an image or calibration that cannot be used; the
-            message names the frame.
+        BagError: unreadable or empty bag, missing or ambiguous topics.
     """
     cfg = cfg or VoConfig()
     out = Path(output_dir)
@@ -115,6 +118,8 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     states: collections.Counter[str] = collections.Counter()
     models: collections.Counter[str] = collections.Counter()
     stage_times: dict[str, list[float]] = collections.defaultdict(list)
+    rejected: collections.Counter[str] = collections.Counter()
+    first_rejected: dict[str, int] = {}
     n_frames = n_pose = n_kf = 0
     path_length = 0.0
     last_pos: np.ndarray | None = None
@@ -131,15 +136,17 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
 
             frames = tqdm(frames, total=bag.frame_count, unit="frame", desc="replay", leave=False)
         for frame in frames:
-            if frame.camera_info_msg is None:
-                raise BagError(f"frame {frame.index} (stamp {frame.stamp_ns * 1e-9:.6f} s): no camera_info on "
-                               f"{bag.camera_info_topic} at or before this image")
             try:
+                if frame.camera_info_msg is None:
+                    raise BagError(f"no camera_info on {bag.camera_info_topic}")
                 gray = decode_frame(frame.image_msg, bag.image_is_compressed)
                 camera = cameras.get(frame.camera_info_msg)
                 result = pipeline.process(gray, camera, frame.stamp_ns)
             except EpiVoError as exc:
-                raise type(exc)(f"frame {frame.index} (stamp {frame.stamp_ns * 1e-9:.6f} s): {exc}") from None
+                # Bad input in one frame: the frame is recorded with the reason and replay goes on.
+                result = pipeline.reject(frame.stamp_ns, str(exc))
+                rejected[str(exc)] += 1
+                first_rejected.setdefault(str(exc), frame.index)
             n_frames += 1
             states[result.state.value] += 1
             models[result.model.value] += 1
@@ -177,7 +184,8 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
         frames=n_frames, frames_with_pose=n_pose, tracked_percent=100.0 * n_pose / n_frames, keyframes=n_kf,
         states=dict(states), models=dict(models), ms_per_frame=float(np.median(totals)),
         stage_ms={k: float(np.median(v)) for k, v in stage_times.items()}, path_length=path_length,
-        metrics=metrics, gt_source=gt_source, output_dir=str(out), notes=notes)
+        metrics=metrics, gt_source=gt_source, output_dir=str(out), notes=notes,
+        rejected=[f"{n} frame(s) from frame {first_rejected[r]}: {r}" for r, n in rejected.items()])
     (out / "stats.json").write_text(json.dumps(summary.to_json(), indent=2) + "\n")
     return summary
 
@@ -238,6 +246,7 @@ def format_summary(s: ReplaySummary) -> str:
                      f"Sim3)  RPE rot {_f(m['rpe_rot_deg_per_frame'])} deg/frame  trans-dir "
                      f"{_f(m['trans_direction_err_deg'])} deg  ({m['matched_poses']} poses)")
     lines.extend(f"  note: {n}" for n in s.notes)
+    lines.extend(f"  rejected: {r}" for r in s.rejected)
     lines.append(f"  outputs       {s.output_dir}/{{trajectory.tum, frames.jsonl, output.mcap, stats.json}}")
     return "\n".join(lines)
 

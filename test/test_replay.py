@@ -164,9 +164,12 @@ def test_unsupported_encoding_is_a_clear_error(tmp_path: Path, capsys: pytest.Ca
     _write_bag(bag, [_image(i, "32FC1", 64, 48, 4) for i in range(3)], [_info(i, 64, 48) for i in range(3)])
     rc = main(["replay", str(bag), "--output", str(tmp_path / "out"), "--no-progress"])
     err = capsys.readouterr().err
-    assert rc == 2
-    assert "unsupported image encoding '32FC1'" in err and "frame 0" in err
+    assert rc == 3  # ran, but frames were rejected
+    assert "unsupported image encoding '32FC1'" in err and "3 of 3 frames rejected" in err and "frame 0" in err
     assert "Traceback" not in err
+    records = [json.loads(line) for line in (tmp_path / "out" / "frames.jsonl").read_text().splitlines()]
+    assert len(records) == 3 and not any(r["has_pose"] for r in records)
+    assert all("unsupported image encoding" in r["reason"] and r["state"] == "lost" for r in records)
 
 
 def test_camera_info_size_mismatch_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -174,7 +177,7 @@ def test_camera_info_size_mismatch_is_a_clear_error(tmp_path: Path, capsys: pyte
     _write_bag(bag, [_image(i, "mono8", 64, 48, 1) for i in range(3)], [_info(i, 640, 480) for i in range(3)])
     rc = main(["replay", str(bag), "--output", str(tmp_path / "out"), "--no-progress"])
     err = capsys.readouterr().err
-    assert rc == 2
+    assert rc == 3
     assert "64x48" in err and "640x480" in err
 
 
@@ -183,7 +186,7 @@ def test_uncalibrated_camera_is_a_clear_error(tmp_path: Path, capsys: pytest.Cap
     info = _info(0, 64, 48)
     info.k = np.zeros(9)
     _write_bag(bag, [_image(0, "mono8", 64, 48, 1)], [info])
-    assert main(["replay", str(bag), "--output", str(tmp_path / "out"), "--no-progress"]) == 2
+    assert main(["replay", str(bag), "--output", str(tmp_path / "out"), "--no-progress"]) == 3
     assert "uncalibrated" in capsys.readouterr().err
 
 
