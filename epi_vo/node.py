@@ -118,7 +118,6 @@ class VoNode(Node):
         self._n_received = self._n_dropped = self._n_processed = 0
         self._arrivals: collections.deque[float] = collections.deque(maxlen=30)
         self._last_image_wall: float | None = None
-        self._last_stamp_ns: int | None = None
         self._path: collections.deque[PoseStamped] = collections.deque(maxlen=self.opts.path_max_length)
         self._path_published = 0.0
         self._arrival: dict[int, float] = {}  # image stamp -> monotonic arrival time, for the latency figure
@@ -274,20 +273,16 @@ class VoNode(Node):
             raise CameraModelError("no camera_info received yet on camera/camera_info")
         if item.first_mismatch:
             self.get_logger().warning("camera_info stamps do not match image stamps; using the latest camera_info")
-        if self._last_stamp_ns is not None and stamp == self._last_stamp_ns:
-            self.get_logger().warning(f"duplicate image stamp {stamp * 1e-9:.6f} s: frame skipped",
-                                      throttle_duration_sec=5.0)
-            self._publish_problem(stamp, DiagnosticLevel.WARN, "duplicate image stamp: frame skipped")
-            return
-        if self._last_stamp_ns is not None and stamp < self._last_stamp_ns:
-            jump = (self._last_stamp_ns - stamp) * 1e-9
-            self.get_logger().warning(f"image stamps went backwards by {jump:.3f} s: tracking restarted")
-            self._pipeline.reset(f"time jumped backwards by {jump:.3f} s: tracking restarted from the last pose")
-            self._converter.reset_twist()
-        self._last_stamp_ns = stamp
         gray = msgconv.compressed_to_gray(item.image) if self._compressed else msgconv.image_to_gray(item.image)
         result = self._pipeline.process(gray, self._camera(item.info), stamp)
         self._n_processed += 1
+        if result.skipped:
+            self.get_logger().warning(f"{result.reason} ({stamp * 1e-9:.6f} s)", throttle_duration_sec=5.0)
+            self._publish_status(frame_status(result, self.get_name(), self.opts.hardware_id), item.image.header.stamp)
+            return
+        if "time jumped backwards" in result.reason:
+            self.get_logger().warning(result.reason)
+            self._converter.reset_twist()
         self._publish(result, item.image.header.stamp, gray)
 
     def _camera(self, info: CameraInfo) -> CameraModel:
@@ -367,11 +362,6 @@ class VoNode(Node):
         msg.values = [KeyValue(key=k, value=v) for k, v in status.values + self._input_values()]
         arr.status = [msg]
         self._pub_diag.publish(arr)
-
-    def _publish_problem(self, stamp_ns: int, level: DiagnosticLevel, message: str) -> None:
-        stamp = rclpy.time.Time(nanoseconds=stamp_ns).to_msg()
-        self._publish_status(DiagnosticStatusRecord(level, f"{self.get_name()}: tracking", message,
-                                                    self.opts.hardware_id, (("stamp_ns", str(stamp_ns)),)), stamp)
 
     def _watchdog(self) -> None:
         with self._lock:

@@ -27,6 +27,7 @@ What is never invented
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import logging
 import math
@@ -124,6 +125,7 @@ class FrameResult:
     timings_ms: dict[str, float]
     reason: str
     matches: Matches
+    skipped: bool = False  # not processed (duplicate stamp): consumers publish no pose for it
 
     @property
     def position(self) -> F64:
@@ -164,6 +166,7 @@ class FrameResult:
             "n_points": int(self.points_w.shape[0]),
             "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
             "reason": self.reason,
+            "skipped": self.skipped,
         }
 
 
@@ -251,6 +254,7 @@ class VoPipeline:
         self._n_keyframes = 0
         self._index = 0
         self._pending_reason = ""
+        self._last_stamp_ns: int | None = None
 
     # ---------------------------------------------------------------------------------------------
     @property
@@ -263,6 +267,21 @@ class VoPipeline:
         self._kf = None
         self._pending_reason = reason
 
+    def _check_stamp(self, stamp_ns: int) -> FrameResult | None:
+        """Equal stamp: the frame is skipped (a result saying so). Backwards: tracking restarts from the
+        held pose (odometry stays continuous) and the frame is processed."""
+        last = self._last_stamp_ns
+        if last is not None and stamp_ns == last:
+            st = _FrameStats(stamp_ns=int(stamp_ns))
+            st.reasons.append("duplicate image stamp: frame skipped")
+            result = self._result(stamp_ns, TrackingState.LOST, False, False, st, time.perf_counter())
+            return dataclasses.replace(result, skipped=True)
+        if last is not None and stamp_ns < last:
+            self.reset(f"time jumped backwards by {(last - stamp_ns) * 1e-9:.3f} s: tracking restarted from the "
+                       "last pose")
+        self._last_stamp_ns = stamp_ns
+        return None
+
     def reject(self, stamp_ns: int, reason: str) -> FrameResult:
         """Account for a frame that could not be used (corrupt image, unusable calibration, ...).
 
@@ -270,6 +289,9 @@ class VoPipeline:
         It counts as a frame without a pose, so persistent bad input ends in a restart from the held
         pose, exactly as lost tracking does.
         """
+        skipped = self._check_stamp(stamp_ns)
+        if skipped is not None:
+            return skipped
         st = _FrameStats(stamp_ns=int(stamp_ns))
         st.reasons.append(f"frame rejected: {reason}")
         t_start = time.perf_counter()
@@ -287,6 +309,9 @@ class VoPipeline:
         if gray.ndim != 2 or gray.dtype != np.uint8:
             raise ValueError(f"expected a 2-D uint8 grayscale image, got {gray.dtype} {gray.shape}")
         camera.check_image_size(gray.shape[1], gray.shape[0])
+        skipped = self._check_stamp(stamp_ns)
+        if skipped is not None:
+            return skipped
         t_start = time.perf_counter()
         st = _FrameStats(stamp_ns=int(stamp_ns))
         if self._pending_reason:

@@ -164,7 +164,10 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                 if last_pos is not None:
                     path_length += float(np.linalg.norm(p - last_pos))
                 last_pos = p.copy()
-            _write_outputs(obag, converter, result, path_poses)
+            if not result.skipped:  # a duplicate stamp gets its record and status, but no second pose
+                _write_outputs(obag, converter, result, path_poses)
+            else:
+                obag.write_diagnostics(result.stamp_ns, [frame_status(result, "epi_vo", "replay")])
             if on_result is not None:
                 on_result(result)
 

@@ -2,7 +2,8 @@
 
 Level policy: a tracking frame is OK (its message is the reason when there is one, e.g. a planar view
 tracked from the map); initializing and rotation-only frames are WARN (rotation only, no justified
-translation); a frame without a pose is ERROR. The key/values are the frame record's fields.
+translation), as is a frame skipped for a duplicate stamp; a frame without a pose is ERROR. The
+key/values are the frame record's fields.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ def _fmt(v: object) -> str:
 
 def frame_status(result: FrameResult, node_name: str, hardware_id: str) -> DiagnosticStatusRecord:
     """Status named ``<node_name>: tracking`` with the level, the reason and the frame record."""
-    level = _LEVELS[result.state]
+    level = DiagnosticLevel.WARN if result.skipped else _LEVELS[result.state]
     message = result.reason or result.state.value
     if not message.startswith(result.state.value):
         message = f"{result.state.value}: {message}"
