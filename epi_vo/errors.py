@@ -30,3 +30,7 @@ class BagError(EpiVoError):
 
 class EvaluationError(EpiVoError):
     """Trajectories that cannot be evaluated: bad shapes, non-finite values, too few matched poses."""
+
+
+class ReportError(EpiVoError):
+    """A replay output directory a report cannot be made from (missing or malformed files)."""

@@ -58,6 +58,7 @@ class ReplaySummary:
     gt_source: str = ""
     output_dir: str = ""
     notes: list[str] = field(default_factory=list)
+    parameters: dict[str, Any] = field(default_factory=dict)  # the pipeline config of the run
     rejected: list[str] = field(default_factory=list)  # one line per distinct problem of rejected frames
 
     def to_json(self) -> dict[str, Any]:
@@ -187,7 +188,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
         frames=n_frames, frames_with_pose=n_pose, tracked_percent=100.0 * n_pose / n_frames, keyframes=n_kf,
         states=dict(states), models=dict(models), ms_per_frame=float(np.median(totals)),
         stage_ms={k: float(np.median(v)) for k, v in stage_times.items()}, path_length=path_length,
-        metrics=metrics, gt_source=gt_source, output_dir=str(out), notes=notes,
+        metrics=metrics, gt_source=gt_source, output_dir=str(out), notes=notes, parameters=asdict(cfg),
         rejected=[f"{n} frame(s) from frame {first_rejected[r]}: {r}" for r, n in rejected.items()])
     (out / "stats.json").write_text(json.dumps(summary.to_json(), indent=2) + "\n")
     return summary

@@ -18,3 +18,10 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   .venv/bin/python -c "import cv2, rosbags, evo, mcap, epi_vo" || { echo "setup: import check failed" >&2; exit 1; }
   echo "$want" > "$stamp"
 fi
+# The report test renders report.html in a real headless browser (Debian's chromium). Installed when
+# missing and this user can (root with apt-get); otherwise that one test is skipped outside CI.
+if ! command -v chromium >/dev/null 2>&1 && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+  echo "setup: installing chromium (headless browser for the report test)"
+  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) \
+    || echo "setup: could not install chromium; the browser test will be skipped outside CI" >&2
+fi
