@@ -173,14 +173,17 @@ def point_cloud2_fields(points_xyz: ArrayLike) -> dict[str, Any]:
     ``row_step`` (12 N), ``data`` (uint8 array of little-endian float32 x y z per point) and
     ``is_dense`` (True). The header is left to the caller.
 
-    Rows with a non-finite coordinate are dropped, so the cloud is dense as declared; ``width``
-    counts the points actually kept. Raises EpiVoError when ``points_xyz`` is not (N, 3).
+    Rows with a coordinate that is not finite as float32 (NaN, inf, or beyond the float32 range) are
+    dropped, so the cloud is dense as declared; ``width`` counts the points actually kept. Raises EpiVoError when ``points_xyz`` is not (N, 3).
     """
     points = np.asarray(points_xyz, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         msg = f"points_xyz has shape {points.shape}, expected (N, 3)"
         raise EpiVoError(msg)
-    kept = points[np.all(np.isfinite(points), axis=1)].astype("<f4")
+    # Filter after the cast: a finite float64 beyond the float32 range (|x| > 3.4e38) becomes inf.
+    with np.errstate(over="ignore"):
+        as_f4 = points.astype("<f4")
+    kept = as_f4[np.all(np.isfinite(as_f4), axis=1)]
     count = int(kept.shape[0])
     return {
         "height": 1,

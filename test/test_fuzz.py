@@ -351,7 +351,7 @@ def test_scale_from_points(c: tuple[str, F64, F64], seed: int, min_points: int, 
     if est is not None:
         assert math.isfinite(est.scale) and est.scale > 0.0
         assert math.isfinite(est.rel_spread) and est.rel_spread >= 0.0
-        assert min_points <= est.n_used + min_points and est.n_used >= 1
+        assert est.n_used >= 1
 
 
 def _points(rng: np.random.Generator, n: int, kind: str) -> F64:
@@ -458,10 +458,3 @@ def test_camera_normalize_far_pixels_do_not_raise(name: str, pts: list[tuple[flo
     """Far outside the image the distortion model means nothing, but normalize must not raise."""
     xn = _CAMERAS[name].normalize(np.array(pts, dtype=np.float64).reshape(-1, 2))
     assert xn.shape == (len(pts), 2)
-
-
-@pytest.mark.parametrize("bad", [[[1.0, 2.0, 3.0]], np.zeros((2, 3)), "not an array"])
-def test_camera_normalize_bad_shape_is_a_value_error(bad: Any) -> None:
-    """The one documented non-project exception: an array that is not (N, 2) (numpy's ValueError)."""
-    with pytest.raises(ValueError):
-        _CAMERAS["plumb_bob"].normalize(bad)
