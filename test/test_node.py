@@ -385,3 +385,26 @@ def test_watchdog_reports_a_stalled_camera(ros: RosSession) -> None:
         assert stale and "no image" in stale[-1].message
     finally:
         probe.close()
+
+
+def test_node_killed_and_restarted_mid_stream_tracks_again(ros: RosSession) -> None:
+    n = _bag_frames()
+    probe = Probe(ros, "probe_restart")
+    player = subprocess.Popen([sys.executable, "-m", "epi_vo.cli", "play", str(BAG), "--rate", "0.5"],
+                              env=ros.env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        with NodeProcess(ros.env, *PLAYBACK_ARGS) as first:
+            assert probe.wait_for_node(), first.proc.stderr
+            assert probe.spin_until(lambda: len(probe.odom) >= 10, 60.0)
+            first.proc.kill()  # no clean shutdown
+            first.proc.wait()
+        seen = len(probe.odom)
+        with NodeProcess(ros.env, *PLAYBACK_ARGS) as second:
+            assert probe.spin_until(
+                lambda: any(s.message.startswith("tracking") for s in probe.frame_statuses()[seen + 1:]), 60.0), \
+                second.proc.stderr
+            assert second.proc.poll() is None
+    finally:
+        player.wait(timeout=60)
+        probe.close()
+    assert seen < n  # the kill happened mid-stream
