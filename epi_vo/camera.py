@@ -13,7 +13,6 @@ Distortion models follow ROS (REP-104 / image_geometry): ``plumb_bob`` (k1 k2 p1
 from __future__ import annotations
 
 import enum
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -195,7 +194,3 @@ class CameraModel:
         return (f"{self.width}x{self.height} fx={fx:.2f} fy={fy:.2f} cx={cx:.2f} cy={cy:.2f} "
                 f"{self.model.value} D={np.round(self.D, 6).tolist()}")
 
-
-def fov_deg(camera: CameraModel) -> float:
-    """Horizontal field of view of the pinhole part, for diagnostics."""
-    return math.degrees(2.0 * math.atan2(camera.width / 2.0, camera.fx))

@@ -248,7 +248,6 @@ class VoPipeline:
         self._pts_prev = np.zeros((0, 2), np.float32)
         self._gray_prev: NDArray[np.uint8] | None = None  # previous image, for KLT
         self._T_cur_kf_prev = np.eye(4)
-        self._has_map_scale = False
         self._speed: float | None = None  # map units per second at the last keyframe
         self._fail_count = 0
         self._n_keyframes = 0
@@ -629,7 +628,6 @@ class VoPipeline:
         if X_cur is None:
             return False
         if motion.state is TrackingState.TRACKING:
-            self._has_map_scale = True
             dt_s = (stamp_ns - kf.stamp_ns) * 1e-9
             if dt_s > 0:
                 self._speed = float(np.linalg.norm(t)) / dt_s

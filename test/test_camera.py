@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from epi_vo.camera import CameraModel, DistortionModel, fov_deg
+from epi_vo.camera import CameraModel, DistortionModel
 from epi_vo.errors import CameraModelError, EpiVoError
 
 K_640 = [500.0, 0.0, 319.5, 0.0, 500.0, 239.5, 0.0, 0.0, 1.0]
@@ -85,11 +85,6 @@ def test_empty_or_zero_d_is_no_distortion(model: str, n: int, d: list[float] | s
 def test_plumb_bob_accepts_four_coefficients() -> None:
     cam = CameraModel.create(640, 480, K_640, PLUMB_BOB_D[:4], "plumb_bob")
     np.testing.assert_array_equal(cam.D, PLUMB_BOB_D[:4])
-
-
-def test_fov_deg_known_answer() -> None:
-    cam = CameraModel.create(640, 480, [320.0, 0.0, 319.5, 0.0, 320.0, 239.5, 0.0, 0.0, 1.0], [])
-    assert fov_deg(cam) == pytest.approx(90.0, abs=1e-12)
 
 
 # --- bad calibrations -------------------------------------------------------------------------------
