@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
 from collections.abc import Sequence
 
@@ -67,6 +66,17 @@ def _add_inspect(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--camera-info-topic", help="camera_info topic (default: the only one)")
 
 
+def _add_soak(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("soak", help="many frames through the pipeline, resident memory over time and a verdict")
+    p.add_argument("--frames", type=int, default=20000, help="frames to process (default 20000)")
+    p.add_argument("--bag", default=None, help="bag whose frames are played forward and backward (default: "
+                                               "bags/general_motion)")
+    p.add_argument("--warmup", type=int, default=500, help="frames before the reference RSS sample (default 500)")
+    p.add_argument("--every", type=int, default=1000, help="RSS sample interval in frames (default 1000)")
+    p.add_argument("--max-growth", type=float, default=5.0, help="allowed RSS growth after warm-up, %% (default 5)")
+    p.add_argument("--params", help="ROS 2 parameter file for the pipeline")
+
+
 def _add_params(sub: argparse._SubParsersAction) -> None:
     sub.add_parser("params", help="print the default parameter file (ROS 2 YAML) with one comment per knob")
 
@@ -108,6 +118,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     _add_report(sub)
     _add_inspect(sub)
     _add_play(sub)
+    _add_soak(sub)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
@@ -141,6 +152,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 0
         if args.command == "play":
             return _play(args)
+        if args.command == "soak":
+            from epi_vo.soak import run as soak_run
+
+            return soak_run(args)
     except EpiVoError as exc:
         print(f"epi-vo: error: {exc}", file=sys.stderr)
         return 2
@@ -151,17 +166,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 2
 
 
-def _raise_interrupt(signum: int, frame: object) -> None:
-    raise KeyboardInterrupt
-
-
 def _replay(args: argparse.Namespace) -> int:
     from epi_vo.config import load_config
     from epi_vo.replay import format_summary, run_replay
 
-    # SIGTERM ends a replay like Ctrl-C: the output bag is finalised and frames.jsonl stays complete
-    # up to the last processed frame (both are closed by their context managers).
-    signal.signal(signal.SIGTERM, _raise_interrupt)
 
     cfg = load_config(args.params)
     summary = run_replay(args.bag, args.output, cfg, image_topic=args.image_topic,

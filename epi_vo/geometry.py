@@ -316,7 +316,9 @@ def triangulate(R_cur_ref: F64, t_cur_ref: F64, xn_ref: F64, xn_cur: F64, K: F64
     with np.errstate(divide="ignore", invalid="ignore"):
         e_ref = np.linalg.norm((X_ref[:, :2] / X_ref[:, 2:3] - xn_ref) * scale, axis=1)
         e_cur = np.linalg.norm((X_cur[:, :2] / X_cur[:, 2:3] - xn_cur) * scale, axis=1)
-    err = np.where(finite, np.maximum(e_ref, e_cur), np.inf)
+    err = np.maximum(e_ref, e_cur)
+    # A point at a camera centre (depth 0, e.g. t = 0) reprojects to 0/0: no error defined, as a failed solve.
+    err = np.where(finite & ~np.isnan(err), err, np.inf)
     # Triangulation angle: between the rays from both camera centres to the point.
     C_cur = -R_cur_ref.T @ t_cur_ref
     ray_ref = X_ref
@@ -344,6 +346,10 @@ def pose_from_homography(H: F64, K: F64, xn_ref: F64, xn_cur: F64, inliers: Mask
     for R, t in zip(Rs, ts, strict=False):
         R = np.asarray(R, dtype=np.float64)
         t = np.asarray(t, dtype=np.float64).reshape(3)
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and np.allclose(R @ R.T, np.eye(3), atol=1e-6)):
+            # OpenCV returns non-rotations for an H that no plane can produce (e.g. wildly unequal
+            # singular values of K^-1 H K); such a candidate is no pose at all.
+            continue
         tri = triangulate(R, t, xn_ref[idx], xn_cur[idx], K, max_reproj_err_px, min_angle_deg)
         results.append((int(np.count_nonzero(tri.good)), R, t, tri))
     results.sort(key=lambda r: -r[0])
@@ -406,6 +412,10 @@ def scale_from_points(X_ref: F64, R_cur_ref: F64, t_dir: F64, xn_cur: F64, min_p
     mad = 1.4826 * float(np.median(np.abs(s_i - med)))
     keep = np.abs(s_i - med) <= max(3.0 * mad, 1e-9 * med)
     s = float(np.sum(w[keep] * s_i[keep]) / np.sum(w[keep]))
+    if not math.isfinite(s) or s <= 0.0:
+        # Per-point estimates so scattered that the weighted mean leaves the median's side: the
+        # points disagree with the direction (as a non-positive median does), no scale.
+        return None
     return ScaleEstimate(s, int(np.count_nonzero(keep)), mad / med)
 
 

@@ -174,7 +174,8 @@ def point_cloud2_fields(points_xyz: ArrayLike) -> dict[str, Any]:
     ``is_dense`` (True). The header is left to the caller.
 
     Rows with a coordinate that is not finite as float32 (NaN, inf, or beyond the float32 range) are
-    dropped, so the cloud is dense as declared; ``width`` counts the points actually kept. Raises EpiVoError when ``points_xyz`` is not (N, 3).
+    dropped, so the cloud is dense as declared; ``width`` counts the points actually kept. Raises
+    EpiVoError when ``points_xyz`` is not (N, 3).
     """
     points = np.asarray(points_xyz, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:

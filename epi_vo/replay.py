@@ -12,10 +12,13 @@ Writes into the output directory:
 from __future__ import annotations
 
 import collections
+import contextlib
 import json
 import logging
 import math
-from collections.abc import Callable
+import signal
+import threading
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -125,7 +128,8 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     path_length = 0.0
     last_pos: np.ndarray | None = None
 
-    with bagio.open_camera_bag(bag_path, image_topic, camera_info_topic) as bag, \
+    with _interrupts_at_frame_boundaries() as stop, \
+            bagio.open_camera_bag(bag_path, image_topic, camera_info_topic) as bag, \
             (out / "frames.jsonl").open("w") as frames_f, (out / "trajectory.tum").open("w") as tum_f, \
             bagio.OutputBag(out / "output.mcap", overwrite=True) as obag:
         gt = _ground_truth(bag, gt_tum)
@@ -137,6 +141,8 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
 
             frames = tqdm(frames, total=bag.frame_count, unit="frame", desc="replay", leave=False)
         for frame in frames:
+            if stop.requested:  # a signal arrived during the previous frame: all its outputs are written
+                raise KeyboardInterrupt
             try:
                 if frame.camera_info_msg is None:
                     raise BagError(f"no camera_info on {bag.camera_info_topic}")
@@ -174,6 +180,12 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
 
     if n_frames == 0:
         raise BagError(f"bag {bag_path} has no image messages on {bag.image_topic}")
+    if n_frames != bag.frame_count:
+        # rosbags skips a damaged record silently; the bag's summary still counts it.
+        missing = f"the bag announces {bag.frame_count} images on {bag.image_topic}, {n_frames} could be read " \
+                  "(damaged records?)"
+        rejected[missing] += abs(bag.frame_count - n_frames)
+        first_rejected.setdefault(missing, n_frames)
     metrics, gt_source, notes = None, "", []
     if gt is not None:
         gt_source = gt[0]
@@ -192,6 +204,34 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
         rejected=[f"{n} frame(s) from frame {first_rejected[r]}: {r}" for r, n in rejected.items()])
     (out / "stats.json").write_text(json.dumps(summary.to_json(), indent=2) + "\n")
     return summary
+
+
+class _StopRequest:
+    requested = False
+
+
+@contextlib.contextmanager
+def _interrupts_at_frame_boundaries() -> Iterator[_StopRequest]:
+    """SIGINT / SIGTERM during a replay stop it between frames, never between a frame's writes.
+
+    Each frame writes a record, a trajectory line and several bag messages; an interrupt raised in the
+    middle would leave the outputs disagreeing about the last frame. Outside the main thread (where
+    signals cannot be handled) nothing changes.
+    """
+    stop = _StopRequest()
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+
+    def request(signum: int, frame: object) -> None:
+        stop.requested = True
+
+    saved = {sig: signal.signal(sig, request) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield stop
+    finally:
+        for sig, handler in saved.items():
+            signal.signal(sig, handler)
 
 
 def _write_outputs(obag: bagio.OutputBag, converter: OdometryConverter, result: FrameResult,

@@ -16,7 +16,6 @@ from typing import Any
 
 import cv2
 import numpy as np
-import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
@@ -448,6 +447,9 @@ def test_camera_normalize_is_finite(name: str, n: int, seed: int, where: str) ->
     if n:  # and they are the rays of those pixels: projecting back lands on them
         X = np.column_stack([xn, np.ones(n)])
         inside = (pts[:, 0] >= 0) & (pts[:, 0] <= w) & (pts[:, 1] >= 0) & (pts[:, 1] <= h)
+        if cam.model.value == "equidistant":
+            # Documented limitation (CameraModel.normalize): cv2.fisheye is exact below ~86 deg off axis.
+            inside &= np.linalg.norm((pts - cam.K[:2, 2]) / cam.fx, axis=1) < math.radians(80.0)
         np.testing.assert_allclose(cam.project(X)[inside], pts[inside], atol=1e-3)
 
 
