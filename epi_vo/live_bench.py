@@ -124,6 +124,7 @@ def run_latency(rates: list[float], seconds: float = 8.0, bag: str | Path | None
                     proc.kill()
     finally:
         ex.shutdown()
+        spinner.join(timeout=5.0)  # a thread still inside spin() at interpreter exit aborts the process
         node.destroy_node()
         rclpy.try_shutdown()
     return results
