@@ -408,3 +408,52 @@ def test_node_killed_and_restarted_mid_stream_tracks_again(ros: RosSession) -> N
         player.wait(timeout=60)
         probe.close()
     assert seen < n  # the kill happened mid-stream
+
+
+def test_bad_frames_and_a_stalled_camera_keep_the_node_up(ros: RosSession) -> None:
+    """Corrupt JPEG, an image whose size differs from camera_info, a NaN calibration: each gets a status
+    with the reason and a held (never NaN) odometry; after a stall the watchdog reports STALE; when images
+    resume, tracking comes back."""
+    probe = Probe(ros, "probe_bad")
+    pub_img, pub_info = _camera_publishers(probe)
+    frames = _rclpy_frames(40)
+    good = frames[:15]
+    bad = []
+    for i, (img, info) in enumerate(frames[15:18]):
+        img, info = _to_rclpy_copy(img), _to_rclpy_copy(info)
+        if i == 0:
+            img.data = bytes(np.random.default_rng(0).integers(0, 255, 2000, dtype=np.uint8))  # corrupt jpeg
+        elif i == 1:
+            info.width, info.height = 320, 240  # does not match the 640x480 image
+        else:
+            info.k[0] = float("nan")
+        bad.append((img, info))
+    after = frames[18:]
+    try:
+        with NodeProcess(ros.env, *PLAYBACK_ARGS, "-p", "watchdog_timeout_s:=0.3") as node:
+            assert probe.wait_for_node(), node.proc.stderr
+            _wait_matched(probe, pub_img, pub_info)
+            for img, info in good + bad:
+                pub_info.publish(info)
+                pub_img.publish(img)
+                probe.spin_until(lambda: False, 0.03)
+            assert probe.spin_until(lambda: any(s.level in (b"\x03", 3) for a in probe.diag for s in a.status), 10.0)
+            n_before = len(probe.odom)
+            for img, info in after:
+                pub_info.publish(info)
+                pub_img.publish(img)
+                probe.spin_until(lambda: False, 0.03)
+            assert probe.spin_until(lambda: len(probe.odom) >= len(good) + len(bad) + len(after), 30.0)
+            assert node.proc.poll() is None  # still running
+        messages = [s.message for s in probe.frame_statuses()]
+        assert any("could not decode CompressedImage" in m for m in messages)
+        assert any("does not match camera_info size 320x240" in m for m in messages)
+        assert any("K is not finite" in m for m in messages)
+        for m in probe.odom:
+            pose = _odom_pose(m)
+            assert np.all(np.isfinite(pose)) and abs(np.linalg.norm(pose[3:]) - 1.0) < 1e-6
+            assert np.all(np.isfinite(np.asarray(m.pose.covariance)))
+        assert n_before == len(good) + len(bad)
+        assert any(s.message.startswith("tracking") for s in probe.frame_statuses()[-10:])
+    finally:
+        probe.close()
