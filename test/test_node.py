@@ -457,3 +457,100 @@ def test_bad_frames_and_a_stalled_camera_keep_the_node_up(ros: RosSession) -> No
         assert any(s.message.startswith("tracking") for s in probe.frame_statuses()[-10:])
     finally:
         probe.close()
+
+
+def _raw(gray: np.ndarray, stamp: Any, encoding: str = "mono8", pad: int = 0, big_endian: bool = False) -> Any:
+    """A sensor_msgs/Image of ``gray`` in the given encoding (mono8, mono16, 32FC1, yuv422) and padding."""
+    from sensor_msgs.msg import Image
+
+    h, w = gray.shape
+    if encoding == "mono16":
+        pix = (gray.astype(np.uint16) << 8).astype(">u2" if big_endian else "<u2").view(np.uint8).reshape(h, 2 * w)
+    elif encoding == "32FC1":
+        pix = gray.astype(np.float32).view(np.uint8).reshape(h, 4 * w)
+    elif encoding == "yuv422":
+        pix = np.repeat(gray, 2, axis=1)
+    else:
+        pix = gray
+    rows = np.zeros((h, pix.shape[1] + pad), np.uint8)
+    rows[:, :pix.shape[1]] = pix
+    msg = Image()
+    msg.header.stamp = stamp
+    msg.height, msg.width, msg.encoding = h, w, encoding
+    msg.is_bigendian = int(big_endian)
+    msg.step = rows.shape[1]
+    msg.data = rows.tobytes()
+    return msg
+
+
+def test_raw_image_inputs_good_and_bad(ros: RosSession) -> None:
+    """Raw-image inputs through the node: padded step, big-endian mono16 and a 4K frame (downscaled by
+    max_image_width) work; 32FC1, yuv422, an uncalibrated K, an unknown distortion model, a D of the
+    wrong length and an image size change each get a status with the reason; the node stays up and
+    publishes one valid odometry per image."""
+    import cv2
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import CameraInfo, Image
+
+    from epi_vo.replay import decode_frame
+
+    probe = Probe(ros, "probe_raw")
+    qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    pub_img = probe.node.create_publisher(Image, "camera/image_raw", qos)
+    pub_info = probe.node.create_publisher(CameraInfo, "camera/camera_info", qos)
+    src = _rclpy_frames(24)
+    grays = [decode_frame(img, True) for img, _ in src]
+
+    def info_of(i: int, **change: Any) -> Any:
+        info = _to_rclpy_copy(src[i][1])
+        for k, v in change.items():
+            setattr(info, k, v)
+        return info
+
+    seq: list[tuple[Any, Any, str]] = []
+    for i in range(12):
+        seq.append((_raw(grays[i], src[i][0].header.stamp, pad=7 if i % 2 else 0), info_of(i), ""))
+    seq.append((_raw(grays[12], src[12][0].header.stamp, "mono16", big_endian=True), info_of(12), ""))
+    cases = [("32FC1", {}, "unsupported image encoding '32FC1'"),
+             ("yuv422", {}, "unsupported image encoding 'yuv422'"),
+             ("mono8", {"k": [0.0] * 9}, "uncalibrated"),
+             ("mono8", {"distortion_model": "kannala"}, "unknown distortion model 'kannala'"),
+             ("mono8", {"d": [0.1, 0.0, 0.0]}, "camera_info D has 3"),
+             ("mono8", {"width": 320, "height": 240}, "does not match camera_info size 320x240")]
+    for j, (enc, change, reason) in enumerate(cases):
+        i = 13 + j
+        seq.append((_raw(grays[i], src[i][0].header.stamp, enc), info_of(i, **change), reason))
+    big = cv2.resize(grays[19], (3840, 2880), interpolation=cv2.INTER_LINEAR)
+    K4 = np.asarray(src[19][1].k, np.float64) * np.array([6, 1, 6, 1, 6, 6, 1, 1, 1.0])
+    K4[2] = (src[19][1].k[2] + 0.5) * 6 - 0.5
+    K4[5] = (src[19][1].k[5] + 0.5) * 6 - 0.5
+    seq.append((_raw(big, src[19][0].header.stamp), info_of(19, width=3840, height=2880, k=list(K4)), ""))
+    for i in range(20, 24):
+        seq.append((_raw(grays[i], src[i][0].header.stamp), info_of(i), ""))
+    try:
+        with NodeProcess(ros.env, "-p", "process_every_frame:=true", "-p", "qos_reliability:=reliable",
+                         "-p", "qos_depth:=100", "-p", "max_image_width:=640") as node:
+            assert probe.wait_for_node(), node.proc.stderr
+            assert probe.spin_until(lambda: pub_img.get_subscription_count() > 0
+                                    and pub_info.get_subscription_count() > 0, 10.0)
+            probe.spin_until(lambda: False, 0.3)
+            for img, info, _ in seq:
+                pub_info.publish(info)
+                pub_img.publish(img)
+                probe.spin_until(lambda: False, 0.05)
+            assert probe.spin_until(lambda: len(probe.frame_statuses()) >= len(seq), 30.0), \
+                (len(probe.frame_statuses()), len(seq))
+            assert node.proc.poll() is None
+        statuses = probe.frame_statuses()
+        assert len(statuses) == len(seq) == len(probe.odom)
+        for (_, _, reason), status in zip(seq, statuses, strict=True):
+            if reason:
+                assert reason in status.message, (reason, status.message)
+            else:
+                assert "rejected" not in status.message, status.message
+        for m in probe.odom:
+            pose = _odom_pose(m)
+            assert np.all(np.isfinite(pose)) and abs(np.linalg.norm(pose[3:]) - 1.0) < 1e-6
+        assert statuses[12].message.startswith("tracking")  # big-endian mono16 tracked like mono8
+    finally:
+        probe.close()

@@ -211,3 +211,8 @@ def test_node_at_twice_its_rate_bounded_queue_counted_drops_flat_memory(ros: Ros
     assert len(statuses) == len(odom), summary  # one status per processed frame
     assert all(np.isfinite(float(s["latency_ms"])) and float(s["latency_ms"]) < 1000.0 for s in statuses[5:]), summary
     assert (rss_end - rss_5s) / rss_5s < 0.05, summary
+    # Latency stays stable under overload: the bounded queue keeps the wait from growing.
+    lat = np.array([float(s["latency_ms"]) for s in statuses[5:]])
+    third = len(lat) // 3
+    early, late = float(np.median(lat[:third])), float(np.median(lat[-third:]))
+    assert late < 1.5 * early + 10.0, f"latency grew: median {early:.1f} ms -> {late:.1f} ms; {summary}"
