@@ -1,6 +1,7 @@
 """``vo_node``: the ROS 2 front door. Wiring only: the work is done by the same
 :class:`~epi_vo.pipeline.VoPipeline` that ``epi-vo replay`` drives, so a bag gives the same poses live
-and offline. This is the only module of epi_vo that imports rclpy.
+and offline. Of the pipeline's two front doors, this is the only one that imports rclpy (the other
+ROS-facing tools, play, monitor and live_bench, do too; the core never does).
 
 Topics (relative names, so namespaces and remapping work):
   in:  ``camera/image_raw`` (sensor_msgs/Image) or ``camera/image_raw/compressed`` (CompressedImage,
