@@ -110,7 +110,7 @@ class VoNode(Node):
         self._log_effective_parameters()
         self._pipeline = VoPipeline(self.cfg)
         self._converter = OdometryConverter(T_base_cam_from_params(self.opts.camera_xyz, self.opts.camera_rpy))
-        self._assoc = CameraInfoAssociator(max_pending=2, max_wait_ns=int(self.opts.camera_info_wait_s * 1e9))
+        self._assoc = CameraInfoAssociator(max_pending=5, max_wait_ns=int(self.opts.camera_info_wait_s * 1e9))
         self._lock = threading.Lock()  # guards the association and the queue
         self._cv = threading.Condition(self._lock)
         self._queue: collections.deque[Ready] = collections.deque()

@@ -437,6 +437,7 @@ def test_bad_frames_and_a_stalled_camera_keep_the_node_up(ros: RosSession) -> No
             _wait_matched(probe, pub_img, pub_info)
             for img, info in good + bad:
                 pub_info.publish(info)
+                probe.spin_until(lambda: False, 0.01)  # a bad calibration must pair with its own image
                 pub_img.publish(img)
                 probe.spin_until(lambda: False, 0.03)
             assert probe.spin_until(lambda: any(s.level in (b"\x03", 3) for a in probe.diag for s in a.status), 10.0)
@@ -538,6 +539,7 @@ def test_raw_image_inputs_good_and_bad(ros: RosSession) -> None:
             probe.spin_until(lambda: False, 0.3)
             for img, info, _ in seq:
                 pub_info.publish(info)
+                probe.spin_until(lambda: False, 0.01)  # each bad calibration must pair with its own image
                 pub_img.publish(img)
                 probe.spin_until(lambda: False, 0.05)
             assert probe.spin_until(lambda: len(probe.frame_statuses()) >= len(seq), 30.0), \
