@@ -348,9 +348,11 @@ class VoNode(Node):
             dropped, received, queued = self._n_dropped, self._n_received, len(self._queue)
             last = self._last_image_wall
         now = time.monotonic()
-        recent = [t for t in arrivals if now - t <= 2.0]  # a stalled camera's rate decays to 0
-        rate = (len(recent) - 1) / (recent[-1] - recent[0]) if len(recent) > 1 and recent[-1] > recent[0] else 0.0
+        rate = (len(arrivals) - 1) / (arrivals[-1] - arrivals[0]) if len(arrivals) > 1 and \
+            arrivals[-1] > arrivals[0] else 0.0
         since = now - last if last is not None else math.inf
+        if since > 0.0:
+            rate = min(rate, 1.0 / since)  # a stalled camera's rate decays instead of freezing
         return (("input_rate_hz", f"{rate:.2f}"), ("latency_ms", f"{self._last_latency_ms:.2f}"),
                 ("frames_received", str(received)),
                 ("dropped_frames", str(dropped)), ("queue_depth", str(queued)),
