@@ -34,7 +34,7 @@ from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_typestore
 
 from epi_vo.errors import BagError
-from epi_vo.msgconv import point_cloud2_fields
+from epi_vo.msgconv import point_cloud2_fields, stamp_to_ns
 
 if TYPE_CHECKING:
     from collections.abc import Iterator, Sequence
@@ -194,11 +194,6 @@ def _required_topic(
     return topic
 
 
-def _stamp_ns(stamp: Any) -> int:
-    """builtin_interfaces/Time (sec, nanosec) as integer nanoseconds."""
-    return int(stamp.sec) * _NS_PER_S + int(stamp.nanosec)
-
-
 class CameraBag:
     """An open camera bag: chosen topics, frame count, frames and ground truth.
 
@@ -229,7 +224,7 @@ class CameraBag:
         self.frame_count = int(topics[image_topic].msgcount)
 
         camera_infos = [
-            (_stamp_ns(msg.header.stamp), msg) for _, msg in self._read(camera_info_topic)
+            (stamp_to_ns(msg.header.stamp), msg) for _, msg in self._read(camera_info_topic)
         ]
         # Stable sort by header stamp: among equal stamps the last one is the latest recorded.
         camera_infos.sort(key=lambda item: item[0])
@@ -281,7 +276,7 @@ class CameraBag:
     def iter_frames(self) -> Iterator[BagFrame]:
         """Images in bag order, each with ``camera_info_for`` its header stamp."""
         for index, (_, image_msg) in enumerate(self._read(self.image_topic)):
-            stamp_ns = _stamp_ns(image_msg.header.stamp)
+            stamp_ns = stamp_to_ns(image_msg.header.stamp)
             yield BagFrame(index, stamp_ns, image_msg, self.camera_info_for(stamp_ns))
 
     def read_ground_truth(self) -> GroundTruth | None:
@@ -295,7 +290,7 @@ class CameraBag:
         for _, msg in self._read(self.gt_topic):
             # PoseStamped has pose.position; Odometry has pose.pose.position (PoseWithCovariance).
             pose = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose
-            stamps_ns.append(_stamp_ns(msg.header.stamp))
+            stamps_ns.append(stamp_to_ns(msg.header.stamp))
             positions.append((pose.position.x, pose.position.y, pose.position.z))
             o = pose.orientation
             quats_xyzw.append((o.x, o.y, o.z, o.w))

@@ -22,8 +22,9 @@ from epi_vo import bagio
 from epi_vo.config import VoConfig, load_config
 from epi_vo.errors import EpiVoError
 from epi_vo.evaluation import evaluate_trajectory
+from epi_vo.msgconv import decode_frame
 from epi_vo.reference import ReferencePipeline
-from epi_vo.replay import decode_frame, run_replay
+from epi_vo.replay import run_replay
 from epi_vo.transforms import quat_xyzw_from_rotation
 
 

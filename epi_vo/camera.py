@@ -41,6 +41,26 @@ _D_LENGTHS = {
 }
 
 
+class CameraModelCache:
+    """Builds a CameraModel only when the camera_info content changes, not once per frame.
+
+    Holds one model: a calibration that keeps changing must not grow memory.
+    """
+
+    def __init__(self) -> None:
+        self._key: tuple[Any, ...] | None = None
+        self._camera: CameraModel | None = None
+
+    def get(self, msg: Any) -> CameraModel:
+        """The model of a CameraInfo-like ``msg``; raises CameraModelError as ``from_camera_info``."""
+        key = (int(msg.width), int(msg.height), str(msg.distortion_model), tuple(np.asarray(msg.k).tolist()),
+               tuple(np.asarray(msg.d).tolist()))
+        if key != self._key or self._camera is None:
+            self._camera = CameraModel.from_camera_info(msg)
+            self._key = key
+        return self._camera
+
+
 def _undistort_pinhole(pts: NDArray[np.float64], K: NDArray[np.float64], D: NDArray[np.float64]
                        ) -> NDArray[np.float64]:
     """Normalized coordinates of distorted pixels, converged iteration on OpenCV 4.x and 5.x."""

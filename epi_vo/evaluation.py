@@ -3,7 +3,7 @@
 Both trajectories hold camera optical-frame poses T_w_c (camera points into world): the position is
 the camera centre in world, the quaternion is R_w_c in x, y, z, w order (ROS order). evo's
 ``PoseTrajectory3D`` takes quaternions in w, x, y, z order; the conversion happens in one place,
-``_to_evo_trajectory``.
+``to_evo_trajectory``.
 
 Pipeline (the evaluation recommended by section 12 of the seed article: report relative rotation
 error, translation-direction error and ATE/RPE separately, and say how scale was fixed):
@@ -112,8 +112,8 @@ def evaluate_trajectory(
     if not np.isfinite(max_time_diff) or max_time_diff < 0.0:
         msg = f"max_time_diff must be a finite number >= 0 s, got {max_time_diff!r}"
         raise EvaluationError(msg)
-    traj_est = _to_evo_trajectory(est, "estimated trajectory")
-    traj_gt = _to_evo_trajectory(gt, "ground-truth trajectory")
+    traj_est = to_evo_trajectory(est, "estimated trajectory")
+    traj_gt = to_evo_trajectory(gt, "ground-truth trajectory")
 
     try:
         traj_gt, traj_est = sync.associate_trajectories(
@@ -234,7 +234,7 @@ def _steps_in_previous_camera(T_w_c: NDArray[np.float64]) -> NDArray[np.float64]
     return np.einsum("nji,nj->ni", R_w_prev, step_w)
 
 
-def _to_evo_trajectory(
+def to_evo_trajectory(
     poses: StampedPoses
     | tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]],
     name: str,

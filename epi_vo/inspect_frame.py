@@ -40,8 +40,8 @@ from epi_vo.camera import CameraModel, DistortionModel
 from epi_vo.config import VoConfig, load_config
 from epi_vo.errors import BagError, EpiVoError
 from epi_vo.geometry import CHI2_1DOF, CHI2_2DOF, epipolar_distances_sq, homogeneous, transfer_errors_sq
-from epi_vo.pipeline import FrameResult, Model, VoPipeline
-from epi_vo.replay import decode_frame
+from epi_vo.msgconv import decode_frame
+from epi_vo.pipeline import FrameResult, Model, VoPipeline, downscale
 
 F64 = NDArray[np.float64]
 Gray = NDArray[np.uint8]
@@ -224,16 +224,6 @@ def undistorted_image(gray: Gray, camera: CameraModel) -> Gray:
 # Bag replay up to one frame
 
 
-def _as_processed(gray: Gray, camera: CameraModel, cfg: VoConfig) -> tuple[Gray, CameraModel]:
-    """The image and camera the pipeline works on (its ``max_image_width`` downscaling, same rule)."""
-    max_w = cfg.max_image_width
-    if max_w <= 0 or gray.shape[1] <= max_w:
-        return gray, camera
-    factor = max_w / gray.shape[1]
-    small = cv2.resize(gray, (max_w, round(gray.shape[0] * factor)), interpolation=cv2.INTER_AREA)
-    return small, camera.scaled(factor)
-
-
 def nearest_frame(stamps_ns: list[int], stamp_s: float) -> int:
     """Index of the stamp nearest to ``stamp_s`` seconds (the first one on a tie)."""
     target = stamp_s * 1e9
@@ -271,7 +261,7 @@ def inspect_bag(bag_path: str | Path, frame: int | None = None, *, stamp_s: floa
                 result = pipeline.process(gray, camera, f.stamp_ns)
             except EpiVoError as exc:
                 raise type(exc)(f"frame {f.index} (stamp {f.stamp_ns * 1e-9:.6f} s): {exc}") from None
-            gray_p, camera_p = _as_processed(gray, camera, cfg)
+            gray_p, camera_p = downscale(gray, camera, cfg.max_image_width)
             if f.index == frame:
                 # The reference while this frame was processed: even when this frame becomes a
                 # keyframe, its correspondences were measured against the previous one.

@@ -41,7 +41,7 @@ class LatencyResult:
 
 def _frames(bag: Path) -> list[tuple[np.ndarray, Any]]:
     from epi_vo import bagio
-    from epi_vo.replay import decode_frame
+    from epi_vo.msgconv import decode_frame
 
     out = []
     with bagio.open_camera_bag(bag) as b:

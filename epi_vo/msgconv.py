@@ -165,6 +165,16 @@ def compressed_to_gray(msg: Any) -> NDArray[np.uint8]:
     return gray
 
 
+def decode_frame(msg: Any, compressed: bool) -> NDArray[np.uint8]:
+    """Grayscale pixels of a sensor_msgs/CompressedImage (``compressed``) or Image-like message."""
+    return compressed_to_gray(msg) if compressed else image_to_gray(msg)
+
+
+def stamp_to_ns(stamp: Any) -> int:
+    """builtin_interfaces/Time (fields sec, nanosec) as integer nanoseconds."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
 def point_cloud2_fields(points_xyz: ArrayLike) -> dict[str, Any]:
     """Field values of an unorganised ``sensor_msgs/PointCloud2`` holding ``points_xyz`` (N, 3).
 

@@ -37,7 +37,7 @@ from std_srvs.srv import Trigger
 
 from epi_vo import msgconv
 from epi_vo.association import CameraInfoAssociator, Ready
-from epi_vo.camera import CameraModel
+from epi_vo.camera import CameraModelCache
 from epi_vo.config import VoConfig, config_fields, field_doc, from_dict
 from epi_vo.debug_image import draw_matches
 from epi_vo.diagnostics import DiagnosticLevel, DiagnosticStatusRecord
@@ -123,7 +123,7 @@ class VoNode(Node):
         self._path_published = 0.0
         self._arrival: dict[int, float] = {}  # image stamp -> monotonic arrival time, for the latency figure
         self._last_latency_ms = math.nan
-        self._cameras: dict[tuple[Any, ...], CameraModel] = {}
+        self._cameras = CameraModelCache()
         self._warned: set[str] = set()
 
         in_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=self.opts.qos_depth,
@@ -212,7 +212,7 @@ class VoNode(Node):
 
     # -- input ----------------------------------------------------------------------------------------
     def _on_image(self, msg: Image | CompressedImage) -> None:
-        stamp = _stamp_ns(msg.header.stamp)
+        stamp = msgconv.stamp_to_ns(msg.header.stamp)
         with self._cv:
             self._n_received += 1
             now = time.monotonic()
@@ -225,7 +225,7 @@ class VoNode(Node):
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         with self._cv:
-            self._enqueue(self._assoc.add_info(_stamp_ns(msg.header.stamp), msg))
+            self._enqueue(self._assoc.add_info(msgconv.stamp_to_ns(msg.header.stamp), msg))
 
     def _enqueue(self, ready: list[Ready]) -> None:
         """Called with the lock held. Live mode keeps only the newest ``queue_size`` frames."""
@@ -274,8 +274,8 @@ class VoNode(Node):
             raise CameraModelError("no camera_info received yet on camera/camera_info")
         if item.first_mismatch:
             self.get_logger().warning("camera_info stamps do not match image stamps; using the latest camera_info")
-        gray = msgconv.compressed_to_gray(item.image) if self._compressed else msgconv.image_to_gray(item.image)
-        result = self._pipeline.process(gray, self._camera(item.info), stamp)
+        gray = msgconv.decode_frame(item.image, self._compressed)
+        result = self._pipeline.process(gray, self._cameras.get(item.info), stamp)
         self._n_processed += 1
         if result.skipped:
             self.get_logger().warning(f"{result.reason} ({stamp * 1e-9:.6f} s)", throttle_duration_sec=5.0)
@@ -285,14 +285,6 @@ class VoNode(Node):
             self.get_logger().warning(result.reason)
             self._converter.reset_twist()
         self._publish(result, item.image.header.stamp, gray)
-
-    def _camera(self, info: CameraInfo) -> CameraModel:
-        key = (info.width, info.height, info.distortion_model, tuple(info.k), tuple(info.d))
-        cam = self._cameras.get(key)
-        if cam is None:
-            cam = CameraModel.from_camera_info(info)
-            self._cameras = {key: cam}  # keep one: a changing calibration must not grow memory
-        return cam
 
     # -- output -------------------------------------------------------------------------------------------
     def _publish(self, r: FrameResult, stamp_msg: Any, gray: np.ndarray | None) -> None:
@@ -385,10 +377,6 @@ class VoNode(Node):
             self._cv.notify_all()
         self._worker.join(timeout=2.0)
         super().destroy_node()
-
-
-def _stamp_ns(stamp: Any) -> int:
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 def _point_cloud(header: Any, points: np.ndarray) -> PointCloud2:

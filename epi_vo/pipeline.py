@@ -316,7 +316,7 @@ class VoPipeline:
         if self._pending_reason:
             st.reasons.append(self._pending_reason)
             self._pending_reason = ""
-        gray, camera = self._maybe_downscale(gray, camera)
+        gray, camera = downscale(gray, camera, self.cfg.max_image_width)
         if self._kf is not None and not _same_camera(self._kf.camera, camera):
             st.reasons.append("camera_info changed: tracking restarted")
             self._kf = None
@@ -373,15 +373,6 @@ class VoPipeline:
         return self._result(stamp_ns, state, has_pose, is_kf, st, t_start)
 
     # ---------------------------------------------------------------------------------------------
-    def _maybe_downscale(self, gray: NDArray[np.uint8], camera: CameraModel
-                         ) -> tuple[NDArray[np.uint8], CameraModel]:
-        max_w = self.cfg.max_image_width
-        if max_w <= 0 or gray.shape[1] <= max_w:
-            return gray, camera
-        factor = max_w / gray.shape[1]
-        small = cv2.resize(gray, (max_w, round(gray.shape[0] * factor)), interpolation=cv2.INTER_AREA)
-        return small, camera.scaled(factor)
-
     def _track(self, gray: NDArray[np.uint8]) -> tuple[F32, NDArray[np.int64], fe.OrbFeatures | None]:
         """Correspondences keyframe -> current: (current raw pixels, keyframe rows, ORB features)."""
         kf = self._kf
@@ -733,6 +724,16 @@ class VoPipeline:
 
 
 # -------------------------------------------------------------------------------------------------
+def downscale(gray: NDArray[np.uint8], camera: CameraModel, max_width: int
+              ) -> tuple[NDArray[np.uint8], CameraModel]:
+    """The image and camera the pipeline works on: wider images shrunk to ``max_width`` (0: never)."""
+    if max_width <= 0 or gray.shape[1] <= max_width:
+        return gray, camera
+    factor = max_width / gray.shape[1]
+    small = cv2.resize(gray, (max_width, round(gray.shape[0] * factor)), interpolation=cv2.INTER_AREA)
+    return small, camera.scaled(factor)
+
+
 def _ms(t0: float) -> float:
     return (time.perf_counter() - t0) * 1e3
 

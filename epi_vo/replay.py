@@ -25,11 +25,12 @@ from typing import Any
 
 import numpy as np
 
-from epi_vo import bagio, msgconv
-from epi_vo.camera import CameraModel
+from epi_vo import bagio
+from epi_vo.camera import CameraModelCache
 from epi_vo.config import VoConfig
 from epi_vo.errors import BagError, EpiVoError
 from epi_vo.evaluation import TrajectoryMetrics, evaluate_trajectory
+from epi_vo.msgconv import decode_frame
 from epi_vo.odometry import OdometryConverter
 from epi_vo.pipeline import FrameResult, VoPipeline
 from epi_vo.status import frame_status
@@ -78,26 +79,6 @@ def _jsonable(x: Any) -> Any:
     return x
 
 
-class _CameraCache:
-    """Builds a CameraModel only when the camera_info content changes (not once per frame)."""
-
-    def __init__(self) -> None:
-        self._key: tuple[Any, ...] | None = None
-        self._camera: CameraModel | None = None
-
-    def get(self, msg: Any) -> CameraModel:
-        key = (int(msg.width), int(msg.height), str(msg.distortion_model), tuple(np.asarray(msg.k).tolist()),
-               tuple(np.asarray(msg.d).tolist()))
-        if key != self._key or self._camera is None:
-            self._camera = CameraModel.from_camera_info(msg)
-            self._key = key
-        return self._camera
-
-
-def decode_frame(image_msg: Any, compressed: bool) -> np.ndarray:
-    return msgconv.compressed_to_gray(image_msg) if compressed else msgconv.image_to_gray(image_msg)
-
-
 def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | None = None, *,
                image_topic: str | None = None, camera_info_topic: str | None = None,
                gt_tum: str | Path | None = None, progress: bool = False,
@@ -116,7 +97,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     out.mkdir(parents=True, exist_ok=True)
     pipeline = VoPipeline(cfg)
     converter = OdometryConverter()
-    cameras = _CameraCache()
+    cameras = CameraModelCache()
     results_pose: list[tuple[float, np.ndarray, np.ndarray]] = []
     path_poses: collections.deque[tuple[int, np.ndarray, np.ndarray]] = collections.deque(maxlen=PATH_MAX_POSES)
     states: collections.Counter[str] = collections.Counter()

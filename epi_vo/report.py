@@ -57,8 +57,8 @@ from epi_vo.evaluation import (
     MIN_MATCHED_POSES,
     StampedPoses,
     TrajectoryMetrics,
-    _to_evo_trajectory,
     evaluate_trajectory,
+    to_evo_trajectory,
 )
 
 _log = logging.getLogger(__name__)
@@ -242,8 +242,8 @@ def _pair(run: Run) -> _Paired | None:
     if run.gt is None:
         return None
     try:
-        traj_est = _to_evo_trajectory(run.est, "estimated trajectory")
-        traj_gt = _to_evo_trajectory(run.gt, "ground-truth trajectory")
+        traj_est = to_evo_trajectory(run.est, "estimated trajectory")
+        traj_gt = to_evo_trajectory(run.gt, "ground-truth trajectory")
         traj_gt, traj_est = sync.associate_trajectories(traj_gt, traj_est, max_diff=_GT_MAX_TIME_DIFF_S)
     except (EpiVoError, sync.SyncException) as exc:
         note = f"ground truth not usable: {exc}"

@@ -30,9 +30,9 @@ from epi_vo import bagio
 from epi_vo.camera import CameraModel
 from epi_vo.config import VoConfig
 from epi_vo.errors import BagError
+from epi_vo.msgconv import decode_frame
 from epi_vo.odometry import OdometryConverter
 from epi_vo.pipeline import VoPipeline
-from epi_vo.replay import decode_frame
 from epi_vo.status import frame_status
 
 DEFAULT_BAG = Path(__file__).resolve().parent.parent / "bags" / "general_motion" / "bag"

@@ -30,7 +30,8 @@ from rosbags.typesys import Stores, get_typestore
 from epi_vo import bagio
 from epi_vo.cli import main
 from epi_vo.config import VoConfig
-from epi_vo.replay import ReplaySummary, decode_frame, run_replay
+from epi_vo.msgconv import decode_frame
+from epi_vo.replay import ReplaySummary, run_replay
 
 REPO = Path(__file__).resolve().parent.parent
 SOURCE_BAG = REPO / "bags" / "general_motion" / "bag"

@@ -142,8 +142,8 @@ def test_real_frame_records_render_their_numbers() -> None:
     """The keys the monitor reads are the ones the node publishes (status.frame_status of real frames)."""
     from epi_vo import bagio
     from epi_vo.camera import CameraModel
+    from epi_vo.msgconv import decode_frame
     from epi_vo.pipeline import VoPipeline
-    from epi_vo.replay import decode_frame
     from epi_vo.status import frame_status
 
     pipe = VoPipeline()

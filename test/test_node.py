@@ -495,7 +495,7 @@ def test_raw_image_inputs_good_and_bad(ros: RosSession) -> None:
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import CameraInfo, Image
 
-    from epi_vo.replay import decode_frame
+    from epi_vo.msgconv import decode_frame
 
     probe = Probe(ros, "probe_raw")
     qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)

@@ -12,8 +12,8 @@ from epi_vo import bagio
 from epi_vo.camera import CameraModel
 from epi_vo.config import VoConfig
 from epi_vo.errors import CameraModelError
+from epi_vo.msgconv import decode_frame
 from epi_vo.pipeline import FrameResult, Model, TrackingState, VoPipeline
-from epi_vo.replay import decode_frame
 
 BAG = Path(__file__).resolve().parent.parent / "bags" / "general_motion" / "bag"
 

@@ -199,7 +199,7 @@ def test_raw_and_compressed_replays_agree(tmp_path: Path) -> None:
         for frame in bag.iter_frames():
             if frame.index >= 15:
                 break
-            from epi_vo.replay import decode_frame
+            from epi_vo.msgconv import decode_frame
 
             gray = decode_frame(frame.image_msg, bag.image_is_compressed)
             h, w = gray.shape
