@@ -54,11 +54,28 @@ class CameraModelCache:
     def get(self, msg: Any) -> CameraModel:
         """The model of a CameraInfo-like ``msg``; raises CameraModelError as ``from_camera_info``."""
         key = (int(msg.width), int(msg.height), str(msg.distortion_model), tuple(np.asarray(msg.k).tolist()),
-               tuple(np.asarray(msg.d).tolist()))
+               tuple(np.asarray(msg.d).tolist()), _binning_roi(msg))
         if key != self._key or self._camera is None:
             self._camera = CameraModel.from_camera_info(msg)
             self._key = key
         return self._camera
+
+
+# Plausible intrinsics. Focal lengths outside [_MIN_FOCAL, _MAX_FOCAL] x the larger image side are
+# a field of view over ~175 deg (pinhole) or under ~0.6 deg: no real camera, but a unit or typing
+# mistake (fx = 1e-300 makes every normalized coordinate, and so the covariance, non-finite). The
+# principal point must lie within one image size of the image.
+_MIN_FOCAL, _MAX_FOCAL = 0.02, 100.0
+# Distortion coefficients beyond this magnitude come from no lens model fit.
+_MAX_ABS_DISTORTION = 1.0e4
+
+
+def _binning_roi(msg: Any) -> tuple[int, int, int, int, int, int]:
+    """(binning_x, binning_y, roi x, y, width, height) of a CameraInfo-like message; 0 binning -> 1."""
+    roi = getattr(msg, "roi", None)
+    vals = [int(getattr(msg, "binning_x", 0) or 0), int(getattr(msg, "binning_y", 0) or 0)]
+    vals += [int(getattr(roi, f, 0) or 0) for f in ("x_offset", "y_offset", "width", "height")]
+    return (max(vals[0], 1), max(vals[1], 1), vals[2], vals[3], vals[4], vals[5])
 
 
 def _undistort_pinhole(pts: NDArray[np.float64], K: NDArray[np.float64], D: NDArray[np.float64]
@@ -89,17 +106,51 @@ class CameraModel:
     K: NDArray[np.float64]
     D: NDArray[np.float64]
     model: DistortionModel
+    # How the image relates to the calibrated sensor (binning_x, binning_y, roi x, y, w, h); K and the
+    # size above are already those of the image.
+    binning_roi: tuple[int, int, int, int, int, int] = (1, 1, 0, 0, 0, 0)
 
     @classmethod
     def from_camera_info(cls, msg: Any) -> CameraModel:
-        """Build from any object with CameraInfo fields (width, height, distortion_model, d, k).
+        """Build from any object with CameraInfo fields (width, height, distortion_model, d, k, and
+        optionally binning_x, binning_y, roi).
+
+        Binning and region of interest are honoured as image_geometry does: the calibration (K, D,
+        width, height) is of the full-resolution sensor, the image is its ``roi`` (full-resolution
+        pixels; width/height 0 = the whole sensor) reduced by ``binning_x`` x ``binning_y`` (0 or
+        1 = none). The model returned is that of the published image: ``fx / binning_x``,
+        ``(cx - roi.x_offset) / binning_x`` (same for y), size ``roi.width // binning_x`` x
+        ``roi.height // binning_y``; D is unchanged (it acts on normalized coordinates).
 
         Raises:
-            CameraModelError: uncalibrated (K[0] == 0), non-finite K or D, unknown distortion model,
-                distortion vector of the wrong length, zero image size.
+            CameraModelError: uncalibrated (K[0] == 0), non-finite or implausible K or D, unknown
+                distortion model, distortion vector of the wrong length, zero image size, a region of
+                interest outside the calibrated image, or binning leaving no pixel.
         """
-        return cls.create(int(msg.width), int(msg.height), np.asarray(msg.k, dtype=np.float64),
-                          np.asarray(msg.d, dtype=np.float64), str(msg.distortion_model))
+        width, height = int(msg.width), int(msg.height)
+        K = np.asarray(msg.k, dtype=np.float64)
+        D = np.asarray(msg.d, dtype=np.float64)
+        model = str(msg.distortion_model)
+        bx, by, rx, ry, rw, rh = _binning_roi(msg)
+        if (bx, by, rx, ry, rw, rh) == (1, 1, 0, 0, 0, 0):
+            return cls.create(width, height, K, D, model)
+        full = cls.create(width, height, K, D, model)  # validates the full-resolution calibration
+        if rw == 0 and rh == 0:
+            rw, rh = width - rx, height - ry
+        if rx < 0 or ry < 0 or rw <= 0 or rh <= 0 or rx + rw > width or ry + rh > height:
+            raise CameraModelError(
+                f"camera_info roi (x_offset {rx}, y_offset {ry}, {rw}x{rh}) is not inside the calibrated "
+                f"{width}x{height} image")
+        if rw // bx == 0 or rh // by == 0:
+            raise CameraModelError(f"camera_info binning {bx}x{by} leaves no pixel of the {rw}x{rh} roi")
+        Kr = full.K.copy()
+        Kr[0, 0] /= bx
+        Kr[1, 1] /= by
+        Kr[0, 2] = (Kr[0, 2] - rx) / bx
+        Kr[1, 2] = (Kr[1, 2] - ry) / by
+        cam = cls.create(rw // bx, rh // by, Kr, full.D.copy(), model)
+        object.__setattr__(cam, "binning_roi", (bx, by, rx, ry, rw, rh))
+        return cam
 
     @classmethod
     def create(cls, width: int, height: int, K: NDArray[np.float64] | list[float],
@@ -121,6 +172,21 @@ class CameraModel:
             raise CameraModelError(f"camera_info K has skew K[1] = {K[0, 1]}; skewed intrinsics are not supported")
         if not np.all(np.isfinite(D)):
             raise CameraModelError(f"camera_info D is not finite: {D.tolist()}")
+        if width <= 0 or height <= 0:
+            raise CameraModelError(f"camera_info image size {width}x{height} is empty")
+        side = float(max(width, height))
+        for name, f in (("fx", K[0, 0]), ("fy", K[1, 1])):
+            if not _MIN_FOCAL * side <= f <= _MAX_FOCAL * side:
+                raise CameraModelError(
+                    f"camera_info focal length {name} = {f:.6g} px is implausible for a {width}x{height} image "
+                    f"(expected {_MIN_FOCAL * side:.6g} to {_MAX_FOCAL * side:.6g} px)")
+        for name, c, size in (("cx", K[0, 2], width), ("cy", K[1, 2], height)):
+            if not -size <= c <= 2 * size:
+                raise CameraModelError(
+                    f"camera_info principal point {name} = {c:.6g} px is far outside the {width}x{height} image "
+                    f"(expected {-size} to {2 * size} px)")
+        if D.size and float(np.max(np.abs(D))) > _MAX_ABS_DISTORTION:
+            raise CameraModelError(f"camera_info D has implausible coefficients: {D.tolist()}")
         try:
             model = DistortionModel(distortion_model)
         except ValueError:
@@ -135,8 +201,6 @@ class CameraModel:
             raise CameraModelError(
                 f"distortion model '{model.value}' needs {' or '.join(map(str, _D_LENGTHS[model]))} "
                 f"coefficients, camera_info D has {D.size}")
-        if width <= 0 or height <= 0:
-            raise CameraModelError(f"camera_info image size {width}x{height} is empty")
         K.setflags(write=False)
         D.setflags(write=False)
         return cls(int(width), int(height), K, D, model)
@@ -153,8 +217,11 @@ class CameraModel:
     def check_image_size(self, width: int, height: int) -> None:
         """Raise :class:`CameraModelError` when an image does not have the calibrated size."""
         if (width, height) != (self.width, self.height):
+            bx, by, rx, ry, rw, rh = self.binning_roi
+            how = "" if (bx, by, rx, ry) == (1, 1, 0, 0) else (
+                f" (after binning {bx}x{by} of the roi {rw}x{rh} at ({rx}, {ry}) of the calibrated image)")
             raise CameraModelError(
-                f"image size {width}x{height} does not match camera_info size {self.width}x{self.height}")
+                f"image size {width}x{height} does not match camera_info size {self.width}x{self.height}{how}")
 
     def scaled(self, factor: float) -> CameraModel:
         """The same camera for images resized by ``factor`` (pixel-centre convention of cv2.resize)."""

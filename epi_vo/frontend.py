@@ -54,6 +54,29 @@ def bucket_select(pts: F32, scores: NDArray[np.float64] | None, existing: F32, w
     return keep
 
 
+# ORB's default border (edgeThreshold = patchSize = 31) leaves no detectable pixel below ~2 x 31.
+_ORB_MIN_SIDE_PX = 64
+
+
+def min_image_side(cfg: VoConfig) -> int:
+    """Smallest image width and height (px, after downscaling) the configured frontend can use.
+
+    KLT needs its window twice over (corner refinement and the LK search); ORB its descriptor border.
+    """
+    if cfg.frontend == "orb":
+        return _ORB_MIN_SIDE_PX
+    return 2 * cfg.klt_window_px + 2
+
+
+def image_problem(width: int, height: int, cfg: VoConfig) -> str | None:
+    """Why the frontend cannot use a ``width`` x ``height`` image, or None when it can."""
+    need = min_image_side(cfg)
+    if width < need or height < need:
+        return (f"image {width}x{height} is too small for the {cfg.frontend} frontend (needs at least "
+                f"{need} px per side)")
+    return None
+
+
 def detect_corners(gray: NDArray[np.uint8], existing: F32, cfg: VoConfig) -> F32:
     """New Shi-Tomasi corners away from ``existing`` points, bucketed over the grid (M, 2) float32.
 

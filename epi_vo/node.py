@@ -16,6 +16,7 @@ Topics (relative names, so namespaces and remapping work):
 from __future__ import annotations
 
 import collections
+import difflib
 import math
 import sys
 import threading
@@ -25,6 +26,7 @@ from typing import Any
 
 import numpy as np
 import rclpy
+from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, TransformStamped
 from nav_msgs.msg import Odometry, Path
@@ -107,6 +109,7 @@ class VoNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("vo_node", **kwargs)
         self.cfg, self.opts = self._declare_parameters()
+        self._warn_undeclared_overrides()
         self._log_effective_parameters()
         self._pipeline = VoPipeline(self.cfg)
         self._converter = OdometryConverter(T_base_cam_from_params(self.opts.camera_xyz, self.opts.camera_rpy))
@@ -187,6 +190,22 @@ class VoNode(Node):
         opts = NodeOptions(**{k: tuple(v) if isinstance(v, list) else v for k, v in node_values.items()})
         return cfg, opts
 
+    def _warn_undeclared_overrides(self) -> None:
+        """ROS's rule stays (an override of a parameter the node does not declare is ignored), but a
+        misspelt name must not pass unnoticed: warn once, naming them and the closest parameter."""
+        # rclpy has no public accessor for the overrides it was given (--params-file, -p): read its
+        # attribute, and say nothing when a future rclpy renames it.
+        overrides = getattr(self, "_parameter_overrides", None) or {}
+        unknown = sorted(n for n in overrides if not self.has_parameter(n) and not n.startswith("qos_overrides."))
+        if not unknown:
+            return
+        known = [f.name for f in config_fields()] + list(_NODE_DOCS)
+        names = []
+        for n in unknown:
+            close = difflib.get_close_matches(n, known, n=1)
+            names.append(f"{n} (did you mean {close[0]}?)" if close else n)
+        self.get_logger().warning("ignoring parameter overrides that vo_node does not declare: " + ", ".join(names))
+
     def _declare(self, name: str, default: Any, desc: ParameterDescriptor, problems: list[str]) -> Any:
         try:
             return self.declare_parameter(name, default, desc).value
@@ -262,11 +281,16 @@ class VoNode(Node):
             except EpiVoError as exc:
                 # Bad input in this frame: it is accounted for like any other (held pose, reason).
                 self.get_logger().warning(f"frame rejected: {exc}", throttle_duration_sec=5.0)
-                self._publish(self._pipeline.reject(item.stamp_ns, str(exc)), item.image.header.stamp, None)
+                r = self._pipeline.reject(item.stamp_ns, str(exc))
+                self._publish(r, _stamp_msg(r.stamp_ns), None)
             except Exception as exc:  # never let one frame kill the node; say what happened
+                # Not an input problem: a defect. The pipeline's state may be half-updated, so tracking
+                # restarts from the held pose; the status says it was an internal error.
                 self.get_logger().error(f"frame at {item.stamp_ns * 1e-9:.6f} s failed: {exc!r}")
-                self._publish(self._pipeline.reject(item.stamp_ns, f"internal error: {exc!r}"),
-                              item.image.header.stamp, None)
+                self._pipeline.reset(f"internal error in the previous frame ({type(exc).__name__}): tracking "
+                                     "restarted from the last pose")
+                r = self._pipeline.reject(item.stamp_ns, f"internal error: {exc!r}")
+                self._publish(r, _stamp_msg(r.stamp_ns), None)
 
     def _process(self, item: Ready) -> None:
         stamp = item.stamp_ns
@@ -279,12 +303,13 @@ class VoNode(Node):
         self._n_processed += 1
         if result.skipped:
             self.get_logger().warning(f"{result.reason} ({stamp * 1e-9:.6f} s)", throttle_duration_sec=5.0)
-            self._publish_status(frame_status(result, self.get_name(), self.opts.hardware_id), item.image.header.stamp)
+            self._publish_status(frame_status(result, self.get_name(), self.opts.hardware_id),
+                                 _stamp_msg(result.stamp_ns))
             return
         if "time jumped backwards" in result.reason:
             self.get_logger().warning(result.reason)
             self._converter.reset_twist()
-        self._publish(result, item.image.header.stamp, gray)
+        self._publish(result, _stamp_msg(result.stamp_ns), gray)
 
     # -- output -------------------------------------------------------------------------------------------
     def _publish(self, r: FrameResult, stamp_msg: Any, gray: np.ndarray | None) -> None:
@@ -377,6 +402,13 @@ class VoNode(Node):
             self._cv.notify_all()
         self._worker.join(timeout=2.0)
         super().destroy_node()
+
+
+def _stamp_msg(stamp_ns: int) -> Time:
+    """The image stamp as a valid ROS time (the pipeline's results carry stamps in range only; an input
+    header with nanosec >= 1e9 comes out normalised)."""
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return Time(sec=sec, nanosec=nanosec)
 
 
 def _point_cloud(header: Any, points: np.ndarray) -> PointCloud2:

@@ -89,6 +89,16 @@ class OdometryConverter:
         lin, ang = np.zeros(3), np.zeros(3)
         twist_cov = np.eye(6) * _UNKNOWN_TWIST_VARIANCE
         if has_pose and self._prev is not None and stamp_ns > self._prev[0]:
+            lin, ang, twist_cov = self._twist(stamp_ns, T_odom_base, cov_odom)
+        if has_pose:
+            self._prev = (stamp_ns, T_odom_base, cov_odom)
+        return OdometrySample(stamp_ns, T_odom_base[:3, 3].copy(), quat_xyzw_from_rotation(R_ob), cov_odom, lin,
+                              ang, twist_cov)
+
+    def _twist(self, stamp_ns: int, T_odom_base: F64, cov_odom: F64) -> tuple[F64, F64, F64]:
+        """Twist in the child frame by differencing with the previous pose; unknown when not finite."""
+        assert self._prev is not None
+        with np.errstate(all="ignore"):
             dt = (stamp_ns - self._prev[0]) * 1e-9
             T_prev = self._prev[1]
             T_prev_cur = invert_T(T_prev) @ T_odom_base  # motion expressed in the previous base frame
@@ -101,10 +111,10 @@ class OdometryConverter:
             # accumulated pose covariance grows by the relative motion's covariance each frame.
             step_var = np.maximum(np.diag(cov_odom) - np.diag(self._prev[2]), 1e-9)
             twist_cov = np.diag(step_var / (dt * dt))
-        if has_pose:
-            self._prev = (stamp_ns, T_odom_base, cov_odom)
-        return OdometrySample(stamp_ns, T_odom_base[:3, 3].copy(), quat_xyzw_from_rotation(R_ob), cov_odom, lin,
-                              ang, twist_cov)
+            if not (np.all(np.isfinite(lin)) and np.all(np.isfinite(ang)) and np.all(np.isfinite(twist_cov))):
+                # A step too short for the motion (nanoseconds apart): no usable velocity this frame.
+                return np.zeros(3), np.zeros(3), np.eye(6) * _UNKNOWN_TWIST_VARIANCE
+        return lin, ang, twist_cov
 
 
 def _log_so3(R: F64) -> F64:

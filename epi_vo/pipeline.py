@@ -47,6 +47,10 @@ from epi_vo.transforms import invert_T, make_T, quat_xyzw_from_rotation, rotatio
 
 _log = logging.getLogger(__name__)
 
+# The largest stamp a ROS time can hold (builtin_interfaces/Time: int32 sec, nanosec < 1e9). Stamps
+# outside [0, MAX_STAMP_NS] cannot be published or written: such frames are rejected.
+MAX_STAMP_NS = (2**31 - 1) * 1_000_000_000 + 999_999_999
+
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
 
@@ -100,6 +104,11 @@ class FrameResult:
     errors in undistorted pixels, times in milliseconds. ``T_w_c`` is always a valid pose: the held
     pose when ``has_pose`` is False. ``covariance`` is 6x6 over (x, y, z, rot_x, rot_y, rot_z) in the
     odometry frame (position in map units, rotation in radians).
+
+    Finite by construction (checked in ``__post_init__``): ``T_w_c`` (a rigid transform),
+    ``covariance`` (symmetric, positive diagonal), ``points_w`` and ``timings_ms`` are always finite,
+    ``stamp_ns`` is a valid ROS time. A statistic that was not measured this frame (``rh``,
+    ``median_parallax_deg``, ...) is NaN, never infinite; ``to_record`` writes it as null.
     """
 
     index: int
@@ -126,6 +135,21 @@ class FrameResult:
     reason: str
     matches: Matches
     skipped: bool = False  # not processed (duplicate stamp): consumers publish no pose for it
+
+    def __post_init__(self) -> None:
+        problems = []
+        if not 0 <= self.stamp_ns <= MAX_STAMP_NS:
+            problems.append(f"stamp {self.stamp_ns}")
+        for name in ("T_w_c", "covariance", "points_w"):
+            if not np.all(np.isfinite(getattr(self, name))):
+                problems.append(name)
+        if not all(math.isfinite(v) for v in self.timings_ms.values()):
+            problems.append("timings_ms")
+        for name in _STAT_FIELDS:
+            if math.isinf(getattr(self, name)):
+                problems.append(name)
+        if problems:
+            raise AssertionError(f"FrameResult {self.index} has non-finite or invalid values: {', '.join(problems)}")
 
     @property
     def position(self) -> F64:
@@ -168,6 +192,10 @@ class FrameResult:
             "reason": self.reason,
             "skipped": self.skipped,
         }
+
+
+_STAT_FIELDS = ("rh", "inlier_ratio", "median_parallax_deg", "positive_depth_ratio", "median_reproj_err_px",
+                "relative_scale")
 
 
 @dataclass(frozen=True)
@@ -267,19 +295,31 @@ class VoPipeline:
         self._pending_reason = reason
 
     def _check_stamp(self, stamp_ns: int) -> FrameResult | None:
-        """Equal stamp: the frame is skipped (a result saying so). Backwards: tracking restarts from the
-        held pose (odometry stays continuous) and the frame is processed."""
+        """A stamp that is no valid ROS time: the frame is rejected and skipped. Equal stamp: the frame
+        is skipped (a result saying so). Backwards: tracking restarts from the held pose (odometry stays
+        continuous) and the frame is processed.
+
+        The stamp is booked as the last one only when its frame result is made (``_result``), so a
+        frame that fails half-way is not mistaken for a duplicate when it is then rejected.
+        """
+        stamp_ns = int(stamp_ns)
+        if not 0 <= stamp_ns <= MAX_STAMP_NS:
+            return self._skip(min(max(stamp_ns, 0), MAX_STAMP_NS),
+                              f"frame rejected: image stamp {stamp_ns} ns is not a valid ROS time (0 to "
+                              f"{MAX_STAMP_NS} ns): frame skipped")
         last = self._last_stamp_ns
         if last is not None and stamp_ns == last:
-            st = _FrameStats(stamp_ns=int(stamp_ns))
-            st.reasons.append("duplicate image stamp: frame skipped")
-            result = self._result(stamp_ns, TrackingState.LOST, False, False, st, time.perf_counter())
-            return dataclasses.replace(result, skipped=True)
+            return self._skip(stamp_ns, "duplicate image stamp: frame skipped")
         if last is not None and stamp_ns < last:
             self.reset(f"time jumped backwards by {(last - stamp_ns) * 1e-9:.3f} s: tracking restarted from the "
                        "last pose")
-        self._last_stamp_ns = stamp_ns
         return None
+
+    def _skip(self, stamp_ns: int, reason: str) -> FrameResult:
+        st = _FrameStats(stamp_ns=stamp_ns)
+        st.reasons.append(reason)
+        result = self._result(stamp_ns, TrackingState.LOST, False, False, st, time.perf_counter(), book=False)
+        return dataclasses.replace(result, skipped=True)
 
     def reject(self, stamp_ns: int, reason: str) -> FrameResult:
         """Account for a frame that could not be used (corrupt image, unusable calibration, ...).
@@ -291,15 +331,20 @@ class VoPipeline:
         skipped = self._check_stamp(stamp_ns)
         if skipped is not None:
             return skipped
-        st = _FrameStats(stamp_ns=int(stamp_ns))
+        return self._reject_checked(int(stamp_ns), reason, time.perf_counter())
+
+    def _reject_checked(self, stamp_ns: int, reason: str, t_start: float) -> FrameResult:
+        st = _FrameStats(stamp_ns=stamp_ns)
         st.reasons.append(f"frame rejected: {reason}")
-        t_start = time.perf_counter()
         if self._on_failure(st):
             self._kf = None
         return self._result(stamp_ns, TrackingState.LOST, False, False, st, t_start)
 
     def process(self, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int) -> FrameResult:
         """Process one grayscale frame taken with ``camera`` at ``stamp_ns``.
+
+        An image the frontend cannot use (too small, or one OpenCV refuses) gives a rejected frame
+        with the reason; the held pose and covariance are then those before the frame.
 
         Raises:
             CameraModelError: the image size does not match ``camera``.
@@ -311,8 +356,28 @@ class VoPipeline:
         skipped = self._check_stamp(stamp_ns)
         if skipped is not None:
             return skipped
+        stamp_ns = int(stamp_ns)
         t_start = time.perf_counter()
-        st = _FrameStats(stamp_ns=int(stamp_ns))
+        work_w = gray.shape[1] if self.cfg.max_image_width <= 0 else min(gray.shape[1], self.cfg.max_image_width)
+        problem = fe.image_problem(work_w, round(gray.shape[0] * work_w / gray.shape[1]), self.cfg)
+        if problem is not None:
+            return self._reject_checked(stamp_ns, problem, t_start)
+        held = (self._T_w_c.copy(), self._cov_w_c.copy())
+        try:
+            return self._process(gray, camera, stamp_ns, t_start)
+        except cv2.error as exc:
+            # OpenCV refused this image or these points: nothing of the frame is trusted. Restore the
+            # held pose, drop the map (its state may be half-updated) and say what happened.
+            self._T_w_c, self._cov_w_c = held
+            self._kf = None
+            detail = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
+            _log.warning("frame at %d ns: OpenCV failed: %s", stamp_ns, detail)
+            return self._reject_checked(stamp_ns, f"OpenCV could not process this frame ({detail}); tracking "
+                                        "restarts from the last pose", t_start)
+
+    def _process(self, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int, t_start: float
+                 ) -> FrameResult:
+        st = _FrameStats(stamp_ns=stamp_ns)
         if self._pending_reason:
             st.reasons.append(self._pending_reason)
             self._pending_reason = ""
@@ -338,6 +403,9 @@ class VoPipeline:
             st.reasons.append(f"too few tracked features ({st.n_tracked} < {self.cfg.min_inliers})")
         else:
             motion = self._estimate_motion(kf, rows, xn_cur, uv_cur, st)
+            if motion is not None and not _motion_is_finite(motion):
+                st.reasons.append("the motion estimate is not finite (check the calibration): no pose this frame")
+                motion = None
 
         inl = motion.inliers if motion is not None else np.zeros(rows.shape[0], bool)
         st.matches = Matches(kf.pts[rows].astype(np.float64), pts_cur.astype(np.float64), kf.uv[rows], uv_cur, inl,
@@ -701,7 +769,10 @@ class VoPipeline:
         return restart
 
     def _result(self, stamp_ns: int, state: TrackingState, has_pose: bool, is_kf: bool, st: _FrameStats,
-                t_start: float) -> FrameResult:
+                t_start: float, *, book: bool = True) -> FrameResult:
+        if book:
+            self._last_stamp_ns = stamp_ns
+        self._keep_state_finite(st)
         cov = self._cov_w_c.copy()
         if not has_pose:
             cov[:3, :3] += np.eye(3) * self.cfg.lost_position_variance
@@ -710,6 +781,9 @@ class VoPipeline:
         st.timings["total"] = _ms(t_start)
         kf = self._kf
         n_features = kf.n_features if kf is not None else 0
+        for name in _STAT_FIELDS[:1] + _STAT_FIELDS[2:]:  # not measured is NaN, never infinite
+            if math.isinf(getattr(st, name)):
+                setattr(st, name, math.nan)
         res = FrameResult(
             index=self._index, stamp_ns=int(stamp_ns), state=state, has_pose=has_pose, is_keyframe=is_kf,
             model=st.model, rh=st.rh, n_features=n_features, n_tracked=st.n_tracked, n_inliers=st.n_inliers,
@@ -717,13 +791,34 @@ class VoPipeline:
             median_parallax_deg=st.median_parallax_deg, n_triangulated=st.n_triangulated,
             positive_depth_ratio=st.positive_depth_ratio, median_reproj_err_px=st.median_reproj_err_px,
             relative_scale=st.relative_scale, n_keyframes=self._n_keyframes, T_w_c=_frozen(self._T_w_c),
-            covariance=_frozen(cov), points_w=_frozen(st.points_w), timings_ms=dict(st.timings),
+            covariance=_frozen(cov), points_w=_frozen(st.points_w[np.all(np.isfinite(st.points_w), axis=1)]),
+            timings_ms=dict(st.timings),
             reason="; ".join(st.reasons), matches=st.matches)
         self._index += 1
         return res
 
 
+    def _keep_state_finite(self, st: _FrameStats) -> None:
+        """The held pose and covariance are finite whatever the input did (a guard: every estimate is
+        checked before it is taken, so this only fires on a defect; it says so in the record)."""
+        if not np.all(np.isfinite(self._T_w_c)):
+            _log.error("non-finite pose held: reset to the origin")
+            st.reasons.append("internal: the held pose was not finite; reset to the origin")
+            self._T_w_c = np.eye(4)
+            self._kf = None
+        if not np.all(np.isfinite(self._cov_w_c)):
+            _log.error("non-finite covariance held: reset to the 'unknown' covariance")
+            st.reasons.append("internal: the held covariance was not finite; reset to the 'unknown' covariance")
+            self._cov_w_c = _block_cov(self.cfg.lost_position_variance, self.cfg.lost_rotation_variance)
+            self._kf = None
+
+
 # -------------------------------------------------------------------------------------------------
+def _motion_is_finite(m: _Motion) -> bool:
+    return bool(np.all(np.isfinite(m.R_cur_kf)) and np.all(np.isfinite(m.t_cur_kf))
+                and np.all(np.isfinite(m.cov_rel)))
+
+
 def downscale(gray: NDArray[np.uint8], camera: CameraModel, max_width: int
               ) -> tuple[NDArray[np.uint8], CameraModel]:
     """The image and camera the pipeline works on: wider images shrunk to ``max_width`` (0: never)."""

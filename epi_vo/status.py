@@ -23,7 +23,7 @@ _LEVELS = {
 
 def _fmt(v: object) -> str:
     if isinstance(v, float):
-        return "nan" if not math.isfinite(v) else f"{v:.6g}"
+        return "None" if not math.isfinite(v) else f"{v:.6g}"  # as the record's null: not measured
     if isinstance(v, list):
         return " ".join(_fmt(x) for x in v)
     if isinstance(v, dict):
