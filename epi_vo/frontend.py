@@ -182,3 +182,21 @@ def match_orb(desc_ref: NDArray[np.uint8], desc_cur: NDArray[np.uint8], ratio: f
             i_ref.append(m.queryIdx)
             i_cur.append(m.trainIdx)
     return np.asarray(i_ref, np.int64), np.asarray(i_cur, np.int64)
+
+
+def track(gray: NDArray[np.uint8], cfg: VoConfig, orb: cv2.ORB | None, gray_prev: NDArray[np.uint8] | None,
+          pts_prev: F32, rows_prev: NDArray[np.int64], kf_descriptors: NDArray[np.uint8] | None
+          ) -> tuple[F32, NDArray[np.int64], OrbFeatures | None]:
+    """Correspondences keyframe -> current image: (current raw pixels, keyframe rows, ORB features).
+
+    KLT (``orb`` None) follows the previous frame's points ``pts_prev`` (keyframe rows ``rows_prev``)
+    into ``gray``; ORB detects in ``gray`` and matches against the keyframe's descriptors.
+    """
+    if orb is None:
+        assert gray_prev is not None
+        pts, ok = track_klt(gray_prev, gray, pts_prev, cfg)
+        return pts[ok], rows_prev[ok], None
+    feats = detect_orb(orb, gray, cfg)
+    assert kf_descriptors is not None
+    i_kf, i_cur = match_orb(kf_descriptors, feats.descriptors, cfg.orb_ratio)
+    return feats.pts[i_cur], i_kf, OrbFeatures(feats.pts, feats.descriptors)

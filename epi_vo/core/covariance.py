@@ -1,0 +1,53 @@
+"""Pose covariance algebra: 6x6 over (x, y, z, rot_x, rot_y, rot_z), position first.
+
+Every function returns finite values for finite inputs; ``is_finite`` is the guard the pipeline
+applies before it takes an estimate into its held state.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from epi_vo.geometry import skew
+
+F64 = NDArray[np.float64]
+
+
+def rotation_var(sigma_px: float, fx: float, n: int) -> float:
+    """Per-axis rotation variance (rad^2) of a rotation fitted to n rays with sigma_px pixel noise."""
+    return 2.0 * (sigma_px / fx) ** 2 / max(n, 1)
+
+
+def block(pos_var: float, rot_var: float) -> F64:
+    """Diagonal covariance with one variance for the position and one for the rotation axes."""
+    return np.diag([pos_var] * 3 + [rot_var] * 3)
+
+
+def compose(cov_w_kf: F64, T_w_kf: F64, cov_rel: F64, t_cur_kf: F64, R_cur_kf: F64) -> F64:
+    """First-order covariance of T_w_c = T_w_kf T_kf_cur (relative covariance given in the keyframe frame).
+
+    The keyframe's rotation uncertainty also moves the current position by ``delta_theta x c`` with
+    ``c`` the camera position in the keyframe frame; that lever-arm term is included.
+    """
+    R_w_kf = T_w_kf[:3, :3]
+    A = np.zeros((6, 6))
+    A[:3, :3] = R_w_kf
+    A[3:, 3:] = R_w_kf
+    cov = cov_w_kf + A @ cov_rel @ A.T
+    c_w = R_w_kf @ (-R_cur_kf.T @ t_cur_kf)
+    lever = skew(c_w)
+    cov[:3, :3] = cov[:3, :3] + lever @ cov_w_kf[3:, 3:] @ lever.T
+    return cov
+
+
+def floored(cov: F64) -> F64:
+    """Symmetrize and keep every variance strictly positive (a zero covariance claims certainty)."""
+    cov = 0.5 * (cov + cov.T)
+    d = np.arange(6)
+    cov[d, d] = np.maximum(cov[d, d], 1e-9)
+    return cov
+
+
+def is_finite(*arrays: F64) -> bool:
+    return all(bool(np.all(np.isfinite(a))) for a in arrays)

@@ -1,0 +1,189 @@
+"""The frame record: what one input frame yields, and the per-frame scratch the stages fill in.
+
+``FrameResult`` is the immutable record every front door (replay, node) turns into outputs;
+``FrameStats`` is the mutable scratch the stages write their measurements and reasons into while a
+frame is processed.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from epi_vo.transforms import quat_xyzw_from_rotation
+
+F64 = NDArray[np.float64]
+
+# The largest stamp a ROS time can hold (builtin_interfaces/Time: int32 sec, nanosec < 1e9). Stamps
+# outside [0, MAX_STAMP_NS] cannot be published or written: such frames are rejected.
+MAX_STAMP_NS = (2**31 - 1) * 1_000_000_000 + 999_999_999
+
+
+class TrackingState(enum.Enum):
+    INITIALIZING = "initializing"  # no map yet: waiting for parallax; rotation is estimated, position holds
+    TRACKING = "tracking"  # pose with the map's scale
+    ROTATION_ONLY = "rotation_only"  # pure rotation detected: rotation estimated, position holds
+    LOST = "lost"  # no pose this frame (pose held, covariance large)
+
+
+class Model(enum.Enum):
+    ESSENTIAL = "E"
+    HOMOGRAPHY = "H"
+    NONE = "none"
+
+
+def frozen(a: F64) -> F64:
+    a = np.array(a, dtype=np.float64)
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True)
+class Matches:
+    """The correspondences of one frame with its keyframe, for drawing and inspection.
+
+    ``pts_kf``/``pts_cur`` raw pixels, ``uv_kf``/``uv_cur`` undistorted pixels (N, 2); ``inliers`` of
+    the chosen model; ``F`` (from E) and ``H`` in undistorted pixels, zero matrices when not estimated.
+    """
+
+    pts_kf: F64
+    pts_cur: F64
+    uv_kf: F64
+    uv_cur: F64
+    inliers: NDArray[np.bool_]
+    F: F64
+    H: F64
+
+    @staticmethod
+    def empty() -> Matches:
+        z2 = np.zeros((0, 2))
+        return Matches(z2, z2, z2, z2, np.zeros(0, bool), np.zeros((3, 3)), np.zeros((3, 3)))
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """Everything known about one input frame. Every field is always set.
+
+    Counts refer to correspondences between the reference keyframe and this frame. Angles in degrees,
+    errors in undistorted pixels, times in milliseconds. ``T_w_c`` is always a valid pose: the held
+    pose when ``has_pose`` is False. ``covariance`` is 6x6 over (x, y, z, rot_x, rot_y, rot_z) in the
+    odometry frame (position in map units, rotation in radians).
+
+    Finite by construction (checked in ``__post_init__``): ``T_w_c`` (a rigid transform),
+    ``covariance`` (symmetric, positive diagonal), ``points_w`` and ``timings_ms`` are always finite,
+    ``stamp_ns`` is a valid ROS time. A statistic that was not measured this frame (``rh``,
+    ``median_parallax_deg``, ...) is NaN, never infinite; ``to_record`` writes it as null.
+    """
+
+    index: int
+    stamp_ns: int
+    state: TrackingState
+    has_pose: bool
+    is_keyframe: bool
+    model: Model
+    rh: float
+    n_features: int
+    n_tracked: int
+    n_inliers: int
+    inlier_ratio: float
+    median_parallax_deg: float
+    n_triangulated: int
+    positive_depth_ratio: float
+    median_reproj_err_px: float
+    relative_scale: float
+    n_keyframes: int
+    T_w_c: F64
+    covariance: F64
+    points_w: F64
+    timings_ms: dict[str, float]
+    reason: str
+    matches: Matches
+    skipped: bool = False  # not processed (duplicate stamp): consumers publish no pose for it
+
+    def __post_init__(self) -> None:
+        problems = []
+        if not 0 <= self.stamp_ns <= MAX_STAMP_NS:
+            problems.append(f"stamp {self.stamp_ns}")
+        for name in ("T_w_c", "covariance", "points_w"):
+            if not np.all(np.isfinite(getattr(self, name))):
+                problems.append(name)
+        if not all(math.isfinite(v) for v in self.timings_ms.values()):
+            problems.append("timings_ms")
+        for name in STAT_FIELDS:
+            if math.isinf(getattr(self, name)):
+                problems.append(name)
+        if problems:
+            raise AssertionError(f"FrameResult {self.index} has non-finite or invalid values: {', '.join(problems)}")
+
+    @property
+    def position(self) -> F64:
+        return self.T_w_c[:3, 3]
+
+    @property
+    def quat_xyzw(self) -> F64:
+        return quat_xyzw_from_rotation(self.T_w_c[:3, :3])
+
+    def to_record(self) -> dict[str, Any]:
+        """JSON-ready dict of the record (non-finite floats become None)."""
+
+        def num(x: float) -> float | None:
+            return float(x) if math.isfinite(x) else None
+
+        return {
+            "index": self.index,
+            "stamp": self.stamp_ns * 1e-9,
+            "stamp_ns": self.stamp_ns,
+            "state": self.state.value,
+            "has_pose": self.has_pose,
+            "is_keyframe": self.is_keyframe,
+            "model": self.model.value,
+            "rh": num(self.rh),
+            "n_features": self.n_features,
+            "n_tracked": self.n_tracked,
+            "n_inliers": self.n_inliers,
+            "inlier_ratio": num(self.inlier_ratio),
+            "median_parallax_deg": num(self.median_parallax_deg),
+            "n_triangulated": self.n_triangulated,
+            "positive_depth_ratio": num(self.positive_depth_ratio),
+            "median_reproj_err_px": num(self.median_reproj_err_px),
+            "relative_scale": num(self.relative_scale),
+            "n_keyframes": self.n_keyframes,
+            "position": [float(v) for v in self.position],
+            "quat_xyzw": [float(v) for v in self.quat_xyzw],
+            "covariance_diagonal": [float(v) for v in np.diag(self.covariance)],
+            "n_points": int(self.points_w.shape[0]),
+            "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
+            "reason": self.reason,
+            "skipped": self.skipped,
+        }
+
+
+STAT_FIELDS = ("rh", "inlier_ratio", "median_parallax_deg", "positive_depth_ratio", "median_reproj_err_px",
+                "relative_scale")
+
+
+@dataclass
+class FrameStats:
+    """Mutable scratch of one frame: every stage fills in what it measured; ``FrameResult`` freezes it."""
+
+    stamp_ns: int = 0
+    model: Model = Model.NONE
+    rh: float = math.nan
+    n_tracked: int = 0
+    n_inliers: int = 0
+    median_parallax_deg: float = math.nan
+    n_triangulated: int = 0
+    positive_depth_ratio: float = math.nan
+    median_reproj_err_px: float = math.nan
+    relative_scale: float = math.nan
+    points_w: F64 = field(default_factory=lambda: np.zeros((0, 3)))
+    matches: Matches = field(default_factory=Matches.empty)
+    F: F64 = field(default_factory=lambda: np.zeros((3, 3)))
+    H: F64 = field(default_factory=lambda: np.zeros((3, 3)))
+    reasons: list[str] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)

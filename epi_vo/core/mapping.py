@@ -1,0 +1,66 @@
+"""The keyframe / map stage: when a frame becomes the new keyframe, and what depth it carries.
+
+A new keyframe is made on parallax (``kf_min_parallax_deg``), weak tracking (tracked ratio or
+inliers below their limits) or age (``kf_max_interval_s``). A tracking keyframe triangulates its pair
+through the gates (positive depth, reprojection error, triangulation angle); old map points still
+tracked carry over. Low parallax makes no keyframe by itself and no depth update; under rotation or
+while initialising the reference is re-anchored without triangulating. This is the seam for a
+windowed map (points observed over several keyframes) and its optimisation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from epi_vo import geometry as geo
+from epi_vo.config import VoConfig
+from epi_vo.core.frame import FrameStats, TrackingState
+from epi_vo.core.keyframe import Keyframe
+from epi_vo.core.motion import Motion
+
+F64 = NDArray[np.float64]
+
+
+def keyframe_map(cfg: VoConfig, motion: Motion, kf: Keyframe, rows: NDArray[np.int64], xn_cur: F64,
+                 stamp_ns: int, st: FrameStats) -> F64 | None:
+    """Decide whether this frame becomes a keyframe; if so, the map points of its tracked features.
+
+    Returns None (no new keyframe) or the (N, 3) map points in the current camera frame of the N
+    tracked features (NaN: no depth): fresh triangulations of the keyframe pair where they pass the
+    gates, old map points carried over otherwise.
+    """
+    tracked_ratio = rows.shape[0] / max(kf.n_features, 1)
+    too_old = (stamp_ns - kf.stamp_ns) * 1e-9 > cfg.kf_max_interval_s
+    weak = tracked_ratio < cfg.kf_min_tracked_ratio or st.n_inliers < cfg.kf_min_inliers
+    parallax = st.median_parallax_deg >= cfg.kf_min_parallax_deg
+    R, t = motion.R_cur_kf, motion.t_cur_kf
+    X_cur: F64 | None = None
+    if motion.new_map is not None:
+        X_cur = motion.new_map.X_ref @ R.T + t
+        X_cur[~motion.new_map.good] = np.nan
+    elif motion.state is TrackingState.TRACKING and (parallax or weak or too_old):
+        idx = np.flatnonzero(motion.inliers)
+        tri = geo.triangulate(R, t, kf.xn[rows[idx]], xn_cur[idx], kf.camera.K,
+                              cfg.max_reprojection_error_px, cfg.min_triangulation_angle_deg)
+        st.n_triangulated = int(np.count_nonzero(tri.good))
+        st.positive_depth_ratio = tri.positive_depth_ratio
+        st.median_reproj_err_px = tri.median_reproj_err_px
+        # Old map points still tracked carry over (moved into the new keyframe); fresh triangulations
+        # from this pair replace them where they pass the gates.
+        X_cur = kf.X_kf[rows] @ R.T + t
+        X_cur[~motion.inliers] = np.nan
+        new = np.full((rows.shape[0], 3), np.nan)
+        new[idx] = tri.X_ref @ R.T + t
+        good = np.zeros(rows.shape[0], bool)
+        good[idx] = tri.good
+        X_cur[good] = new[good]
+        if not parallax and st.n_triangulated == 0:
+            st.reasons.append("keyframe without parallax: no new depth")
+    elif (motion.state is TrackingState.ROTATION_ONLY and (weak or too_old)) or (
+            motion.state is TrackingState.INITIALIZING and (too_old or st.n_tracked < 2 * cfg.min_inliers)):
+        # While initialising the keyframe is kept as long as enough features survive: re-anchoring
+        # on the tracked ratio alone (ORB matches ~half the keyframe) would reset the parallax.
+        # Re-anchor without triangulating: under rotation the existing depths stay valid (t = 0).
+        X_cur = kf.X_kf[rows] @ R.T
+    return X_cur

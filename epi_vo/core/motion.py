@@ -1,0 +1,234 @@
+"""The motion stage: the pose of the current frame relative to its keyframe, and what justifies it.
+
+Given the winning two-view model (``epi_vo.core.selection``) and the keyframe's map:
+
+* E with a map and enough parallax: E's rotation and translation direction (recoverPose with
+  cheirality), scaled by the map points (robust 1-D median of per-point scales);
+* otherwise with a map (H chosen, or low parallax): a motion-only refinement on the map points;
+* H with no parallax left after removing the rotation: pure rotation, the position holds;
+* no map yet: the first map is triangulated through the gates once there is enough parallax, its
+  baseline length set by the scale stage (``MotionContext.initial_baseline``).
+
+Every path appends the reason for what it did (or refused) to the frame's ``FrameStats``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from epi_vo import geometry as geo
+from epi_vo.config import VoConfig
+from epi_vo.core import covariance as covm
+from epi_vo.core.frame import FrameStats, Model, TrackingState
+from epi_vo.core.keyframe import Keyframe
+from epi_vo.core.selection import ModelSelection
+from epi_vo.transforms import rotation_angle_deg
+
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Motion:
+    """A pose estimate of the current frame relative to the keyframe, with what justified it."""
+
+    state: TrackingState
+    R_cur_kf: F64
+    t_cur_kf: F64
+    cov_rel: F64  # 6x6 over (position, rotation) of the current camera in the keyframe frame
+    inliers: NDArray[np.bool_]
+    new_map: geo.Triangulation | None = None  # set when this frame initialises the map
+
+
+def is_finite(m: Motion) -> bool:
+    return covm.is_finite(m.R_cur_kf, m.t_cur_kf, m.cov_rel)
+
+
+@dataclass(frozen=True)
+class MotionContext:
+    """What the motion stage reads of the pipeline's state for one frame."""
+
+    kf: Keyframe
+    rows: NDArray[np.int64]  # keyframe row of each correspondence
+    xn_cur: F64  # (N, 2) normalized coordinates in the current frame
+    uv_cur: F64  # (N, 2) undistorted pixels in the current frame
+    T_cur_kf_prev: F64  # the previous frame's pose relative to the keyframe (start of the refinement)
+    initial_baseline: Callable[[float], float]  # the scale stage: a new map's baseline after dt seconds
+
+
+class MotionStage:
+    """Turns a model selection into a ``Motion`` (or None with the reason in ``FrameStats``)."""
+
+    def __init__(self, cfg: VoConfig) -> None:
+        self.cfg = cfg
+
+    def estimate(self, ctx: MotionContext, sel: ModelSelection, st: FrameStats) -> Motion | None:
+        """The pose from the winning model; ``st.model`` says which one it was."""
+        t0 = time.perf_counter()
+        try:
+            if sel.model is Model.HOMOGRAPHY:
+                assert sel.H is not None and sel.inliers_h is not None
+                st.model = Model.HOMOGRAPHY
+                return self._from_homography(ctx, sel.H, sel.inliers_h, st)
+            if sel.model is Model.ESSENTIAL:
+                assert sel.E is not None and sel.inliers_e is not None
+                st.model = Model.ESSENTIAL
+                return self._from_essential(ctx, sel.E, sel.inliers_e, st)
+            st.reasons.append("no two-view model could be estimated")
+            return None
+        finally:
+            st.timings["pose"] = (time.perf_counter() - t0) * 1e3
+
+    def _from_essential(self, ctx: MotionContext, E: F64, in_e: NDArray[np.bool_], st: FrameStats
+                        ) -> Motion | None:
+        cfg = self.cfg
+        kf = ctx.kf
+        uv_kf, xn_kf, xn_cur = kf.uv[ctx.rows], kf.xn[ctx.rows], ctx.xn_cur
+        K = kf.camera.K
+        R, t_dir, inl = geo.recover_pose(E, uv_kf, ctx.uv_cur, K, in_e)
+        self._inlier_stats(st, inl, R, xn_kf, xn_cur)
+        if st.n_inliers < cfg.min_inliers:
+            st.reasons.append(f"too few inliers after cheirality ({st.n_inliers} < {cfg.min_inliers}, RH "
+                              f"{st.rh:.2f})")
+            return None
+        rot_cov = covm.rotation_var(cfg.score_sigma_px, K[0, 0], st.n_inliers)
+        if not self.has_map(kf):
+            return self._initialize(ctx, R, t_dir, inl, st, "essential matrix")
+        return self._track_with_map(ctx, R, t_dir, inl, st, rot_cov)
+
+    def _from_homography(self, ctx: MotionContext, H: F64, in_h: NDArray[np.bool_], st: FrameStats
+                         ) -> Motion | None:
+        cfg = self.cfg
+        kf = ctx.kf
+        xn_kf, xn_cur = kf.xn[ctx.rows], ctx.xn_cur
+        K = kf.camera.K
+        R_h = geo.rotation_from_homography(H, K)
+        self._inlier_stats(st, in_h, R_h, xn_kf, xn_cur)
+        if st.n_inliers < cfg.min_inliers:
+            st.reasons.append(f"too few homography inliers ({st.n_inliers} < {cfg.min_inliers})")
+            return None
+        rot_cov = covm.rotation_var(cfg.score_sigma_px, K[0, 0], st.n_inliers)
+        zero = np.zeros(3)
+        if st.median_parallax_deg < cfg.rotation_only_parallax_deg:
+            angle = rotation_angle_deg(R_h)
+            if angle >= cfg.min_rotation_for_rotation_only_deg:
+                st.reasons.append(f"pure rotation: homography explains the motion (RH {st.rh:.2f}, parallax "
+                                  f"{st.median_parallax_deg:.2f} deg, rotation {angle:.1f} deg); "
+                                  "translation not observable, position held")
+                return Motion(TrackingState.ROTATION_ONLY, R_h, zero, covm.block(1e-6, rot_cov), in_h)
+            if not self.has_map(kf):
+                st.reasons.append(f"low parallax ({st.median_parallax_deg:.2f} deg): waiting for baseline, "
+                                  "position held")
+                return Motion(TrackingState.INITIALIZING, R_h, zero, covm.block(1e-6, rot_cov), in_h)
+        if not self.has_map(kf):
+            planar = geo.pose_from_homography(H, K, xn_kf, xn_cur, in_h, cfg.max_reprojection_error_px,
+                                              cfg.min_triangulation_angle_deg)
+            if planar is None:
+                st.reasons.append("planar scene: homography decomposition ambiguous, waiting for parallax")
+                return Motion(TrackingState.INITIALIZING, R_h, zero, covm.block(1e-6, rot_cov), in_h)
+            R_p, t_p, _ = planar
+            if st.median_parallax_deg < cfg.init_min_parallax_deg:
+                st.reasons.append(f"planar scene, low parallax ({st.median_parallax_deg:.2f} deg < "
+                                  f"{cfg.init_min_parallax_deg}): waiting for baseline, position held")
+                return Motion(TrackingState.INITIALIZING, R_p, zero, covm.block(1e-6, rot_cov), in_h)
+            norm = float(np.linalg.norm(t_p))
+            return self._initialize(ctx, R_p, t_p / norm, in_h, st, "homography (planar scene)")
+        st.reasons.append(f"planar or low-parallax view (RH {st.rh:.2f}): pose from map points")
+        return self._track_with_map(ctx, R_h, None, in_h, st, rot_cov)
+
+    def _inlier_stats(self, st: FrameStats, inl: NDArray[np.bool_], R: F64, xn_kf: F64, xn_cur: F64) -> None:
+        st.n_inliers = int(np.count_nonzero(inl))
+        par = geo.parallax_deg(R, xn_kf[inl], xn_cur[inl])
+        st.median_parallax_deg = float(np.median(par)) if par.size else math.nan
+
+    def has_map(self, kf: Keyframe) -> bool:
+        return kf.n_map_points >= self.cfg.min_scale_points
+
+    def _initialize(self, ctx: MotionContext, R: F64, t_dir: F64, inl: NDArray[np.bool_], st: FrameStats,
+                    how: str) -> Motion:
+        """Build the first map from the keyframe and this frame, or explain why not yet."""
+        cfg = self.cfg
+        K = ctx.kf.camera.K
+        xn_kf, xn_cur = ctx.kf.xn[ctx.rows], ctx.xn_cur
+        zero = np.zeros(3)
+        rot_cov = covm.rotation_var(cfg.score_sigma_px, K[0, 0], max(st.n_inliers, 1))
+        hold = Motion(TrackingState.INITIALIZING, R, zero, covm.block(1e-6, rot_cov), inl)
+        if st.median_parallax_deg < cfg.init_min_parallax_deg:
+            st.reasons.append(f"low parallax ({st.median_parallax_deg:.2f} deg < {cfg.init_min_parallax_deg}): "
+                              "waiting for baseline, position held")
+            return hold
+        kf = ctx.kf
+        t = t_dir * ctx.initial_baseline((st.stamp_ns - kf.stamp_ns) * 1e-9)
+        idx = np.flatnonzero(inl)
+        tri = geo.triangulate(R, t, xn_kf[idx], xn_cur[idx], K, cfg.max_reprojection_error_px,
+                              cfg.min_triangulation_angle_deg)
+        n_good = int(np.count_nonzero(tri.good))
+        st.n_triangulated = n_good
+        st.positive_depth_ratio = tri.positive_depth_ratio
+        st.median_reproj_err_px = tri.median_reproj_err_px
+        if tri.positive_depth_ratio < cfg.min_positive_depth_ratio:
+            st.reasons.append(f"initialization rejected: only {tri.positive_depth_ratio:.0%} of inliers in front "
+                              f"of both cameras (< {cfg.min_positive_depth_ratio:.0%})")
+            return hold
+        if n_good < cfg.min_triangulated:
+            st.reasons.append(f"initialization rejected: {n_good} points pass the triangulation gates "
+                              f"(< {cfg.min_triangulated})")
+            return hold
+        full = tri.expanded(idx, xn_kf.shape[0])
+        st.reasons.append(f"map initialized from {how}: {n_good} points")
+        trans_var = (0.1 * float(np.linalg.norm(t))) ** 2
+        return Motion(TrackingState.TRACKING, R, t, covm.block(trans_var, rot_cov), inl, new_map=full)
+
+    def _track_with_map(self, ctx: MotionContext, R: F64, t_dir: F64 | None, inl: NDArray[np.bool_],
+                        st: FrameStats, rot_cov: float) -> Motion | None:
+        """Pose with the map's scale.
+
+        E chosen with enough parallax: E's rotation and direction, scaled by the map points (robust 1-D
+        median). Otherwise (H chosen, low parallax, no usable scale): motion-only LM on the map points,
+        started from the E estimate or from the previous frame's relative pose.
+        """
+        cfg = self.cfg
+        kf, xn_cur, uv_cur = ctx.kf, ctx.xn_cur, ctx.uv_cur
+        K = kf.camera.K
+        X = kf.X_kf[ctx.rows]
+        has_depth = inl & np.isfinite(X[:, 0])
+        R0, t0 = ctx.T_cur_kf_prev[:3, :3], ctx.T_cur_kf_prev[:3, 3]
+        est: geo.ScaleEstimate | None = None
+        if t_dir is not None:
+            R0 = R
+            est = geo.scale_from_points(X[has_depth], R, t_dir, xn_cur[has_depth], cfg.min_scale_points)
+            if est is not None:
+                st.relative_scale = est.scale
+                t0 = t_dir * est.scale
+        if t_dir is not None and est is not None and st.median_parallax_deg >= cfg.e_pose_min_parallax_deg:
+            # With enough parallax the essential matrix fixes rotation and direction better than the
+            # map (whose depths carry the previous pairs' noise): take them, with the map's scale.
+            par_rad = math.radians(st.median_parallax_deg)
+            n = max(st.n_inliers, 1)
+            dir_var = (cfg.score_sigma_px / (K[0, 0] * par_rad)) ** 2 / n
+            scale_var = est.rel_spread**2 / max(est.n_used, 1)
+            trans_var = est.scale**2 * (dir_var + scale_var)
+            return Motion(TrackingState.TRACKING, R, t0, covm.block(trans_var, rot_cov), inl)
+        refined = geo.refine_pose_pnp(X[has_depth], uv_cur[has_depth], K, R0, t0, cfg.max_reprojection_error_px)
+        if refined is None:
+            st.reasons.append(f"too few map points to carry the scale ({int(np.count_nonzero(has_depth))})")
+            return None
+        R_r, t_r, keep, cov_pnp = refined
+        if np.count_nonzero(keep) < cfg.min_scale_points:
+            st.reasons.append(f"too few map points agree with the pose ({int(np.count_nonzero(keep))} < "
+                              f"{cfg.min_scale_points})")
+            return None
+        if not math.isfinite(st.relative_scale):
+            st.relative_scale = float(np.linalg.norm(t_r))
+        # Covariance of the camera position in the keyframe frame: c = -R^T t.
+        cov_t = R_r.T @ cov_pnp[3:, 3:] @ R_r
+        cov_r = R_r.T @ cov_pnp[:3, :3] @ R_r
+        cov_rel = np.zeros((6, 6))
+        cov_rel[:3, :3] = cov_t
+        cov_rel[3:, 3:] = cov_r + np.eye(3) * rot_cov
+        return Motion(TrackingState.TRACKING, R_r, t_r, cov_rel, inl)

@@ -1,0 +1,392 @@
+"""The per-frame monocular VO pipeline: the one stateful object of epi_vo.
+
+Both front doors drive this same object: ``epi-vo replay`` (offline, bags) and ``vo_node`` (ROS 2).
+
+Frames and poses
+    ``w`` is the odometry frame: the optical frame of the first camera pose (x right, y down,
+    z forward). ``T_w_c`` maps current-camera points into ``w``; ``T_w_kf`` the same for the reference
+    keyframe. Relative motion ``T_cur_kf`` maps keyframe-camera points into the current camera
+    (``X_cur = R_cur_kf X_kf + t_cur_kf``), which is what ``cv2.recoverPose(E, uv_kf, uv_cur)`` returns.
+
+Monocular scale convention
+    Translation is observable only up to one global scale. The first map is built with a keyframe
+    baseline of length 1 (``|t| = 1`` between the first two keyframes), and every later frame carries
+    that same scale: its translation is scaled so that the map points triangulated between the last
+    pair of keyframes project consistently (robust median of per-point scale estimates, then a
+    motion-only refinement on those points). After tracking is lost, the new map's baseline is set to
+    the last keyframe baseline so the trajectory continues in (approximately) the same units. An
+    external scale source (wheel odometry, known baseline) would replace the baseline length in
+    :class:`epi_vo.core.scale.VoUnitsScale`; that is the seam left for it. The trajectory is therefore
+    correct up to one Sim(3) transform.
+
+Stages (each a module of ``epi_vo.core`` with its own tests; this object keeps the state and the order)
+    features (``frontend``) -> two-view model selection (``selection``) -> motion: pose and scale
+    (``motion``, ``scale``) -> keyframes / map (``mapping``, ``keyframe``) -> frame record (``frame``).
+    Seams for what comes next: a motion check before model selection (``_process``, after the
+    correspondences), a windowed map stage after ``mapping``, and scale sources in ``scale``.
+
+What is never invented
+    No parallax: no depth and no keyframe. Pure rotation (the homography explains the motion and no
+    parallax is left after removing the rotation): the rotation is published, the position holds.
+    Before the map exists the scale is unknown: the position holds and its covariance says so.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import time
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from epi_vo import frontend as fe
+from epi_vo.camera import CameraModel
+from epi_vo.config import VoConfig, validate
+from epi_vo.core import covariance as covm
+from epi_vo.core import motion as mo
+from epi_vo.core.frame import MAX_STAMP_NS, STAT_FIELDS, FrameResult, FrameStats, Matches, TrackingState, frozen
+from epi_vo.core.keyframe import Keyframe, make_keyframe
+from epi_vo.core.mapping import keyframe_map
+from epi_vo.core.scale import VoUnitsScale
+from epi_vo.core.selection import select_model
+from epi_vo.transforms import invert_T, make_T
+
+_log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+F32 = NDArray[np.float32]
+
+
+class VoPipeline:
+    """Monocular VO: feed it frames, get one immutable :class:`FrameResult` per frame."""
+
+    def __init__(self, cfg: VoConfig | None = None) -> None:
+        self.cfg = cfg or VoConfig()
+        validate(self.cfg)
+        self._orb = fe.make_orb(self.cfg) if self.cfg.frontend == "orb" else None
+        self._motion = mo.MotionStage(self.cfg)
+        self._scale = VoUnitsScale()
+        self._T_w_c = np.eye(4)
+        self._cov_w_c = np.zeros((6, 6))
+        self._kf: Keyframe | None = None
+        self._rows = np.zeros(0, np.int64)  # keyframe row of each live track
+        self._pts_prev = np.zeros((0, 2), np.float32)
+        self._gray_prev: NDArray[np.uint8] | None = None  # previous image, for KLT
+        self._T_cur_kf_prev = np.eye(4)
+        self._fail_count = 0
+        self._n_keyframes = 0
+        self._index = 0
+        self._pending_reason = ""
+        self._last_stamp_ns: int | None = None
+
+    # ---------------------------------------------------------------------------------------------
+    @property
+    def pose(self) -> F64:
+        """T_w_c of the last frame (a copy)."""
+        return self._T_w_c.copy()
+
+    def reset(self, reason: str = "reset requested") -> None:
+        """Restart tracking from the current pose: the next frame becomes a new keyframe, no map."""
+        self._kf = None
+        self._pending_reason = reason
+
+    def _check_stamp(self, stamp_ns: int) -> FrameResult | None:
+        """A stamp that is no valid ROS time: the frame is rejected and skipped. Equal stamp: the frame
+        is skipped (a result saying so). Backwards: tracking restarts from the held pose (odometry stays
+        continuous) and the frame is processed.
+
+        The stamp is booked as the last one only when its frame result is made (``_result``), so a
+        frame that fails half-way is not mistaken for a duplicate when it is then rejected.
+        """
+        stamp_ns = int(stamp_ns)
+        if not 0 <= stamp_ns <= MAX_STAMP_NS:
+            return self._skip(min(max(stamp_ns, 0), MAX_STAMP_NS),
+                              f"frame rejected: image stamp {stamp_ns} ns is not a valid ROS time (0 to "
+                              f"{MAX_STAMP_NS} ns): frame skipped")
+        last = self._last_stamp_ns
+        if last is not None and stamp_ns == last:
+            return self._skip(stamp_ns, "duplicate image stamp: frame skipped")
+        if last is not None and stamp_ns < last:
+            self.reset(f"time jumped backwards by {(last - stamp_ns) * 1e-9:.3f} s: tracking restarted from the "
+                       "last pose")
+        return None
+
+    def _skip(self, stamp_ns: int, reason: str) -> FrameResult:
+        st = FrameStats(stamp_ns=stamp_ns)
+        st.reasons.append(reason)
+        result = self._result(stamp_ns, TrackingState.LOST, False, False, st, time.perf_counter(), book=False)
+        return dataclasses.replace(result, skipped=True)
+
+    def reject(self, stamp_ns: int, reason: str) -> FrameResult:
+        """Account for a frame that could not be used (corrupt image, unusable calibration, ...).
+
+        The frame gets its record like any other: no pose (held), a large covariance, the reason.
+        It counts as a frame without a pose, so persistent bad input ends in a restart from the held
+        pose, exactly as lost tracking does.
+        """
+        skipped = self._check_stamp(stamp_ns)
+        if skipped is not None:
+            return skipped
+        return self._reject_checked(int(stamp_ns), reason, time.perf_counter())
+
+    def _reject_checked(self, stamp_ns: int, reason: str, t_start: float) -> FrameResult:
+        st = FrameStats(stamp_ns=stamp_ns)
+        st.reasons.append(f"frame rejected: {reason}")
+        if self._on_failure(st):
+            self._kf = None
+        return self._result(stamp_ns, TrackingState.LOST, False, False, st, t_start)
+
+    def process(self, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int) -> FrameResult:
+        """Process one grayscale frame taken with ``camera`` at ``stamp_ns``.
+
+        An image the frontend cannot use (too small, or one OpenCV refuses) gives a rejected frame
+        with the reason; the held pose and covariance are then those before the frame.
+
+        Raises:
+            CameraModelError: the image size does not match ``camera``.
+            ValueError: ``gray`` is not a 2-D uint8 array.
+        """
+        if gray.ndim != 2 or gray.dtype != np.uint8:
+            raise ValueError(f"expected a 2-D uint8 grayscale image, got {gray.dtype} {gray.shape}")
+        camera.check_image_size(gray.shape[1], gray.shape[0])
+        skipped = self._check_stamp(stamp_ns)
+        if skipped is not None:
+            return skipped
+        stamp_ns = int(stamp_ns)
+        t_start = time.perf_counter()
+        work_w = gray.shape[1] if self.cfg.max_image_width <= 0 else min(gray.shape[1], self.cfg.max_image_width)
+        problem = fe.image_problem(work_w, round(gray.shape[0] * work_w / gray.shape[1]), self.cfg)
+        if problem is not None:
+            return self._reject_checked(stamp_ns, problem, t_start)
+        held = (self._T_w_c.copy(), self._cov_w_c.copy())
+        try:
+            return self._process(gray, camera, stamp_ns, t_start)
+        except cv2.error as exc:
+            # OpenCV refused this image or these points: nothing of the frame is trusted. Restore the
+            # held pose, drop the map (its state may be half-updated) and say what happened.
+            self._T_w_c, self._cov_w_c = held
+            self._kf = None
+            detail = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
+            _log.warning("frame at %d ns: OpenCV failed: %s", stamp_ns, detail)
+            return self._reject_checked(stamp_ns, f"OpenCV could not process this frame ({detail}); tracking "
+                                        "restarts from the last pose", t_start)
+
+    def _process(self, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int, t_start: float
+                 ) -> FrameResult:
+        st = FrameStats(stamp_ns=stamp_ns)
+        if self._pending_reason:
+            st.reasons.append(self._pending_reason)
+            self._pending_reason = ""
+        gray, camera = downscale(gray, camera, self.cfg.max_image_width)
+        if self._kf is not None and not _same_camera(self._kf.camera, camera):
+            st.reasons.append("camera_info changed: tracking restarted")
+            self._kf = None
+
+        t0 = time.perf_counter()
+        if self._kf is None:
+            result = self._start_keyframe(gray, camera, stamp_ns, st, t_start)
+            return result
+
+        kf = self._kf
+        # features
+        pts_cur, rows, orb_cur = fe.track(gray, self.cfg, self._orb, self._gray_prev, self._pts_prev, self._rows,
+                                          kf.descriptors)
+        xn_cur = camera.normalize(pts_cur)
+        uv_cur = camera.to_pixels(xn_cur)
+        st.timings["frontend"] = _ms(t0)
+        st.n_tracked = int(rows.shape[0])
+
+        motion: mo.Motion | None = None
+        if st.n_tracked < self.cfg.min_inliers:
+            st.reasons.append(f"too few tracked features ({st.n_tracked} < {self.cfg.min_inliers})")
+        else:
+            # two-view model selection, then motion (pose and scale)
+            t0 = time.perf_counter()
+            sel = select_model(kf.uv[rows], uv_cur, kf.camera.K, self.cfg)
+            st.rh = sel.rh
+            if sel.F is not None:
+                st.F = sel.F
+            if sel.H is not None:
+                st.H = sel.H
+            st.timings["models"] = _ms(t0)
+            ctx = mo.MotionContext(kf, rows, xn_cur, uv_cur, self._T_cur_kf_prev, self._scale.initial_baseline)
+            motion = self._motion.estimate(ctx, sel, st)
+            if motion is not None and not mo.is_finite(motion):
+                st.reasons.append("the motion estimate is not finite (check the calibration): no pose this frame")
+                motion = None
+
+        inl = motion.inliers if motion is not None else np.zeros(rows.shape[0], bool)
+        st.matches = Matches(kf.pts[rows].astype(np.float64), pts_cur.astype(np.float64), kf.uv[rows], uv_cur, inl,
+                             st.F, st.H)
+        t0 = time.perf_counter()
+        is_kf = False
+        if motion is None:
+            state, has_pose = TrackingState.LOST, False
+            if self._on_failure(st):
+                self._restart_here(gray, camera, stamp_ns, orb_cur)
+                is_kf = True
+            else:
+                self._rows, self._pts_prev = rows, pts_cur
+        else:
+            self._fail_count = 0
+            has_pose = True
+            state = motion.state
+            T_cur_kf = make_T(motion.R_cur_kf, motion.t_cur_kf)
+            T_w_c = kf.T_w_kf @ invert_T(T_cur_kf)
+            self._T_w_c = T_w_c
+            self._cov_w_c = covm.compose(kf.cov_w_kf, kf.T_w_kf, motion.cov_rel, motion.t_cur_kf,
+                                         motion.R_cur_kf)
+            self._T_cur_kf_prev = T_cur_kf
+            if state is TrackingState.INITIALIZING:
+                # Unknown scale: the position is not justified by anything yet.
+                self._cov_w_c = self._cov_w_c.copy()
+                self._cov_w_c[:3, :3] += np.eye(3) * self.cfg.lost_position_variance
+            self._rows, self._pts_prev = rows, pts_cur
+            # keyframes / map
+            is_kf = self._maybe_keyframe(motion, kf, rows, pts_cur, xn_cur, gray, camera, stamp_ns, orb_cur, st)
+        st.timings["mapping"] = _ms(t0)
+        self._gray_prev = gray
+        return self._result(stamp_ns, state, has_pose, is_kf, st, t_start)
+
+    # ---------------------------------------------------------------------------------------------
+    def _maybe_keyframe(self, motion: mo.Motion, kf: Keyframe, rows: NDArray[np.int64], pts_cur: F32,
+                        xn_cur: F64, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int,
+                        orb_cur: fe.OrbFeatures | None, st: FrameStats) -> bool:
+        """The mapping stage decides; a new keyframe takes this frame's pose, covariance and map points."""
+        X_cur = keyframe_map(self.cfg, motion, kf, rows, xn_cur, stamp_ns, st)
+        if X_cur is None:
+            return False
+        t = motion.t_cur_kf
+        if motion.state is TrackingState.TRACKING:
+            self._scale.on_keyframe(float(np.linalg.norm(t)), (stamp_ns - kf.stamp_ns) * 1e-9)
+        if motion.state is TrackingState.TRACKING and st.n_triangulated > 0:
+            # The keyframe's point cloud: every map point it holds, in the odometry frame.
+            st.points_w = _transform(self._T_w_c, X_cur[np.isfinite(X_cur[:, 0])])
+        cov = self._cov_w_c.copy()
+        if motion.state is TrackingState.TRACKING:
+            cov[:3, :3] += np.eye(3) * (self.cfg.scale_drift_per_keyframe * float(np.linalg.norm(t))) ** 2
+        self._set_keyframe(gray, camera, stamp_ns, cov, pts_cur, X_cur, orb_cur)
+        return True
+
+    def _set_keyframe(self, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int, cov_w: F64,
+                      pts_tracked: F32, X_tracked: F64, orb_cur: fe.OrbFeatures | None) -> None:
+        """Make the current frame the reference: keep tracked features (with depth), top up the grid."""
+        self._kf = make_keyframe(self._index, stamp_ns, self._T_w_c, cov_w, gray, camera, pts_tracked, X_tracked,
+                                 self.cfg, self._orb, orb_cur)
+        self._rows = np.arange(self._kf.n_features, dtype=np.int64)
+        self._pts_prev = self._kf.pts
+        self._gray_prev = gray
+        self._T_cur_kf_prev = np.eye(4)
+        self._n_keyframes += 1
+
+    def _start_keyframe(self, gray: NDArray[np.uint8], camera: CameraModel,
+                        stamp_ns: int, st: FrameStats, t_start: float) -> FrameResult:
+        """First frame, or the first frame after a restart: it becomes the keyframe, pose held."""
+        first = self._index == 0
+        t0 = time.perf_counter()
+        cov = self._cov_w_c.copy()
+        if not first:
+            cov[:3, :3] += np.eye(3) * self.cfg.lost_position_variance
+        self._set_keyframe(gray, camera, stamp_ns, cov, np.zeros((0, 2), np.float32), np.zeros((0, 3)),
+                           None)
+        st.timings["frontend"] = _ms(t0)
+        self._cov_w_c = cov
+        st.reasons.append("first frame: reference keyframe set" if first else "new reference keyframe, no map yet")
+        return self._result(stamp_ns, TrackingState.INITIALIZING, True, True, st, t_start)
+
+    def _restart_here(self, gray: NDArray[np.uint8], camera: CameraModel,
+                      stamp_ns: int, orb_cur: fe.OrbFeatures | None) -> None:
+        """Tracking lost: this frame becomes a keyframe at the held pose, the map is dropped."""
+        cov = self._cov_w_c.copy()
+        cov[:3, :3] += np.eye(3) * self.cfg.lost_position_variance
+        cov[3:, 3:] += np.eye(3) * self.cfg.lost_rotation_variance
+        self._cov_w_c = cov
+        self._set_keyframe(gray, camera, stamp_ns, cov, np.zeros((0, 2), np.float32), np.zeros((0, 3)),
+                           orb_cur)
+        self._fail_count = 0
+
+    def _on_failure(self, st: FrameStats) -> bool:
+        """Count a frame without a pose; True when tracking must restart from the held pose.
+
+        A frame without a pose is 'lost' for consumers either way; the map is dropped only once the
+        failure persists for ``lost_after_frames`` frames, or nothing is left to track.
+        """
+        self._fail_count += 1
+        restart = self._fail_count >= self.cfg.lost_after_frames or st.n_tracked < self.cfg.min_inliers
+        if restart:
+            st.reasons.append(f"tracking lost after {self._fail_count} frame(s) without a pose: re-initializing "
+                              "from the last pose")
+        else:
+            st.reasons.append(f"no pose this frame ({self._fail_count}/{self.cfg.lost_after_frames}); pose held")
+        return restart
+
+    def _result(self, stamp_ns: int, state: TrackingState, has_pose: bool, is_kf: bool, st: FrameStats,
+                t_start: float, *, book: bool = True) -> FrameResult:
+        if book:
+            self._last_stamp_ns = stamp_ns
+        self._keep_state_finite(st)
+        cov = self._cov_w_c.copy()
+        if not has_pose:
+            cov[:3, :3] += np.eye(3) * self.cfg.lost_position_variance
+            cov[3:, 3:] += np.eye(3) * self.cfg.lost_rotation_variance
+        cov = covm.floored(cov)
+        st.timings["total"] = _ms(t_start)
+        kf = self._kf
+        n_features = kf.n_features if kf is not None else 0
+        for name in STAT_FIELDS[:1] + STAT_FIELDS[2:]:  # not measured is NaN, never infinite
+            if math.isinf(getattr(st, name)):
+                setattr(st, name, math.nan)
+        res = FrameResult(
+            index=self._index, stamp_ns=int(stamp_ns), state=state, has_pose=has_pose, is_keyframe=is_kf,
+            model=st.model, rh=st.rh, n_features=n_features, n_tracked=st.n_tracked, n_inliers=st.n_inliers,
+            inlier_ratio=st.n_inliers / st.n_tracked if st.n_tracked else 0.0,
+            median_parallax_deg=st.median_parallax_deg, n_triangulated=st.n_triangulated,
+            positive_depth_ratio=st.positive_depth_ratio, median_reproj_err_px=st.median_reproj_err_px,
+            relative_scale=st.relative_scale, n_keyframes=self._n_keyframes, T_w_c=frozen(self._T_w_c),
+            covariance=frozen(cov), points_w=frozen(st.points_w[np.all(np.isfinite(st.points_w), axis=1)]),
+            timings_ms=dict(st.timings),
+            reason="; ".join(st.reasons), matches=st.matches)
+        self._index += 1
+        return res
+
+
+    def _keep_state_finite(self, st: FrameStats) -> None:
+        """The held pose and covariance are finite whatever the input did (a guard: every estimate is
+        checked before it is taken, so this only fires on a defect; it says so in the record)."""
+        if not np.all(np.isfinite(self._T_w_c)):
+            _log.error("non-finite pose held: reset to the origin")
+            st.reasons.append("internal: the held pose was not finite; reset to the origin")
+            self._T_w_c = np.eye(4)
+            self._kf = None
+        if not np.all(np.isfinite(self._cov_w_c)):
+            _log.error("non-finite covariance held: reset to the 'unknown' covariance")
+            st.reasons.append("internal: the held covariance was not finite; reset to the 'unknown' covariance")
+            self._cov_w_c = covm.block(self.cfg.lost_position_variance, self.cfg.lost_rotation_variance)
+            self._kf = None
+
+
+# -------------------------------------------------------------------------------------------------
+def downscale(gray: NDArray[np.uint8], camera: CameraModel, max_width: int
+              ) -> tuple[NDArray[np.uint8], CameraModel]:
+    """The image and camera the pipeline works on: wider images shrunk to ``max_width`` (0: never)."""
+    if max_width <= 0 or gray.shape[1] <= max_width:
+        return gray, camera
+    factor = max_width / gray.shape[1]
+    small = cv2.resize(gray, (max_width, round(gray.shape[0] * factor)), interpolation=cv2.INTER_AREA)
+    return small, camera.scaled(factor)
+
+
+def _ms(t0: float) -> float:
+    return (time.perf_counter() - t0) * 1e3
+
+
+def _same_camera(a: CameraModel, b: CameraModel) -> bool:
+    return (a.width, a.height, a.model) == (b.width, b.height, b.model) and np.array_equal(a.K, b.K) \
+        and np.array_equal(a.D, b.D)
+
+
+def _transform(T_a_b: F64, X_b: F64) -> F64:
+    return X_b @ T_a_b[:3, :3].T + T_a_b[:3, 3]
