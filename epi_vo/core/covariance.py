@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from epi_vo.geometry import skew
+from epi_vo.core.geometry import skew
 
 F64 = NDArray[np.float64]
 

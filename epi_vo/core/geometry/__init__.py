@@ -1,0 +1,43 @@
+"""Two-view geometry, split by concept.
+
+* ``models``: E and H estimation and their chi-square scoring (model selection's inputs);
+* ``pose``: pose recovery with cheirality, homography rotation / planar pose, parallax, refinement
+  of a pose on map points;
+* ``triangulation``: triangulation through its gates, scale of a direction from map points;
+* ``common``: homogeneous coordinates, cross-product matrix, ray depths, nearest rotation.
+
+Everything is re-exported here: ``from epi_vo.core import geometry as geo`` then ``geo.recover_pose``.
+"""
+
+from epi_vo.core.geometry.common import F64, Mask, as_float64, homogeneous, nearest_rotation, ray_depths, skew
+from epi_vo.core.geometry.models import (
+    CHI2_1DOF,
+    CHI2_2DOF,
+    ROBUST_METHOD_FLAGS,
+    epipolar_distances_sq,
+    essential_from_pose,
+    estimate_essential,
+    estimate_homography,
+    fundamental_from_essential,
+    rh_ratio,
+    sampson_distance_sq,
+    score_fundamental,
+    score_homography,
+    transfer_errors_sq,
+)
+from epi_vo.core.geometry.pose import (
+    parallax_deg,
+    pose_from_homography,
+    recover_pose,
+    refine_pose_pnp,
+    rotation_from_homography,
+)
+from epi_vo.core.geometry.triangulation import ScaleEstimate, Triangulation, scale_from_points, triangulate
+
+__all__ = [
+    "CHI2_1DOF", "CHI2_2DOF", "F64", "ROBUST_METHOD_FLAGS", "Mask", "ScaleEstimate", "Triangulation", "as_float64",
+    "epipolar_distances_sq", "essential_from_pose", "estimate_essential", "estimate_homography",
+    "fundamental_from_essential", "homogeneous", "nearest_rotation", "parallax_deg", "pose_from_homography",
+    "ray_depths", "recover_pose", "refine_pose_pnp", "rh_ratio", "rotation_from_homography", "sampson_distance_sq",
+    "scale_from_points", "score_fundamental", "score_homography", "skew", "transfer_errors_sq", "triangulate",
+]

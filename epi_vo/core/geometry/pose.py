@@ -1,0 +1,143 @@
+"""Pose recovery with cheirality: the pose of an essential matrix (recoverPose), rotation and planar
+pose of a homography, parallax after removing a rotation, and the motion-only refinement of a pose on
+map points (H&Z ch. 9, 18). Conventions: see ``epi_vo.core.geometry.common``.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from epi_vo.core.geometry.common import F64, Mask, homogeneous, nearest_rotation, ray_depths
+from epi_vo.core.geometry.triangulation import Triangulation, triangulate
+
+# Distance (in baselines) beyond which recoverPose calls a point 'at infinity'.
+_CHEIRALITY_MAX_DISTANCE = 1.0e7
+
+
+def recover_pose(E: F64, uv_ref: F64, uv_cur: F64, K: F64, inliers: Mask, max_points: int = 100
+                 ) -> tuple[F64, F64, Mask]:
+    """Decompose E and pick the candidate with most points in front of both cameras (cheirality).
+
+    ``cv2.recoverPose(E, uv_ref, uv_cur, K)`` returns the motion ref -> cur. It chooses among the four
+    candidates on at most ``max_points`` inliers spread evenly through the list (the vote is not
+    close for a correct E, and recoverPose triangulates every point four times); the cheirality of
+    every inlier is then checked against the chosen motion. Returns
+    ``(R_cur_ref, t_cur_ref (3,) unit, mask of inliers in front of both cameras)``.
+    """
+    idx = np.flatnonzero(inliers)
+    if idx.size < 5:
+        return np.eye(3), np.zeros(3), np.zeros(inliers.shape[0], dtype=bool)
+    if idx.size > max_points:
+        idx = idx[np.linspace(0, idx.size - 1, max_points).astype(np.int64)]
+    # The plain overload drops points farther than 50 baselines as 'at infinity', which with video
+    # frame rates (short baselines, depths of 100+ baselines) discards most good inliers; only the
+    # sign of the depth matters here, so the distance limit is lifted.
+    _, R, t, _, _ = cv2.recoverPose(E, uv_ref[idx], uv_cur[idx], cameraMatrix=K,
+                                    distanceThresh=_CHEIRALITY_MAX_DISTANCE,
+                                    mask=np.ones((idx.size, 1), np.uint8))
+    R = np.asarray(R, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64).reshape(3)
+    K_inv = np.linalg.inv(K)
+    xn_ref = (homogeneous(uv_ref) @ K_inv.T)[:, :2]
+    xn_cur = (homogeneous(uv_cur) @ K_inv.T)[:, :2]
+    d_ref, d_cur = ray_depths(R, t, xn_ref, xn_cur)
+    return R, t, inliers & (d_ref > 0.0) & (d_cur > 0.0)
+
+
+def rotation_from_homography(H: F64, K: F64) -> F64:
+    """Under pure rotation ``H = K R K^-1`` (H&Z 8.4.2): R_cur_ref is the nearest rotation to K^-1 H K."""
+    M = np.linalg.inv(K) @ H @ K
+    M = M / np.cbrt(np.linalg.det(M))
+    return nearest_rotation(M)
+
+
+def pose_from_homography(H: F64, K: F64, xn_ref: F64, xn_cur: F64, inliers: Mask,
+                         max_reproj_err_px: float, min_angle_deg: float
+                         ) -> tuple[F64, F64, Triangulation] | None:
+    """Planar decomposition of H (Faugeras / Malis, ``cv2.decomposeHomographyMat``) resolved by cheirality.
+
+    Returns ``(R_cur_ref, t_cur_ref, triangulation)`` for the solution with the most points passing the
+    gates, with ``t`` in units of the plane's distance from the reference camera; None when no solution
+    is clearly best (ORB-SLAM: the runner-up must have < 75 % of the winner's good points).
+    """
+    _, Rs, ts, _ = cv2.decomposeHomographyMat(H, K)
+    idx = np.flatnonzero(inliers)
+    results = []
+    for R, t in zip(Rs, ts, strict=False):
+        R = np.asarray(R, dtype=np.float64)
+        t = np.asarray(t, dtype=np.float64).reshape(3)
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and np.allclose(R @ R.T, np.eye(3), atol=1e-6)):
+            # OpenCV returns non-rotations for an H that no plane can produce (e.g. wildly unequal
+            # singular values of K^-1 H K); such a candidate is no pose at all.
+            continue
+        tri = triangulate(R, t, xn_ref[idx], xn_cur[idx], K, max_reproj_err_px, min_angle_deg)
+        results.append((int(np.count_nonzero(tri.good)), R, t, tri))
+    results.sort(key=lambda r: -r[0])
+    if not results or results[0][0] == 0:
+        return None
+    if len(results) > 1 and results[1][0] >= 0.75 * results[0][0]:
+        return None
+    _, R, t, tri_in = results[0]
+    # Outliers of H are not triangulated: expand back to all N correspondences.
+    return R, t, tri_in.expanded(idx, xn_ref.shape[0])
+
+
+def parallax_deg(R_cur_ref: F64, xn_ref: F64, xn_cur: F64) -> F64:
+    """Per-point angle (deg) between the current ray and the rotated reference ray.
+
+    Rotation moves every ray alike and carries no depth information; what is left after removing it is
+    the parallax that translation produced, the quantity that makes triangulation possible.
+    """
+    if xn_ref.shape[0] == 0:
+        return np.zeros(0)
+    b_ref = homogeneous(xn_ref) @ R_cur_ref.T
+    b_cur = homogeneous(xn_cur)
+    cos_a = np.einsum("ij,ij->i", b_ref, b_cur) / (np.linalg.norm(b_ref, axis=1) * np.linalg.norm(b_cur, axis=1))
+    return np.degrees(np.arccos(np.clip(cos_a, -1.0, 1.0)))
+
+
+def refine_pose_pnp(X_ref: F64, uv_cur: F64, K: F64, R_cur_ref: F64, t_cur_ref: F64,
+                    max_reproj_err_px: float) -> tuple[F64, F64, Mask, F64] | None:
+    """Motion-only refinement of (R, t) on map points by Levenberg-Marquardt (``cv2.solvePnPRefineLM``).
+
+    Rounds with a shrinking gate (4x, 2x, 1x ``max_reproj_err_px`` around the current estimate) so
+    that map points with bad depth do not pull the least-squares solution before they are dropped. Returns
+    ``(R_cur_ref, t_cur_ref, inlier mask, 6x6 covariance of (rvec, tvec))`` or None with < 6 inliers.
+    The covariance is ``sigma^2 (J^T J)^-1`` with sigma the RMS reprojection error of the inliers.
+    """
+    if X_ref.shape[0] < 6:
+        return None
+    rvec, _ = cv2.Rodrigues(R_cur_ref)
+    tvec = t_cur_ref.reshape(3, 1).astype(np.float64)
+    obj = X_ref.reshape(-1, 1, 3).astype(np.float64)
+    img = uv_cur.reshape(-1, 1, 2).astype(np.float64)
+    zero_d = np.zeros(5)
+    def errors() -> F64:
+        proj, _ = cv2.projectPoints(obj, rvec, tvec, K, zero_d)
+        return np.linalg.norm(proj.reshape(-1, 2) - uv_cur, axis=1)
+
+    for i, gate in enumerate((4.0, 2.0, 1.0)):
+        err = errors()
+        # The first gate also scales with the median error, so that a coarse start (a degree off)
+        # keeps the consistent majority rather than nothing.
+        limit = gate * max_reproj_err_px if i else max(gate * max_reproj_err_px, 2.0 * float(np.median(err)))
+        keep = err <= limit
+        if np.count_nonzero(keep) < 6:
+            return None
+        rvec, tvec = cv2.solvePnPRefineLM(obj[keep], img[keep], K, zero_d, rvec, tvec)
+    keep = errors() <= max_reproj_err_px
+    if np.count_nonzero(keep) < 6:
+        return None
+    proj, J = cv2.projectPoints(obj[keep], rvec, tvec, K, zero_d)
+    J = J[:, :6]
+    res = proj.reshape(-1, 2) - uv_cur[keep]
+    sigma2 = max(float(np.mean(res**2)), 0.05**2)
+    try:
+        cov = sigma2 * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return None
+    R, _ = cv2.Rodrigues(rvec)
+    return np.asarray(R, dtype=np.float64), tvec.reshape(3), keep, cov
+
+
