@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import bisect
 import logging
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Self
@@ -33,8 +34,14 @@ from rosbags.rosbag2 import ReaderError
 from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_typestore
 
-from epi_vo.errors import BagError
-from epi_vo.msgconv import point_cloud2_fields, stamp_to_ns
+from epi_vo.errors import BagError, EpiVoError
+from epi_vo.msgconv import (
+    clamp_stamp_ns,
+    ns_to_ros_time,
+    point_cloud2_fields,
+    stamp_problem,
+    stamp_to_ns,
+)
 
 if TYPE_CHECKING:
     from collections.abc import Iterator, Sequence
@@ -63,10 +70,31 @@ DIAGNOSTICS_TOPIC = "/diagnostics"
 # Message definitions for serialising output and for bags recorded without them (old sqlite3).
 _TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 
-# What rosbags raises for a missing, truncated or corrupt bag (it wraps its parser errors in these).
-_READ_ERRORS = (AnyReaderError, ReaderError, SerdeError, OSError)
-
-_NS_PER_S = 1_000_000_000
+# What rosbags raises for a missing, truncated or corrupt bag (it wraps most parser errors in its own;
+# a metadata.yaml that is not UTF-8, or holds a field of the wrong type, comes out as the builtin errors).
+_READ_ERRORS = (
+    AnyReaderError,
+    ReaderError,
+    SerdeError,
+    OSError,
+    UnicodeDecodeError,
+    KeyError,
+    TypeError,
+    ValueError,
+)
+# What deserialising the CDR bytes of one damaged message can raise (AnyReader.deserialize wraps
+# rosbags' SerdeError in AnyReaderError): that message is bad input, the bag goes on.
+_DECODE_ERRORS = (
+    AnyReaderError,
+    SerdeError,
+    ValueError,
+    TypeError,
+    IndexError,
+    KeyError,
+    AttributeError,
+    OverflowError,
+    struct.error,
+)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -77,15 +105,22 @@ _NS_PER_S = 1_000_000_000
 class BagFrame:
     """One image of the bag with its calibration message.
 
-    ``index`` counts images from 0 in bag order; ``stamp_ns`` is the image header stamp;
-    ``camera_info_msg`` is the associated CameraInfo (see ``CameraBag.camera_info_for``) or None
-    when the camera_info topic holds no message.
+    ``index`` counts image messages from 0 in bag order (every message read, also one that cannot be
+    decoded); ``stamp_ns`` is the image header stamp; ``camera_info_msg`` is the associated CameraInfo
+    (see ``CameraBag.camera_info_for``) or None when the camera_info topic holds no message.
+
+    ``problem`` says why the frame cannot be used whatever its pixels (None when it can): its CDR
+    bytes cannot be decoded (``image_msg`` is then None) or its header stamp is not a valid ROS time.
+    ``stamp_ns`` is then a valid ROS time to file the frame under: the header stamp clamped into
+    [0, 2**31 s), or, when there is no header, the message's log time (clamped the same way).
     """
 
     index: int
     stamp_ns: int
     image_msg: Any
     camera_info_msg: Any | None
+    problem: str | None = None
+    log_time_ns: int = 0
 
 
 @dataclass(frozen=True, eq=False)
@@ -194,6 +229,32 @@ def _required_topic(
     return topic
 
 
+def _message_count(path: Path, topics: Any, topic: str) -> int:
+    """The message count the bag announces for ``topic``; BagError when its metadata says no number."""
+    try:
+        count = topics[topic].msgcount
+        return int(count)
+    except (*_READ_ERRORS, AttributeError) as err:
+        msg = f"bag {path} has malformed metadata: message count of {topic}: {err}"
+        raise BagError(msg) from err
+
+
+def _check_metadata_text(path: Path) -> None:
+    """A bag directory's metadata.yaml must be UTF-8 text (rosbags would raise UnicodeDecodeError)."""
+    metadata = path / "metadata.yaml"
+    try:
+        metadata.read_bytes().decode("utf-8")
+    except OSError as err:
+        msg = f"cannot read {metadata}: {err.strerror or err}"
+        raise BagError(msg) from err
+    except UnicodeDecodeError as err:
+        msg = (
+            f"{metadata} is not UTF-8 text (byte 0x{err.object[err.start]:02x} at offset "
+            f"{err.start}): not a rosbag2 metadata file"
+        )
+        raise BagError(msg) from None
+
+
 class CameraBag:
     """An open camera bag: chosen topics, frame count, frames and ground truth.
 
@@ -221,11 +282,20 @@ class CameraBag:
             if name is not None
         }
         self.image_is_compressed = topics[image_topic].msgtype == COMPRESSED_IMAGE_TYPE
-        self.frame_count = int(topics[image_topic].msgcount)
+        self.frame_count = _message_count(path, topics, image_topic)
+        # Messages of the camera_info and ground-truth topics that could not be decoded (skipped),
+        # one line each; images that cannot be decoded are frames with a problem instead.
+        self.problems: list[str] = []
 
-        camera_infos = [
-            (stamp_to_ns(msg.header.stamp), msg) for _, msg in self._read(camera_info_topic)
-        ]
+        camera_infos = []
+        for log_time_ns, msg, problem in self._read(camera_info_topic):
+            if msg is None:
+                self._skipped(f"camera_info message at log time {log_time_ns} ns skipped: it {problem}")
+                continue
+            try:
+                camera_infos.append((stamp_to_ns(msg.header.stamp), msg))
+            except EpiVoError as err:
+                self._skipped(f"camera_info message at log time {log_time_ns} ns skipped: {err}")
         # Stable sort by header stamp: among equal stamps the last one is the latest recorded.
         camera_infos.sort(key=lambda item: item[0])
         self._camera_info_stamps_ns = [stamp for stamp, _ in camera_infos]
@@ -248,15 +318,34 @@ class CameraBag:
         if reader is not None:
             reader.close()
 
-    def _read(self, topic: str) -> Iterator[tuple[int, Any]]:
-        """(log time ns, deserialised message) of ``topic`` in bag order; BagError on a bad bag."""
+    def _skipped(self, problem: str) -> None:
+        logger.warning("bag %s: %s", self.path, problem)
+        self.problems.append(problem)
+
+    def _read(self, topic: str) -> Iterator[tuple[int, Any | None, str | None]]:
+        """(log time ns, deserialised message, None) of ``topic`` in bag order.
+
+        A message whose CDR bytes cannot be deserialised gives (log time, None, the reason) and reading
+        goes on; a bag that cannot be read further (truncated, damaged record) raises BagError.
+        """
         if self._reader is None:
             msg = f"bag {self.path} is closed"
             raise BagError(msg)
         reader = self._reader
         try:
             for connection, log_time_ns, rawdata in reader.messages(self._connections[topic]):
-                yield log_time_ns, reader.deserialize(rawdata, connection.msgtype)
+                try:
+                    message = reader.deserialize(rawdata, connection.msgtype)
+                except _DECODE_ERRORS as err:
+                    reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+                    yield (
+                        int(log_time_ns),
+                        None,
+                        f"cannot be decoded: its {len(rawdata)} bytes of CDR are no valid "
+                        f"{connection.msgtype} ({reason})",
+                    )
+                    continue
+                yield int(log_time_ns), message, None
         except _READ_ERRORS as err:
             msg = f"cannot read {topic} from bag {self.path}: {err}"
             raise BagError(msg) from err
@@ -274,10 +363,30 @@ class CameraBag:
         return self._camera_info_msgs[max(position - 1, 0)]
 
     def iter_frames(self) -> Iterator[BagFrame]:
-        """Images in bag order, each with ``camera_info_for`` its header stamp."""
-        for index, (_, image_msg) in enumerate(self._read(self.image_topic)):
-            stamp_ns = stamp_to_ns(image_msg.header.stamp)
-            yield BagFrame(index, stamp_ns, image_msg, self.camera_info_for(stamp_ns))
+        """Images in bag order, each with ``camera_info_for`` its header stamp.
+
+        Every image message read gives a frame: one that cannot be decoded, or whose header stamp is
+        no valid ROS time, comes with its ``problem`` (see :class:`BagFrame`).
+        """
+        for index, (log_time_ns, image_msg, problem) in enumerate(self._read(self.image_topic)):
+            if image_msg is None:
+                stamp_ns = clamp_stamp_ns(log_time_ns)
+                problem = f"image message {problem}"
+                yield BagFrame(index, stamp_ns, None, None, problem, log_time_ns)
+                continue
+            stamp = getattr(getattr(image_msg, "header", None), "stamp", None)
+            bad_stamp = stamp_problem(stamp)
+            if bad_stamp is None:
+                stamp_ns = stamp_to_ns(stamp)
+            else:
+                try:
+                    stamp_ns = clamp_stamp_ns(stamp_to_ns(stamp))
+                except EpiVoError:
+                    stamp_ns = clamp_stamp_ns(log_time_ns)
+                problem = f"image {bad_stamp}"
+            yield BagFrame(
+                index, stamp_ns, image_msg, self.camera_info_for(stamp_ns), problem, log_time_ns
+            )
 
     def read_ground_truth(self) -> GroundTruth | None:
         """Poses of the ground-truth topic sorted by header stamp, or None when the bag has none."""
@@ -287,7 +396,13 @@ class CameraBag:
         positions: list[tuple[float, float, float]] = []
         quats_xyzw: list[tuple[float, float, float, float]] = []
         frame_id = ""
-        for _, msg in self._read(self.gt_topic):
+        for log_time_ns, msg, problem in self._read(self.gt_topic):
+            if msg is None:
+                self._skipped(
+                    f"ground-truth message on {self.gt_topic} at log time {log_time_ns} ns skipped: "
+                    f"it {problem}"
+                )
+                continue
             # PoseStamped has pose.position; Odometry has pose.pose.position (PoseWithCovariance).
             pose = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose
             stamps_ns.append(stamp_to_ns(msg.header.stamp))
@@ -336,6 +451,8 @@ def open_camera_bag(
     if path.is_file() and path.suffix not in {".mcap", ".db3"}:
         msg = f"{path} is not a rosbag2 bag: expected a bag directory, a .mcap or a .db3 file"
         raise BagError(msg)
+    if path.is_dir():
+        _check_metadata_text(path)
 
     try:
         reader = AnyReader([path], default_typestore=_TYPESTORE)
@@ -345,12 +462,18 @@ def open_camera_bag(
         raise BagError(msg) from err
 
     try:
-        if reader.message_count == 0:
+        try:
+            # rosbags parses the metadata lazily: a field of the wrong type surfaces here.
+            message_count = int(reader.message_count)
+            topic_types = {name: info.msgtype for name, info in reader.topics.items()}
+        except (*_READ_ERRORS, AttributeError) as err:
+            msg = f"bag {path} has malformed metadata: {err}"
+            raise BagError(msg) from err
+        if message_count == 0:
             msg = f"bag {path} is empty (no messages)"
             raise BagError(msg)
-        topic_types = {name: info.msgtype for name, info in reader.topics.items()}
         chosen_image = _required_topic(topic_types, _IMAGE_KIND, image_topic)
-        if reader.topics[chosen_image].msgcount == 0:
+        if _message_count(path, reader.topics, chosen_image) == 0:
             msg = f"image topic {chosen_image} in bag {path} has no messages"
             raise BagError(msg)
         chosen_info = _required_topic(
@@ -475,10 +598,17 @@ def _checked_array(
 
 
 def _ros_time(stamp_ns: int) -> Any:
-    """builtin_interfaces/Time of integer nanoseconds (numpy integers accepted)."""
-    stamp_ns = int(stamp_ns)
+    """builtin_interfaces/Time of integer nanoseconds (numpy integers accepted).
+
+    BagError when ``stamp_ns`` is no valid ROS time (negative, or beyond int32 seconds): such a stamp
+    is refused rather than written wrapped or failing inside the serialiser.
+    """
+    try:
+        sec, nanosec = ns_to_ros_time(stamp_ns)
+    except (ValueError, TypeError) as err:
+        raise BagError(str(err)) from None
     Time = _TYPESTORE.types["builtin_interfaces/msg/Time"]
-    return Time(sec=stamp_ns // _NS_PER_S, nanosec=stamp_ns % _NS_PER_S)
+    return Time(sec=sec, nanosec=nanosec)
 
 
 def _header(stamp_ns: int, frame_id: str) -> Any:
@@ -505,7 +635,9 @@ class OutputBag:
 
     Topics: /vo/odometry (nav_msgs/Odometry), /vo/points (sensor_msgs/PointCloud2), /vo/path
     (nav_msgs/Path), /diagnostics (diagnostic_msgs/DiagnosticArray); all four channels are declared
-    up front. Stamps are integer nanoseconds (>= 0); each message is logged at its header stamp.
+    up front. Stamps are integer nanoseconds; each message is logged at its header stamp. A stamp
+    that is no valid ROS time (outside [0, (2**31 - 1) s + 999999999 ns]) is refused with a BagError
+    before anything of that message is written (the file stays valid and readable).
 
     Use as a context manager: leaving the block, also by an exception or KeyboardInterrupt, writes
     the summary and index so the file stays readable.
@@ -567,21 +699,35 @@ class OutputBag:
             return
         try:
             writer.finish()
+        except OSError as err:
+            msg = f"cannot write output bag {self.path}: {err.strerror or err}"
+            raise BagError(msg) from err
         finally:
             self._stream.close()
 
-    def _write(self, topic: str, stamp_ns: int, message: object) -> None:
+    def _check_time(self, topic: str, stamp_ns: int) -> int:
+        """``stamp_ns`` as int when it is a valid ROS time; BagError naming the topic otherwise."""
         if self._writer is None:
             msg = f"output bag {self.path} is closed"
             raise BagError(msg)
-        stamp_ns = int(stamp_ns)
-        if stamp_ns < 0:
-            msg = f"{topic}: stamp_ns {stamp_ns} is negative"
-            raise BagError(msg)
+        try:
+            ns_to_ros_time(stamp_ns)
+        except (ValueError, TypeError) as err:
+            msg = f"{topic}: {err}: message not written to {self.path}"
+            raise BagError(msg) from None
+        return int(stamp_ns)
+
+    def _write(self, topic: str, stamp_ns: int, message: object) -> None:
+        stamp_ns = self._check_time(topic, stamp_ns)
+        assert self._writer is not None  # checked above
         data = _TYPESTORE.serialize_cdr(message, _OUTPUT_TOPICS[topic], little_endian=True)
-        self._writer.add_message(
-            self._channel_ids[topic], log_time=stamp_ns, data=bytes(data), publish_time=stamp_ns
-        )
+        try:
+            self._writer.add_message(
+                self._channel_ids[topic], log_time=stamp_ns, data=bytes(data), publish_time=stamp_ns
+            )
+        except OSError as err:
+            msg = f"cannot write output bag {self.path}: {err.strerror or err}"
+            raise BagError(msg) from err
 
     def write_odometry(
         self,
@@ -602,6 +748,7 @@ class OutputBag:
         (x, y, z, rot x, rot y, rot z), written row-major.
         """
         types = _TYPESTORE.types
+        self._check_time(ODOMETRY_TOPIC, stamp_ns)
         pose = _pose(
             _checked_array(position, (3,), "position"),
             _checked_array(quat_xyzw, (4,), "quat_xyzw"),
@@ -628,6 +775,7 @@ class OutputBag:
         """sensor_msgs/PointCloud2 (x, y, z float32) on /vo/points; ``points_xyz`` (N, 3) in
         ``frame_id``. Points with a non-finite coordinate are dropped (see point_cloud2_fields)."""
         types = _TYPESTORE.types
+        self._check_time(POINTS_TOPIC, stamp_ns)
         cloud = point_cloud2_fields(_checked_array(points_xyz, (None, 3), "points_xyz"))
         PointField = types["sensor_msgs/msg/PointField"]
         message = types[POINT_CLOUD2_TYPE](
@@ -654,9 +802,12 @@ class OutputBag:
         """nav_msgs/Path on /vo/path: M poses of the camera in ``frame_id``, ``stamps_ns`` (M,),
         ``positions`` (M, 3), ``quats_xyzw`` (M, 4)."""
         types = _TYPESTORE.types
-        stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
-        xyz = _checked_array(positions, (stamps.shape[0], 3), "positions")
-        quats = _checked_array(quats_xyzw, (stamps.shape[0], 4), "quats_xyzw")
+        self._check_time(PATH_TOPIC, stamp_ns)
+        stamps = [int(x) for x in np.asarray(stamps_ns).reshape(-1)]
+        for stamp in stamps:
+            self._check_time(PATH_TOPIC, stamp)
+        xyz = _checked_array(positions, (len(stamps), 3), "positions")
+        quats = _checked_array(quats_xyzw, (len(stamps), 4), "quats_xyzw")
         PoseStamped = types[POSE_STAMPED_TYPE]
         poses = [
             PoseStamped(header=_header(int(stamp), frame_id), pose=_pose(position, quat))
@@ -668,6 +819,7 @@ class OutputBag:
     def write_diagnostics(self, stamp_ns: int, statuses: Sequence[DiagnosticStatusRecord]) -> None:
         """diagnostic_msgs/DiagnosticArray on /diagnostics, one DiagnosticStatus per record."""
         types = _TYPESTORE.types
+        self._check_time(DIAGNOSTICS_TOPIC, stamp_ns)
         KeyValue = types["diagnostic_msgs/msg/KeyValue"]
         status = [
             types["diagnostic_msgs/msg/DiagnosticStatus"](

@@ -20,7 +20,7 @@ import numpy as np
 
 from epi_vo import bagio
 from epi_vo.config import VoConfig, load_config
-from epi_vo.errors import EpiVoError
+from epi_vo.errors import EpiVoError, OutputError
 from epi_vo.evaluation import evaluate_trajectory
 from epi_vo.msgconv import decode_frame
 from epi_vo.reference import ReferencePipeline
@@ -86,9 +86,9 @@ def bench_epi_vo(name: str, bag: Path, gt_path: Path, cfg: VoConfig) -> BenchRow
     gt = bagio.read_tum(gt_path)
     with tempfile.TemporaryDirectory() as tmp:
         summary = run_replay(bag, tmp, cfg)
-        traj = np.loadtxt(Path(tmp) / "trajectory.tum", ndmin=2)
+        stamps, positions, quats = bagio.read_tum(Path(tmp) / "trajectory.tum")
     return _metrics_row(name, "epi_vo", summary.frames, summary.frames_with_pose, summary.ms_per_frame,
-                        traj[:, 0], traj[:, 1:4], traj[:, 4:8], gt)
+                        stamps, positions, quats, gt)
 
 
 def bench_reference(name: str, bag_path: Path, gt_path: Path) -> BenchRow:
@@ -98,19 +98,27 @@ def bench_reference(name: str, bag_path: Path, gt_path: Path) -> BenchRow:
     ref: ReferencePipeline | None = None
     with bagio.open_camera_bag(bag_path) as bag:
         for frame in bag.iter_frames():
-            gray = decode_frame(frame.image_msg, bag.image_is_compressed)
+            frames += 1
+            # A frame epi_vo's replay would reject before decoding (undecodable message, bad stamp, no
+            # camera_info, undecodable pixels) is a frame without a pose for the reference too.
+            if frame.problem is not None or frame.camera_info_msg is None:
+                continue
+            try:
+                gray = decode_frame(frame.image_msg, bag.image_is_compressed)
+            except EpiVoError:
+                continue
             if ref is None:
                 info = frame.camera_info_msg
                 ref = ReferencePipeline(np.asarray(info.k, np.float64).reshape(3, 3), np.asarray(info.d, np.float64))
             r = ref.process(gray, frame.stamp_ns * 1e-9)
-            frames += 1
             times.append(r.ms)
             if r.ok:
                 n_ok += 1
                 stamps.append(r.stamp_s)
                 positions.append(r.T_w_c[:3, 3])
                 quats.append(quat_xyzw_from_rotation(r.T_w_c[:3, :3]))
-    return _metrics_row(name, "reference", frames, n_ok, float(np.median(times)), np.array(stamps),
+    return _metrics_row(name, "reference", frames, n_ok, float(np.median(times)) if times else math.nan,
+                        np.array(stamps),
                         np.array(positions).reshape(-1, 3), np.array(quats).reshape(-1, 4), gt)
 
 
@@ -129,8 +137,22 @@ def format_table(rows: list[BenchRow]) -> str:
     return "\n".join(lines)
 
 
+def _check_output_file(output: str) -> Path:
+    """Fail before a long run, not after it, when ``--output`` cannot be a file."""
+    out = Path(output)
+    if out.is_dir():
+        raise OutputError(f"--output {out} is a directory; name the JSON file to write")
+    if not out.parent.is_dir():
+        what = "does not exist" if not out.parent.exists() else "is not a directory"
+        raise OutputError(f"cannot write {out}: {out.parent} {what}")
+    return out
+
+
 def run_benchmark(bags_dir: str | None, kitti_dir: str | None, params: str | None, output: str | None) -> int:
     cfg = load_config(params)
+    out = _check_output_file(output) if output else None
+    if bags_dir is not None and not Path(bags_dir).is_dir():
+        raise EpiVoError(f"benchmark: --bags {bags_dir} is not a directory")
     datasets = find_datasets(bags_dir, kitti_dir)
     if not datasets:
         raise EpiVoError("benchmark: no bags found (expected bags/<name>/bag with groundtruth_tum.txt)")
@@ -144,6 +166,11 @@ def run_benchmark(bags_dir: str | None, kitti_dir: str | None, params: str | Non
     print(format_table(rows))
     print("\nATE after Sim(3) alignment (evo); 'moving' = frames whose position changed (on pure_rotation "
           "any is invented translation); ms/frame = median processing time, decoding excluded.")
-    if output:
-        Path(output).write_text(json.dumps([r.__dict__ for r in rows], indent=2, default=float) + "\n")
+    if out is not None:
+        try:
+            table = [{k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in r.__dict__.items()}
+                     for r in rows]  # n/a is null: strict JSON has no NaN
+            out.write_text(json.dumps(table, indent=2, allow_nan=False) + "\n")
+        except OSError as exc:
+            raise OutputError(f"cannot write {out}: {exc.strerror or exc}") from None
     return 0

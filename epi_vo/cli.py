@@ -4,10 +4,21 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 from epi_vo.errors import EpiVoError
+
+if TYPE_CHECKING:
+    from epi_vo.replay import ReplaySummary
+
+# Exit codes: 0 done; 1 a verdict failed (soak); 2 unusable bag, file or arguments (one line names the
+# problem); 3 the replay ran but frames were rejected or messages skipped; 129 stopped by SIGHUP, 130
+# by SIGINT or SIGTERM (outputs finalised at a frame boundary).
+EXIT_INTERRUPTED = 130
+EXIT_HANGUP = 129
 
 
 def _add_replay(sub: argparse._SubParsersAction) -> None:
@@ -157,13 +168,37 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             return soak_run(args)
     except EpiVoError as exc:
-        print(f"epi-vo: error: {exc}", file=sys.stderr)
+        _say(f"epi-vo: error: {_one_line(str(exc))}")
         return 2
-    except KeyboardInterrupt:
-        print("epi-vo: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        hangup = getattr(exc, "signum", None) == getattr(signal, "SIGHUP", None)
+        _say("epi-vo: interrupted" + (" (SIGHUP: terminal closed)" if hangup else ""))
+        return EXIT_HANGUP if hangup else EXIT_INTERRUPTED
+    except (OSError, UnicodeError) as exc:
+        # A file or directory the tools could not use and no module put into words: still one line.
+        _say(f"epi-vo: error: {_describe_os_error(exc)}")
+        return 2
     parser.error(f"unknown command {args.command}")
     return 2
+
+
+def _one_line(text: str) -> str:
+    return " ".join(text.split())
+
+
+def _describe_os_error(exc: OSError | UnicodeError) -> str:
+    if isinstance(exc, OSError):
+        where = f": {exc.filename}" if exc.filename else ""
+        return f"{exc.strerror or _one_line(str(exc))}{where}"
+    return f"not UTF-8 text: {_one_line(str(exc))}"
+
+
+def _say(line: str, *, stdout: bool = False) -> None:
+    """Print one line; a terminal that went away (SIGHUP, closed pipe) does not turn it into a traceback."""
+    try:
+        print(line, file=sys.stdout if stdout else sys.stderr, flush=True)
+    except (OSError, ValueError):
+        pass
 
 
 def _replay(args: argparse.Namespace) -> int:
@@ -175,15 +210,27 @@ def _replay(args: argparse.Namespace) -> int:
     summary = run_replay(args.bag, args.output, cfg, image_topic=args.image_topic,
                          camera_info_topic=args.camera_info_topic, gt_tum=args.gt,
                          progress=not args.no_progress)
-    print(format_summary(summary))
-    if summary.rejected:
-        n = sum(int(r.split(" ", 1)[0]) for r in summary.rejected)
-        print(f"epi-vo: error: {n} of {summary.frames} frames rejected: {summary.rejected[0]}", file=sys.stderr)
+    _say(format_summary(summary), stdout=True)
     if args.report:
         from epi_vo.report import write_report
 
-        print(f"  report        {write_report(args.output)}")
-    return 3 if summary.rejected else 0
+        _say(f"  report        {write_report(args.output)}", stdout=True)
+    if summary.has_problems:
+        _say(f"epi-vo: error: {replay_problem_line(summary)}")
+        return 3
+    return 0
+
+
+def replay_problem_line(summary: ReplaySummary) -> str:
+    """One line: how many of the frames read were rejected and the first problem, then what was skipped."""
+    rejected, skipped = summary.rejected, summary.skipped_messages
+    parts = []
+    if rejected:
+        others = f" (and {len(rejected) - 1} other problem(s))" if len(rejected) > 1 else ""
+        parts.append(f"{summary.rejected_frames} of {summary.frames} frames rejected: {rejected[0]}{others}")
+    if skipped:
+        parts.append(f"{len(skipped)} message(s) skipped: {skipped[0]}")
+    return _one_line("; ".join(parts))
 
 
 def _play(args: argparse.Namespace) -> int:

@@ -9,6 +9,7 @@ Thresholds are in pixels of the undistorted (ideal pinhole) image unless the nam
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,6 +21,18 @@ from epi_vo.errors import ConfigError
 
 ROBUST_METHODS = ("magsac", "ransac", "lmeds", "usac_default", "usac_accurate", "usac_fast")
 FRONTENDS = ("klt", "orb")
+
+# The node's own parameters (``NodeOptions`` in epi_vo/node.py, which imports rclpy): valid names in a
+# parameter file, which the offline tools (replay, inspect, benchmark, soak) accept and ignore. A test
+# keeps this tuple equal to NodeOptions' fields.
+NODE_PARAMETER_NAMES: tuple[str, ...] = (
+    "frame_id", "child_frame_id", "camera_xyz", "camera_rpy", "image_transport", "qos_reliability", "qos_depth",
+    "queue_size", "process_every_frame", "publish_tf", "publish_debug_image", "path_max_length",
+    "watchdog_timeout_s", "camera_info_wait_s", "hardware_id",
+)
+# Parameters every rclpy node declares or reads, also valid in a parameter file; ``qos_overrides`` (a
+# mapping, or dotted ``qos_overrides./topic...`` names) configures a node's QoS.
+ROS_PARAMETER_NAMES: tuple[str, ...] = ("use_sim_time", "start_type_description_service", "qos_overrides")
 
 
 def _knob(default: Any, doc: str, lo: float | None = None, hi: float | None = None,
@@ -98,6 +111,9 @@ def config_fields() -> tuple[dataclasses.Field[Any], ...]:
     return dataclasses.fields(VoConfig)
 
 
+_PIPELINE_NAMES: tuple[str, ...] = tuple(f.name for f in config_fields())
+
+
 def field_doc(f: dataclasses.Field[Any]) -> str:
     return str(f.metadata.get("doc", ""))
 
@@ -129,6 +145,26 @@ def validate(cfg: VoConfig) -> None:
         raise ConfigError("invalid epi_vo parameters: " + "; ".join(problems))
 
 
+def is_parameter_name(name: object) -> bool:
+    """True for a name a parameter file may hold: a pipeline knob, a node option or a ROS node parameter."""
+    if not isinstance(name, str):
+        return False
+    if name in _PIPELINE_NAMES or name in NODE_PARAMETER_NAMES or name in ROS_PARAMETER_NAMES:
+        return True
+    return name.startswith("qos_overrides.")
+
+
+def unknown_names_text(names: list[str], candidates: tuple[str, ...] | None = None) -> str:
+    """'a (did you mean b?), c': each unknown name with its closest parameter name when one is close."""
+    pool = list(candidates) if candidates is not None else [*_PIPELINE_NAMES, *NODE_PARAMETER_NAMES,
+                                                            *ROS_PARAMETER_NAMES]
+    parts = []
+    for name in sorted(names, key=str):
+        close = difflib.get_close_matches(str(name), pool, n=1)
+        parts.append(f"{name} (did you mean {close[0]}?)" if close else str(name))
+    return ", ".join(parts)
+
+
 def _as_float(value: Any) -> Any:
     """Widen ints, and read strings like '1e4' as ROS 2's YAML parser does (PyYAML leaves them str)."""
     if isinstance(value, int) and not isinstance(value, bool):
@@ -157,10 +193,11 @@ def from_dict(values: dict[str, Any], base: VoConfig | None = None) -> VoConfig:
         validate(cfg)
     except ConfigError as exc:
         if unknown:
-            raise ConfigError(f"{exc}; unknown parameters: {', '.join(unknown)}") from None
+            raise ConfigError(f"{exc}; unknown parameters: {unknown_names_text(unknown, _PIPELINE_NAMES)}") from None
         raise
     if unknown:
-        raise ConfigError("invalid epi_vo parameters: unknown parameters: " + ", ".join(unknown))
+        raise ConfigError("invalid epi_vo parameters: unknown parameters: "
+                          + unknown_names_text(unknown, _PIPELINE_NAMES))
     return cfg
 
 
@@ -171,11 +208,14 @@ def load_params_file(path: str | Path, node_name: str = "vo_node") -> dict[str, 
     """
     path = Path(path)
     try:
-        doc = yaml.safe_load(path.read_text())
+        doc = yaml.safe_load(path.read_bytes().decode("utf-8"))
     except OSError as exc:
-        raise ConfigError(f"cannot read parameter file {path}: {exc.strerror}") from None
+        raise ConfigError(f"cannot read parameter file {path}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"parameter file {path} is not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset "
+                          f"{exc.start})") from None
     except yaml.YAMLError as exc:
-        raise ConfigError(f"parameter file {path} is not valid YAML: {exc}") from None
+        raise ConfigError(f"parameter file {path} is not valid YAML: {' '.join(str(exc).split())}") from None
     if not isinstance(doc, dict):
         raise ConfigError(f"parameter file {path}: expected a mapping of node names to ros__parameters")
     params: dict[str, Any] = {}
@@ -189,12 +229,24 @@ def load_params_file(path: str | Path, node_name: str = "vo_node") -> dict[str, 
 
 
 def load_config(path: str | Path | None = None) -> VoConfig:
-    """The pipeline config from a ROS 2 parameter file (pipeline fields only; node fields ignored)."""
+    """The pipeline config from a ROS 2 parameter file.
+
+    The node's own parameters and the ROS ones (``NODE_PARAMETER_NAMES``, ``ROS_PARAMETER_NAMES``) are
+    accepted and ignored; any other name that is not a pipeline knob is an error naming it (with the
+    closest parameter name), reported together with every bad value.
+    """
     if path is None:
         return VoConfig()
-    names = {f.name for f in config_fields()}
     params = load_params_file(path)
-    return from_dict({k: v for k, v in params.items() if k in names})
+    unknown = [k for k in params if not is_parameter_name(k)]
+    unknown_text = f"unknown parameters: {unknown_names_text(unknown)}" if unknown else ""
+    try:
+        cfg = from_dict({k: v for k, v in params.items() if k in _PIPELINE_NAMES})
+    except ConfigError as exc:
+        raise ConfigError(f"parameter file {path}: {exc}" + (f"; {unknown_text}" if unknown else "")) from None
+    if unknown:
+        raise ConfigError(f"parameter file {path}: invalid epi_vo parameters: {unknown_text}")
+    return cfg
 
 
 def to_params_yaml(cfg: VoConfig, extra: dict[str, Any] | None = None) -> str:

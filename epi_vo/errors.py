@@ -34,3 +34,20 @@ class EvaluationError(EpiVoError):
 
 class ReportError(EpiVoError):
     """A replay output directory a report cannot be made from (missing or malformed files)."""
+
+
+class OutputError(EpiVoError):
+    """An output path that cannot be created or written (an existing file, a path under a file, no
+    permission, disk full)."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """A signal (SIGINT, SIGTERM, SIGHUP) stopped a run at a safe point, its outputs finalised.
+
+    A KeyboardInterrupt, so code that handles Ctrl-C handles it; ``signum`` says which signal it was
+    (the command line exits 129 for SIGHUP, 130 for the others).
+    """
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum

@@ -36,12 +36,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from epi_vo import bagio
-from epi_vo.camera import CameraModel, DistortionModel
+from epi_vo.camera import CameraModel, CameraModelCache, DistortionModel
 from epi_vo.config import VoConfig, load_config
-from epi_vo.errors import BagError, EpiVoError
+from epi_vo.errors import BagError, OutputError
 from epi_vo.geometry import CHI2_1DOF, CHI2_2DOF, epipolar_distances_sq, homogeneous, transfer_errors_sq
-from epi_vo.msgconv import decode_frame
 from epi_vo.pipeline import FrameResult, Model, VoPipeline, downscale
+from epi_vo.replay import process_frame
 
 F64 = NDArray[np.float64]
 Gray = NDArray[np.uint8]
@@ -235,9 +235,12 @@ def inspect_bag(bag_path: str | Path, frame: int | None = None, *, stamp_s: floa
                 camera_info_topic: str | None = None) -> Inspection:
     """Replay the bag from its first image up to ``frame`` (or the frame nearest ``stamp_s``).
 
+    Frames before it that cannot be used are rejected as in ``epi-vo replay`` (the same per-frame rule,
+    :func:`epi_vo.replay.process_frame`), so the picture shows what the replay did at that frame.
+
     Raises:
-        BagError: frame index out of range, unreadable bag, ambiguous topics, no camera_info.
-        ImageConversionError / CameraModelError: an image or calibration that cannot be used.
+        BagError: frame index out of range, unreadable bag, ambiguous topics, or the frame itself was
+            rejected (the message says why: no camera_info, undecodable image, bad calibration, ...).
         ValueError: not exactly one of ``frame`` and ``stamp_s`` given.
     """
     if (frame is None) == (stamp_s is None):
@@ -251,16 +254,15 @@ def inspect_bag(bag_path: str | Path, frame: int | None = None, *, stamp_s: floa
         if frame is None or not 0 <= frame < count:
             raise BagError(f"frame {frame} is out of range: bag {bag_path} has {count} frames (0..{count - 1})")
         ref: tuple[int, int, Gray, CameraModel] | None = None  # latest keyframe: index, stamp, image, camera
+        cameras = CameraModelCache()
         for f in bag.iter_frames():
-            if f.camera_info_msg is None:
-                raise BagError(f"frame {f.index} (stamp {f.stamp_ns * 1e-9:.6f} s): no camera_info on "
-                               f"{bag.camera_info_topic} at or before this image")
-            try:
-                gray = decode_frame(f.image_msg, bag.image_is_compressed)
-                camera = CameraModel.from_camera_info(f.camera_info_msg)
-                result = pipeline.process(gray, camera, f.stamp_ns)
-            except EpiVoError as exc:
-                raise type(exc)(f"frame {f.index} (stamp {f.stamp_ns * 1e-9:.6f} s): {exc}") from None
+            processed = process_frame(pipeline, cameras, bag, f)
+            result, gray, camera = processed.result, processed.gray, processed.camera
+            if gray is None or camera is None:  # rejected before the pipeline saw it
+                if f.index == frame:
+                    raise BagError(f"frame {f.index} (stamp {f.stamp_ns * 1e-9:.6f} s) was rejected: "
+                                   f"{processed.problem}")
+                continue
             gray_p, camera_p = downscale(gray, camera, cfg.max_image_width)
             if f.index == frame:
                 # The reference while this frame was processed: even when this frame becomes a
@@ -357,8 +359,12 @@ def draw_inspection(insp: Inspection, path: str | Path) -> Path:
     ref = f"keyframe {insp.keyframe_index}" if insp.keyframe_index is not None else "no reference keyframe"
     fig.suptitle(f"{insp.bag}   frame {insp.frame_index}  vs  {ref}", fontsize=13, y=0.992)
     out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=100)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(out, dpi=100, format="png")  # PNG whatever the name ends in
+    except OSError as exc:
+        where = f" ({exc.filename})" if exc.filename and str(exc.filename) != str(out) else ""
+        raise OutputError(f"cannot write {out}: {exc.strerror or exc}{where}") from None
     return out
 
 
@@ -442,9 +448,15 @@ def _draw_histogram(ax: Any, d: PairData) -> None:
 def run(args: Any) -> int:
     """``epi-vo inspect``: args.bag, args.frame or args.stamp, args.output, args.params, topics."""
     cfg = load_config(args.params)
+    out_arg = Path(args.output) if args.output else None
+    if out_arg is not None and not out_arg.is_dir() and out_arg.parent.exists() and not out_arg.parent.is_dir():
+        raise OutputError(f"cannot write {out_arg}: {out_arg.parent} is not a directory")
     insp = inspect_bag(args.bag, args.frame, stamp_s=args.stamp, cfg=cfg, image_topic=args.image_topic,
                        camera_info_topic=args.camera_info_topic)
-    out = draw_inspection(insp, args.output or f"frame_{insp.frame_index}.png")
+    default_name = f"frame_{insp.frame_index}.png"
+    # --output may name the picture or the directory to put frame_<N>.png in.
+    out_path = default_name if out_arg is None else out_arg / default_name if out_arg.is_dir() else out_arg
+    out = draw_inspection(insp, out_path)
     print(out)
     print(summary_line(insp))
     return 0

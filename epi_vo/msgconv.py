@@ -166,13 +166,91 @@ def compressed_to_gray(msg: Any) -> NDArray[np.uint8]:
 
 
 def decode_frame(msg: Any, compressed: bool) -> NDArray[np.uint8]:
-    """Grayscale pixels of a sensor_msgs/CompressedImage (``compressed``) or Image-like message."""
-    return compressed_to_gray(msg) if compressed else image_to_gray(msg)
+    """Grayscale pixels of a sensor_msgs/CompressedImage (``compressed``) or Image-like message.
+
+    Raises ImageConversionError for anything that is not a usable image message, also a missing
+    message (None: its bytes could not be deserialised) or fields of the wrong type.
+    """
+    if msg is None:
+        msg_text = "no image message (its bytes could not be decoded)"
+        raise ImageConversionError(msg_text)
+    try:
+        return compressed_to_gray(msg) if compressed else image_to_gray(msg)
+    except ImageConversionError:
+        raise
+    except (AttributeError, TypeError, ValueError, OverflowError) as err:
+        kind = "CompressedImage" if compressed else "Image"
+        msg_text = f"not a usable sensor_msgs/{kind} message ({type(err).__name__}: {err})"
+        raise ImageConversionError(msg_text) from None
+
+
+# builtin_interfaces/Time: int32 sec (a ROS time is never negative), uint32 nanosec below one second.
+ROS_TIME_MAX_SEC = 2**31 - 1
+NS_PER_S = 1_000_000_000
+# The largest stamp a ROS time can hold, in nanoseconds (equal to epi_vo.pipeline.MAX_STAMP_NS; a test
+# keeps them equal: msgconv imports no pipeline).
+ROS_TIME_MAX_NS = ROS_TIME_MAX_SEC * NS_PER_S + NS_PER_S - 1
+
+
+def _stamp_fields(stamp: Any) -> tuple[int, int]:
+    """(sec, nanosec) of a builtin_interfaces/Time-like object as ints; TypeError/ValueError if not integral."""
+    sec, nanosec = stamp.sec, stamp.nanosec
+    values = []
+    for value in (sec, nanosec):
+        if isinstance(value, bool) or not isinstance(value, int | np.integer):
+            # rclpy and rosbags give ints; a float or None here is not a stamp.
+            if isinstance(value, float) and value.is_integer():
+                value = int(value)
+            else:
+                msg = f"not an integer: {value!r}"
+                raise ValueError(msg)
+        values.append(int(value))
+    return values[0], values[1]
 
 
 def stamp_to_ns(stamp: Any) -> int:
-    """builtin_interfaces/Time (fields sec, nanosec) as integer nanoseconds."""
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+    """builtin_interfaces/Time (fields sec, nanosec) as integer nanoseconds: ``sec * 1e9 + nanosec``.
+
+    Never checks the range (a nanosec >= 1e9 carries into the seconds, a negative sec gives a negative
+    result): see :func:`stamp_problem` for whether the stamp is a valid ROS time. Raises
+    ImageConversionError (an EpiVoError) when a field is not an integer.
+    """
+    try:
+        sec, nanosec = _stamp_fields(stamp)
+    except (AttributeError, ValueError) as err:
+        msg = f"header stamp is not a builtin_interfaces/Time ({err})"
+        raise ImageConversionError(msg) from None
+    return sec * NS_PER_S + nanosec
+
+
+def stamp_problem(stamp: Any) -> str | None:
+    """Why a builtin_interfaces/Time is not a valid ROS time, or None when it is one.
+
+    Valid: integer ``sec`` in [0, 2**31 - 1] and integer ``nanosec`` in [0, 1e9). Never raises.
+    """
+    try:
+        sec, nanosec = _stamp_fields(stamp)
+    except (AttributeError, ValueError) as err:
+        return f"header stamp is not a builtin_interfaces/Time ({err})"
+    if not 0 <= sec <= ROS_TIME_MAX_SEC or not 0 <= nanosec < NS_PER_S:
+        return (f"header stamp sec {sec} nanosec {nanosec} is not a valid ROS time (sec 0..{ROS_TIME_MAX_SEC}, "
+                f"nanosec 0..{NS_PER_S - 1})")
+    return None
+
+
+def ns_to_ros_time(stamp_ns: int) -> tuple[int, int]:
+    """(sec, nanosec) of a stamp in integer nanoseconds; ValueError unless 0 <= stamp_ns <= ROS_TIME_MAX_NS."""
+    stamp_ns = int(stamp_ns)
+    if not 0 <= stamp_ns <= ROS_TIME_MAX_NS:
+        msg = f"stamp {stamp_ns} ns is not a valid ROS time (0..{ROS_TIME_MAX_NS} ns)"
+        raise ValueError(msg)
+    sec, nanosec = divmod(stamp_ns, NS_PER_S)
+    return sec, nanosec
+
+
+def clamp_stamp_ns(stamp_ns: int) -> int:
+    """``stamp_ns`` clamped into the valid ROS time range [0, ROS_TIME_MAX_NS]."""
+    return min(max(int(stamp_ns), 0), ROS_TIME_MAX_NS)
 
 
 def point_cloud2_fields(points_xyz: ArrayLike) -> dict[str, Any]:

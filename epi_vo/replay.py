@@ -7,12 +7,17 @@ Writes into the output directory:
 - ``output.mcap``: /vo/odometry, /vo/points, /vo/path, /diagnostics stamped with the image stamps;
 - ``stats.json``: run totals, per-stage median times and, with ground truth, evo metrics;
 - ``groundtruth.tum``: the ground truth used (when there is one), in the same TUM form.
+
+Every image message read gives exactly one record, also one that cannot be used (undecodable CDR,
+header stamp that is no valid ROS time, bad pixels or calibration): that frame is rejected with the
+reason and the replay goes on. Every stamp written is a valid ROS time.
 """
 
 from __future__ import annotations
 
 import collections
 import contextlib
+import dataclasses
 import json
 import logging
 import math
@@ -20,20 +25,24 @@ import signal
 import threading
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
+from fractions import Fraction
 from pathlib import Path
-from typing import Any
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from epi_vo import bagio
-from epi_vo.camera import CameraModelCache
+from epi_vo.camera import CameraModel, CameraModelCache
 from epi_vo.config import VoConfig
-from epi_vo.errors import BagError, EpiVoError
-from epi_vo.evaluation import TrajectoryMetrics, evaluate_trajectory
+from epi_vo.errors import BagError, EpiVoError, Interrupted, OutputError
 from epi_vo.msgconv import decode_frame
 from epi_vo.odometry import OdometryConverter
 from epi_vo.pipeline import FrameResult, VoPipeline
 from epi_vo.status import frame_status
+
+if TYPE_CHECKING:
+    from epi_vo.evaluation import TrajectoryMetrics
 
 _log = logging.getLogger(__name__)
 
@@ -64,6 +73,14 @@ class ReplaySummary:
     notes: list[str] = field(default_factory=list)
     parameters: dict[str, Any] = field(default_factory=dict)  # the pipeline config of the run
     rejected: list[str] = field(default_factory=list)  # one line per distinct problem of rejected frames
+    rejected_frames: int = 0  # frames (image messages read) that were rejected
+    skipped_messages: list[str] = field(default_factory=list)  # camera_info / ground truth not decodable,
+    # image messages announced by the bag but not read
+
+    @property
+    def has_problems(self) -> bool:
+        """Frames rejected or messages skipped: ``epi-vo replay`` exits 3."""
+        return bool(self.rejected_frames or self.rejected or self.skipped_messages)
 
     def to_json(self) -> dict[str, Any]:
         return _jsonable(asdict(self))
@@ -85,16 +102,19 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                on_result: Callable[[FrameResult], None] | None = None) -> ReplaySummary:
     """Replay every image of a bag through the pipeline and write the outputs (see module doc).
 
-    A frame that cannot be used (undecodable image, unsupported encoding, unusable calibration, no
-    camera_info) is recorded with its reason (``FrameResult`` of state lost) and replay goes on;
-    ``ReplaySummary.rejected`` lists the problems.
+    A frame that cannot be used (undecodable message or image, header stamp that is no ROS time,
+    unsupported encoding, unusable calibration, no camera_info) is recorded with its reason
+    (``FrameResult`` of state lost) and replay goes on; ``ReplaySummary.rejected`` lists the problems,
+    ``rejected_frames`` counts those frames, ``skipped_messages`` lists camera_info / ground-truth
+    messages that could not be decoded and images the bag announces but that could not be read.
 
     Raises:
         BagError: unreadable or empty bag, missing or ambiguous topics.
+        OutputError: the output directory or a file in it cannot be created or written.
+        Interrupted: SIGINT, SIGTERM or SIGHUP arrived; raised between two frames, outputs finalised.
     """
     cfg = cfg or VoConfig()
-    out = Path(output_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = _output_dir(output_dir)
     pipeline = VoPipeline(cfg)
     converter = OdometryConverter()
     cameras = CameraModelCache()
@@ -109,65 +129,62 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     path_length = 0.0
     last_pos: np.ndarray | None = None
 
-    with _interrupts_at_frame_boundaries() as stop, \
-            bagio.open_camera_bag(bag_path, image_topic, camera_info_topic) as bag, \
-            (out / "frames.jsonl").open("w") as frames_f, (out / "trajectory.tum").open("w") as tum_f, \
-            bagio.OutputBag(out / "output.mcap", overwrite=True) as obag:
-        gt = _ground_truth(bag, gt_tum)
-        if gt is not None:  # kept beside the estimate so that reports can be made from DIR alone
-            bagio.write_tum(out / "groundtruth.tum", *gt[1])
-        frames = bag.iter_frames()
-        if progress:
-            from tqdm import tqdm
-
-            frames = tqdm(frames, total=bag.frame_count, unit="frame", desc="replay", leave=False)
-        for frame in frames:
-            if stop.requested:  # a signal arrived during the previous frame: all its outputs are written
-                raise KeyboardInterrupt
-            try:
-                if frame.camera_info_msg is None:
-                    raise BagError(f"no camera_info on {bag.camera_info_topic}")
-                gray = decode_frame(frame.image_msg, bag.image_is_compressed)
-                camera = cameras.get(frame.camera_info_msg)
-                result = pipeline.process(gray, camera, frame.stamp_ns)
-            except EpiVoError as exc:
-                # Bad input in one frame: the frame is recorded with the reason and replay goes on.
-                result = pipeline.reject(frame.stamp_ns, str(exc))
-                rejected[str(exc)] += 1
-                first_rejected.setdefault(str(exc), frame.index)
-            n_frames += 1
-            states[result.state.value] += 1
-            models[result.model.value] += 1
-            n_kf += int(result.is_keyframe)
-            for k, v in result.timings_ms.items():
-                stage_times[k].append(v)
-            frames_f.write(json.dumps(result.to_record()) + "\n")
-            frames_f.flush()
-            if result.has_pose:
-                n_pose += 1
-                p, q = result.position, result.quat_xyzw
-                stamp_s = result.stamp_ns * 1e-9
-                tum_f.write(f"{stamp_s:.9f} " + " ".join(f"{v:.9f}" for v in (*p, *q)) + "\n")
-                results_pose.append((stamp_s, p.copy(), q.copy()))
-                if last_pos is not None:
-                    path_length += float(np.linalg.norm(p - last_pos))
-                last_pos = p.copy()
-            if not result.skipped:  # a duplicate stamp gets its record and status, but no second pose
-                _write_outputs(obag, converter, result, path_poses)
-            else:
-                obag.write_diagnostics(result.stamp_ns, [frame_status(result, "epi_vo", "replay")])
-            if on_result is not None:
-                on_result(result)
+    try:
+        with _interrupts_at_frame_boundaries() as stop, \
+                bagio.open_camera_bag(bag_path, image_topic, camera_info_topic) as bag, \
+                _open_output(out / "frames.jsonl") as frames_f, _open_output(out / "trajectory.tum") as tum_f, \
+                bagio.OutputBag(out / "output.mcap", overwrite=True) as obag, \
+                _Progress(progress, bag.frame_count) as bar:
+            gt = _ground_truth(bag, gt_tum)
+            if gt is not None:  # kept beside the estimate so that reports can be made from DIR alone
+                bagio.write_tum(out / "groundtruth.tum", *gt[1])
+            for frame in bag.iter_frames():
+                if stop.requested:  # a signal arrived during the previous frame: all its outputs are written
+                    raise Interrupted(stop.signum)
+                processed = process_frame(pipeline, cameras, bag, frame)
+                result, problem = processed.result, processed.problem
+                if problem is not None:
+                    rejected[problem] += 1
+                    first_rejected.setdefault(problem, frame.index)
+                n_frames += 1
+                states[result.state.value] += 1
+                models[result.model.value] += 1
+                n_kf += int(result.is_keyframe)
+                for k, v in result.timings_ms.items():
+                    stage_times[k].append(v)
+                frames_f.write(json.dumps(_record(result)) + "\n")
+                frames_f.flush()
+                if result.has_pose:
+                    n_pose += 1
+                    p, q = result.position, result.quat_xyzw
+                    stamp_s = result.stamp_ns * 1e-9
+                    tum_f.write(f"{_tum_stamp(result.stamp_ns)} " + " ".join(f"{v:.9f}" for v in (*p, *q)) + "\n")
+                    results_pose.append((stamp_s, p.copy(), q.copy()))
+                    if last_pos is not None:
+                        path_length += float(np.linalg.norm(p - last_pos))
+                    last_pos = p.copy()
+                if not result.skipped:  # a skipped frame gets its record and status, but no pose
+                    _write_outputs(obag, converter, result, path_poses)
+                else:
+                    obag.write_diagnostics(result.stamp_ns, [frame_status(result, "epi_vo", "replay")])
+                bar.update()
+                if on_result is not None:
+                    on_result(result)
+    except OSError as exc:  # reading is wrapped in BagError by bagio: this is an output file
+        raise OutputError(f"cannot write the outputs in {out}: {_os_reason(exc)}") from exc
 
     if n_frames == 0:
         raise BagError(f"bag {bag_path} has no image messages on {bag.image_topic}")
-    if n_frames != bag.frame_count:
+    skipped = list(bag.problems)
+    notes: list[str] = []
+    if n_frames < bag.frame_count:
         # rosbags skips a damaged record silently; the bag's summary still counts it.
-        missing = f"the bag announces {bag.frame_count} images on {bag.image_topic}, {n_frames} could be read " \
-                  "(damaged records?)"
-        rejected[missing] += abs(bag.frame_count - n_frames)
-        first_rejected.setdefault(missing, n_frames)
-    metrics, gt_source, notes = None, "", []
+        skipped.append(f"the bag announces {bag.frame_count} images on {bag.image_topic}, {n_frames} could be "
+                       "read (damaged records?)")
+    elif n_frames > bag.frame_count:
+        notes.append(f"the bag announces {bag.frame_count} images on {bag.image_topic}, {n_frames} were read "
+                     "(its metadata understates the count)")
+    metrics, gt_source = None, ""
     if gt is not None:
         gt_source = gt[0]
         try:
@@ -182,22 +199,167 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
         states=dict(states), models=dict(models), ms_per_frame=float(np.median(totals)),
         stage_ms={k: float(np.median(v)) for k, v in stage_times.items()}, path_length=path_length,
         metrics=metrics, gt_source=gt_source, output_dir=str(out), notes=notes, parameters=asdict(cfg),
-        rejected=[f"{n} frame(s) from frame {first_rejected[r]}: {r}" for r, n in rejected.items()])
-    (out / "stats.json").write_text(json.dumps(summary.to_json(), indent=2) + "\n")
+        rejected=[f"{n} frame(s) from frame {first_rejected[r]}: {r}" for r, n in rejected.items()],
+        rejected_frames=sum(rejected.values()), skipped_messages=skipped)
+    try:
+        (out / "stats.json").write_text(json.dumps(summary.to_json(), indent=2) + "\n")
+    except OSError as exc:
+        raise OutputError(f"cannot write {out / 'stats.json'}: {_os_reason(exc)}") from exc
     return summary
+
+
+def _os_reason(exc: OSError) -> str:
+    where = f" ({exc.filename})" if exc.filename else ""
+    return f"{exc.strerror or exc}{where}"
+
+
+def _output_dir(output_dir: str | Path) -> Path:
+    """The output directory, created if needed; OutputError naming the problem when it cannot be."""
+    out = Path(output_dir)
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"output {out} exists and is not a directory")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"cannot create the output directory {out}: {_os_reason(exc)}") from None
+    return out
+
+
+@contextlib.contextmanager
+def _open_output(path: Path) -> Iterator[IO[str]]:
+    try:
+        f = path.open("w", encoding="utf-8")
+    except OSError as exc:
+        raise OutputError(f"cannot create {path}: {_os_reason(exc)}") from None
+    with f:
+        yield f
+
+
+def _record(result: FrameResult) -> dict[str, Any]:
+    """The frame record for frames.jsonl; its float ``stamp`` (s) never rounds above the exact ``stamp_ns``
+    (near 2**31 s a double rounds 2147483647.999999999 up to 2**31, which is no ROS time)."""
+    record = result.to_record()
+    stamp = float(record["stamp"])
+    if Fraction(stamp) > Fraction(int(result.stamp_ns), 1_000_000_000):
+        record["stamp"] = math.nextafter(stamp, 0.0)
+    return record
+
+
+def _tum_stamp(stamp_ns: int) -> str:
+    """The stamp in seconds with 9 decimals, exact (a float would round large stamps)."""
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return f"{sec}.{nanosec:09d}"
+
+
+class _Progress:
+    """tqdm bar over the frames, when asked for; a terminal that went away (SIGHUP) ends the bar, never the
+    replay."""
+
+    def __init__(self, enabled: bool, total: int) -> None:
+        self._bar: Any = None
+        if enabled:
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=total if total > 0 else None, unit="frame", desc="replay", leave=False)
+
+    def __enter__(self) -> _Progress:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        bar, self._bar = self._bar, None
+        if bar is not None:
+            with contextlib.suppress(OSError, ValueError):
+                bar.close()
+
+    def update(self) -> None:
+        if self._bar is None:
+            return
+        try:
+            self._bar.update(1)
+        except (OSError, ValueError):  # stderr closed or gone
+            self._bar = None
+
+
+# The stamp handed to the pipeline for a frame whose stamp is unknown or no valid ROS time: the pipeline
+# skips a frame with an invalid stamp without booking it (the next frame is judged against the last good
+# stamp, tracking is not restarted); the record then gets the frame's own problem and a valid stamp.
+_INVALID_STAMP_NS = -1
+
+
+@dataclass(frozen=True)
+class ProcessedFrame:
+    """What one bag frame gave: its record, why it was rejected (None when it was not), and the image and
+    camera the pipeline saw (None when the frame was rejected before)."""
+
+    result: FrameResult
+    problem: str | None
+    gray: NDArray[np.uint8] | None = None
+    camera: CameraModel | None = None
+
+
+def process_frame(pipeline: VoPipeline, cameras: CameraModelCache, bag: bagio.CameraBag, frame: bagio.BagFrame
+                  ) -> ProcessedFrame:
+    """Decode one bag frame and run it through ``pipeline``: the one per-frame rule of replay and inspect.
+
+    Bad input in the frame (undecodable message, stamp that is no ROS time, image or calibration that
+    cannot be used, no camera_info) gives a rejected record with the reason; never an exception.
+    """
+    if frame.problem is not None:
+        # Undecodable message or stamp that is no valid ROS time: nothing of the frame is used.
+        result = pipeline.reject(_INVALID_STAMP_NS, frame.problem)
+        filed = "its log time" if frame.image_msg is None else "its header stamp clamped to a ROS time"
+        result = dataclasses.replace(result, stamp_ns=frame.stamp_ns, reason=(
+            f"frame rejected: {frame.problem}; frame skipped (recorded at {frame.stamp_ns} ns, {filed})"))
+        return ProcessedFrame(result, frame.problem)
+    gray = camera = None
+    try:
+        if frame.camera_info_msg is None:
+            raise BagError(_no_camera_info(bag))
+        gray = decode_frame(frame.image_msg, bag.image_is_compressed)
+        camera = cameras.get(frame.camera_info_msg)
+        result = pipeline.process(gray, camera, frame.stamp_ns)
+    except EpiVoError as exc:
+        # Bad input in one frame: the frame is recorded with the reason and replay goes on.
+        return ProcessedFrame(pipeline.reject(frame.stamp_ns, str(exc)), str(exc))
+    return ProcessedFrame(result, _rejection(result), gray, camera)
+
+
+def _no_camera_info(bag: bagio.CameraBag) -> str:
+    skipped = sum(p.startswith("camera_info") for p in bag.problems)
+    if skipped:
+        return f"no usable camera_info on {bag.camera_info_topic} ({skipped} message(s) could not be decoded)"
+    return f"no camera_info on {bag.camera_info_topic}"
+
+
+_REJECTED = "frame rejected: "
+
+
+def _rejection(result: FrameResult) -> str | None:
+    """The problem of a frame the pipeline itself rejected (image it cannot use, invalid stamp), or None.
+
+    The pipeline says so in the record: ``frame rejected: <problem>; <what tracking did>``.
+    """
+    at = result.reason.find(_REJECTED)
+    if at < 0:
+        return None
+    return result.reason[at + len(_REJECTED):].split("; ")[0].removesuffix(": frame skipped")
 
 
 class _StopRequest:
     requested = False
+    signum = signal.SIGINT
 
 
 @contextlib.contextmanager
 def _interrupts_at_frame_boundaries() -> Iterator[_StopRequest]:
-    """SIGINT / SIGTERM during a replay stop it between frames, never between a frame's writes.
+    """SIGINT / SIGTERM / SIGHUP during a replay stop it between frames, never between a frame's writes.
 
     Each frame writes a record, a trajectory line and several bag messages; an interrupt raised in the
-    middle would leave the outputs disagreeing about the last frame. Outside the main thread (where
-    signals cannot be handled) nothing changes.
+    middle would leave the outputs disagreeing about the last frame, and SIGHUP's default action (the
+    terminal closed, SSH dropped) would end the process before output.mcap gets its summary. The replay
+    then raises :class:`~epi_vo.errors.Interrupted` (with the signal) at the next frame boundary, and
+    every output is finalised on the way out. Outside the main thread (where signals cannot be
+    handled) nothing changes.
     """
     stop = _StopRequest()
     if threading.current_thread() is not threading.main_thread():
@@ -205,9 +367,14 @@ def _interrupts_at_frame_boundaries() -> Iterator[_StopRequest]:
         return
 
     def request(signum: int, frame: object) -> None:
+        if not stop.requested:
+            stop.signum = signum
         stop.requested = True
 
-    saved = {sig: signal.signal(sig, request) for sig in (signal.SIGINT, signal.SIGTERM)}
+    signals = [signal.SIGINT, signal.SIGTERM]
+    if hasattr(signal, "SIGHUP"):
+        signals.append(signal.SIGHUP)
+    saved = {sig: signal.signal(sig, request) for sig in signals}
     try:
         yield stop
     finally:
@@ -246,6 +413,8 @@ def _ground_truth(bag: bagio.CameraBag, gt_tum: str | Path | None
 
 def _evaluate(poses: list[tuple[float, np.ndarray, np.ndarray]],
               gt: tuple[np.ndarray, np.ndarray, np.ndarray]) -> TrajectoryMetrics:
+    from epi_vo.evaluation import evaluate_trajectory  # evo: imported only when there is ground truth
+
     stamps = np.array([s for s, _, _ in poses])
     pos = np.array([p for _, p, _ in poses]).reshape(-1, 3)
     quat = np.array([q for _, _, q in poses]).reshape(-1, 4)
@@ -272,6 +441,7 @@ def format_summary(s: ReplaySummary) -> str:
                      f"{_f(m['trans_direction_err_deg'])} deg  ({m['matched_poses']} poses)")
     lines.extend(f"  note: {n}" for n in s.notes)
     lines.extend(f"  rejected: {r}" for r in s.rejected)
+    lines.extend(f"  skipped: {m}" for m in s.skipped_messages)
     lines.append(f"  outputs       {s.output_dir}/{{trajectory.tum, frames.jsonl, output.mcap, stats.json}}")
     return "\n".join(lines)
 

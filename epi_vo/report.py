@@ -595,7 +595,8 @@ def draw_trajectory(views: TrajectoryViews, path: Path) -> Path:
         ax.set_ylabel(view.ylabel)
         ax.grid(True, alpha=0.3)
     handles, labels = axes[0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=9, frameon=False)
+    if labels:  # nothing drawn (every frame rejected, no ground truth): no legend (ncol must be > 0)
+        fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=9, frameon=False)
     title = "Trajectory (camera optical frame of the first image)"
     if views.alignment is not None:
         title += f"\n{views.alignment.note}"
@@ -773,9 +774,19 @@ def write_report(directory: str | Path) -> Path:
     """Write ``DIR/report/*.png`` and the self-contained ``DIR/report.html``; return the HTML's path.
 
     Raises:
-        ReportError: the directory cannot be read as a replay output (see :func:`load_run`).
+        ReportError: the directory cannot be read as a replay output (see :func:`load_run`), or the
+            report cannot be written into it.
     """
     run = load_run(directory)
+    try:
+        return _write_report(run)
+    except OSError as exc:  # DIR/report or report.html not writable, a file where a directory goes, disk full
+        where = f" ({exc.filename})" if exc.filename else ""
+        msg = f"cannot write the report in {run.directory}: {exc.strerror or exc}{where}"
+        raise ReportError(msg) from None
+
+
+def _write_report(run: Run) -> Path:
     png_dir = run.directory / REPORT_PNG_DIR
     png_dir.mkdir(exist_ok=True)
     views = trajectory_views(run)

@@ -16,7 +16,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -140,11 +140,15 @@ def good_jpeg(s: Source, stamp_ns: int | None = None) -> Item:
 
 
 # --- bag writing and replay ------------------------------------------------------------------------
-def write_bag(path: Path, items: Sequence[Item], *, image_topic: bool = True) -> Path:
+def write_bag(path: Path, items: Sequence[Item], *, image_topic: bool = True,
+              damage: Mapping[tuple[str, int], Callable[[bytes], bytes]] | None = None) -> Path:
     """A rosbag2 MCAP bag: one Image or CompressedImage topic (from the first item) and camera_info.
 
-    Messages are logged in list order (log time strictly increasing) whatever their header stamps.
+    Messages are logged in list order (log time strictly increasing) whatever their header stamps: item i's
+    camera_info at ``log_time(i)``, its image 1 ns later. ``damage[("image" | "info", i)]`` turns the CDR bytes
+    of item i's message into the bytes written (a damaged message).
     """
+    damage = damage or {}
     is_compressed = bool(items) and items[0].image.__msgtype__ == CompressedImage.__msgtype__
     image_type = CompressedImage if is_compressed else Image
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
@@ -152,12 +156,19 @@ def write_bag(path: Path, items: Sequence[Item], *, image_topic: bool = True) ->
                               image_type.__msgtype__, typestore=TYPESTORE) if image_topic else None
         cc = w.add_connection("/camera/camera_info", CameraInfo.__msgtype__, typestore=TYPESTORE)
         for i, item in enumerate(items):
-            t = 1_000_000_000 + i * 1_000_000
+            t = log_time(i)
             if item.info is not None:
-                w.write(cc, t, TYPESTORE.serialize_cdr(item.info, CameraInfo.__msgtype__))
+                data = bytes(TYPESTORE.serialize_cdr(item.info, CameraInfo.__msgtype__))
+                w.write(cc, t, damage.get(("info", i), bytes)(data))
             if ci is not None:
-                w.write(ci, t + 1, TYPESTORE.serialize_cdr(item.image, image_type.__msgtype__))
+                data = bytes(TYPESTORE.serialize_cdr(item.image, image_type.__msgtype__))
+                w.write(ci, t + 1, damage.get(("image", i), bytes)(data))
     return path
+
+
+def log_time(i: int) -> int:
+    """Log time (ns) of item i's camera_info in ``write_bag``."""
+    return 1_000_000_000 + i * 1_000_000
 
 
 def records(out: Path) -> list[dict[str, Any]]:
@@ -607,13 +618,19 @@ def _count_lines(path: Path) -> int:
 
 
 def _default_sigint() -> None:
-    """In the child: SIGINT handled as usual even when pytest runs as a background job (which ignores it)."""
+    """In the child: SIGINT and SIGHUP handled as usual even when pytest runs as a background job (which ignores
+    SIGINT) or under nohup (which ignores SIGHUP)."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)
 
 
-def _interrupt_replay(bag: Path, out: Path, sig: int) -> subprocess.CompletedProcess[str]:
-    proc = subprocess.Popen([sys.executable, "-m", "epi_vo.cli", "replay", str(bag), "-o", str(out), "--no-progress"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
+def _interrupt_replay(bag: Path, out: Path, sig: int, *, progress: bool = False, close_stderr: bool = False
+                      ) -> subprocess.CompletedProcess[str]:
+    """Replay ``bag`` in a child, send ``sig`` after 20 frames. ``close_stderr``: the reading end of the child's
+    stderr (where the progress bar goes) is closed first, as when the terminal went away."""
+    args = [sys.executable, "-m", "epi_vo.cli", "replay", str(bag), "-o", str(out), *([] if progress else
+                                                                                     ["--no-progress"])]
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"}, preexec_fn=_default_sigint)
     try:
         deadline = time.monotonic() + 60.0
@@ -621,6 +638,12 @@ def _interrupt_replay(bag: Path, out: Path, sig: int) -> subprocess.CompletedPro
             assert proc.poll() is None, proc.communicate()
             assert time.monotonic() < deadline, "replay did not start"
             time.sleep(0.01)
+        if close_stderr:
+            assert proc.stderr is not None
+            proc.stderr.close()
+            proc.stderr = None
+            time.sleep(0.3)  # likely lets the bar write into the closed pipe before the signal (not needed: it
+            # writes again after the frame the signal interrupts)
         proc.send_signal(sig)
         stdout, stderr = proc.communicate(timeout=30)
     finally:
@@ -630,12 +653,26 @@ def _interrupt_replay(bag: Path, out: Path, sig: int) -> subprocess.CompletedPro
     return subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
-def test_signal_during_replay_finalises_the_outputs(tmp_path: Path, long_bag: Path, sig: int) -> None:
+@pytest.mark.parametrize(("sig", "code"), [(signal.SIGINT, 130), (signal.SIGTERM, 130), (signal.SIGHUP, 129)],
+                         ids=["SIGINT", "SIGTERM", "SIGHUP"])
+def test_signal_during_replay_finalises_the_outputs(tmp_path: Path, long_bag: Path, sig: int, code: int) -> None:
     out = tmp_path / "out"
     done = _interrupt_replay(long_bag, out, sig)
-    assert done.returncode == 130, (done.returncode, done.stderr)
+    assert done.returncode == code, (done.returncode, done.stderr)
     assert "Traceback" not in done.stderr and "interrupted" in done.stderr
+    _assert_consistent_outputs(out)
+
+
+def test_sighup_with_the_terminal_gone_finalises_the_outputs(tmp_path: Path, long_bag: Path) -> None:
+    """Terminal closed: the progress bar's stderr is gone (writes fail), then SIGHUP arrives. The replay still
+    stops at a frame boundary with readable outputs and exit status 129."""
+    out = tmp_path / "out"
+    done = _interrupt_replay(long_bag, out, signal.SIGHUP, progress=True, close_stderr=True)
+    assert done.returncode == 129, done.returncode
+    _assert_consistent_outputs(out)
+
+
+def _assert_consistent_outputs(out: Path) -> None:
     lines = (out / "frames.jsonl").read_text().splitlines()
     recs = [json.loads(line) for line in lines]  # every line parses: none half written
     assert 20 <= len(recs) < 300, "interrupted mid-run"
@@ -650,9 +687,11 @@ def test_signal_during_replay_finalises_the_outputs(tmp_path: Path, long_bag: Pa
     assert tum(out).shape[0] == sum(r["has_pose"] for r in recs)
 
 
+@pytest.mark.parametrize(("sig", "code"), [(signal.SIGINT, 130), (signal.SIGHUP, 129)], ids=["SIGINT", "SIGHUP"])
 def test_interrupt_between_a_frames_writes_leaves_consistent_outputs(tmp_path: Path, source: list[Source],
                                                                      monkeypatch: pytest.MonkeyPatch,
-                                                                     capsys: pytest.CaptureFixture[str]) -> None:
+                                                                     capsys: pytest.CaptureFixture[str],
+                                                                     sig: int, code: int) -> None:
     """The signal arrives while frame 12's status is being written (deterministically, unlike the test above):
     the replay still stops at a frame boundary, so all outputs agree."""
     bag = write_bag(tmp_path / "bag", [good_jpeg(s) for s in source[:30]])
@@ -662,7 +701,7 @@ def test_interrupt_between_a_frames_writes_leaves_consistent_outputs(tmp_path: P
     def write_diagnostics(self: bagio.OutputBag, stamp_ns: int, statuses: Any) -> None:
         calls["n"] += 1
         if calls["n"] == 13:
-            os.kill(os.getpid(), signal.SIGINT)  # Python raises KeyboardInterrupt at the next bytecode
+            os.kill(os.getpid(), sig)  # without the replay's handler: KeyboardInterrupt / process ended
         original(self, stamp_ns, statuses)
 
     monkeypatch.setattr(bagio.OutputBag, "write_diagnostics", write_diagnostics)
@@ -670,7 +709,7 @@ def test_interrupt_between_a_frames_writes_leaves_consistent_outputs(tmp_path: P
         rc = main(["replay", str(bag), "-o", str(tmp_path / "out"), "--no-progress"])
     except KeyboardInterrupt:  # never let it reach pytest (it would end the session)
         rc = -1
-    assert rc == 130 and "interrupted" in capsys.readouterr().err
+    assert rc == code and "interrupted" in capsys.readouterr().err
     recs = records(tmp_path / "out")
     counts = {"/diagnostics": 0, "/vo/odometry": 0}
     with AnyReader([tmp_path / "out" / "output.mcap"], default_typestore=TYPESTORE) as reader:
@@ -733,3 +772,227 @@ def test_silently_skipped_record_is_reported(tmp_path: Path, capsys: pytest.Capt
     rc, err = run_cli([str(bag), "-o", str(tmp_path / "out")], capsys)
     n = len(records(tmp_path / "out"))
     assert n == 52 or (rc != 0 and "52" in err), (n, rc, err)
+
+
+# ==================================================================================================
+# Stamps that are no ROS time; every stamp written is one
+# ==================================================================================================
+MAX_STAMP_NS = (2**31 - 1) * 10**9 + 999_999_999
+
+
+def with_stamp(item: Item, sec: int, nanosec: int) -> Item:
+    """``item`` whose image header says (sec, nanosec), whatever they are (the bag stores int32 / uint32)."""
+    item.image.header.stamp = Time(sec=sec, nanosec=nanosec)
+    return item
+
+
+def _valid_ros_time(sec: int, nanosec: int) -> bool:
+    return 0 <= sec <= 2**31 - 1 and 0 <= nanosec < 10**9
+
+
+def assert_every_written_stamp_is_a_ros_time(out: Path) -> dict[str, list[int]]:
+    """Log / publish times and header stamps (also of Path poses) in output.mcap, trajectory.tum stamps (as
+    written, digit by digit) and frames.jsonl stamps are valid ROS times. Returns topic -> header stamps (ns)."""
+    from mcap.reader import make_reader
+
+    with (out / "output.mcap").open("rb") as f:
+        for _, channel, message in make_reader(f).iter_messages():
+            for t in (message.log_time, message.publish_time):
+                assert 0 <= t <= MAX_STAMP_NS, (channel.topic, t)
+    stamps: dict[str, list[int]] = {}
+    with AnyReader([out / "output.mcap"], default_typestore=TYPESTORE) as reader:
+        for con, log_time_ns, rawdata in reader.messages():
+            msg = reader.deserialize(rawdata, con.msgtype)
+            heads = [msg.header.stamp] + [p.header.stamp for p in getattr(msg, "poses", [])]
+            for st in heads:
+                assert _valid_ros_time(st.sec, st.nanosec), (con.topic, st)
+            assert msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec == log_time_ns
+            stamps.setdefault(con.topic, []).append(log_time_ns)
+    for line in (out / "trajectory.tum").read_text().splitlines():
+        sec, frac = line.split()[0].split(".")
+        assert len(frac) == 9 and _valid_ros_time(int(sec), int(frac)), line
+    for r in records(out):
+        assert 0 <= r["stamp_ns"] <= MAX_STAMP_NS and 0.0 <= r["stamp"] < 2.0**31, r
+    return stamps
+
+
+def test_header_stamps_that_are_no_ros_time_are_rejected_frames(tmp_path: Path, source: list[Source],
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """A negative stamp, a nanosec >= 1e9 (also at the int32 seconds limit, where it used to end the run with a
+    struct.error) and the largest uint32 nanosec: each frame is rejected with the reason, recorded under a valid
+    stamp, and neither ends the replay nor disturbs the frames around it (no backwards jump, no restart)."""
+    n = 30
+    items = [good_jpeg(s) for s in source[:n]]
+    sec_16 = source[16].stamp_ns // 10**9
+    bad = {8: (-3, 5), 12: (2**31 - 1, 1_500_000_000), 16: (sec_16, 1_200_000_000), 20: (1000, 2**32 - 1)}
+    for i, (sec, nanosec) in bad.items():
+        with_stamp(items[i], sec, nanosec)
+    bag = write_bag(tmp_path / "bag", items)
+    rc, err = run_cli([str(bag), "-o", str(tmp_path / "out")], capsys)
+    assert rc == 3, err
+    assert err.count("\n") == 1 and err.startswith(
+        f"epi-vo: error: 4 of {n} frames rejected: 1 frame(s) from frame 8: image header stamp sec -3 nanosec 5 is "
+        "not a valid ROS time (sec 0..2147483647, nanosec 0..999999999) (and 3 other problem(s))"), err
+    recs = records(tmp_path / "out")
+    assert [r["index"] for r in recs] == list(range(n))
+    filed = {8: 0, 12: MAX_STAMP_NS, 16: sec_16 * 10**9 + 1_200_000_000, 20: 1000 * 10**9 + 2**32 - 1}
+    for i, (sec, nanosec) in bad.items():
+        r = recs[i]
+        assert r["skipped"] and r["state"] == "lost" and not r["has_pose"], r
+        assert r["reason"] == (f"frame rejected: image header stamp sec {sec} nanosec {nanosec} is not a valid ROS "
+                               "time (sec 0..2147483647, nanosec 0..999999999); frame skipped (recorded at "
+                               f"{filed[i]} ns, its header stamp clamped to a ROS time)")
+        assert r["stamp_ns"] == filed[i]
+        assert recs[i + 1]["state"] == "tracking" and recs[i + 1]["has_pose"], recs[i + 1]
+    good = [r for i, r in enumerate(recs) if i not in bad]
+    assert [r["stamp_ns"] for r in good] == [s.stamp_ns for i, s in enumerate(source[:n]) if i not in bad]
+    assert not any("backwards" in r["reason"] or "restart" in r["reason"] for r in recs)
+    stats = json.loads((tmp_path / "out" / "stats.json").read_text())
+    assert stats["frames"] == n and stats["rejected_frames"] == 4
+    stamps = assert_every_written_stamp_is_a_ros_time(tmp_path / "out")
+    # (read back in log-time order) every frame has its status; a rejected stamp gets no odometry
+    assert stamps["/diagnostics"] == sorted(r["stamp_ns"] for r in recs)
+    assert stamps["/vo/odometry"] == sorted(r["stamp_ns"] for r in good)
+
+
+def test_the_largest_ros_time_is_written_exactly(tmp_path: Path, source: list[Source],
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """A valid stamp at the int32 limit (2147483647.999999999 s) is a frame like any other; every output carries
+    it exactly (a float formatting would round it to 2**31 s, which is no ROS time)."""
+    items = [good_jpeg(s) for s in source[:12]]
+    with_stamp(items[-1], 2**31 - 1, 999_999_999)
+    rc, err = run_cli([str(write_bag(tmp_path / "bag", items)), "-o", str(tmp_path / "out")], capsys)
+    assert rc == 0, err
+    recs = records(tmp_path / "out")
+    assert len(recs) == 12 and recs[-1]["stamp_ns"] == MAX_STAMP_NS and not recs[-1]["skipped"]
+    assert recs[-1]["stamp"] < 2.0**31 and "frame rejected" not in recs[-1]["reason"]
+    stamps = assert_every_written_stamp_is_a_ros_time(tmp_path / "out")
+    assert stamps["/vo/odometry"][-1] == stamps["/diagnostics"][-1] == MAX_STAMP_NS
+    if recs[-1]["has_pose"]:
+        assert (tmp_path / "out" / "trajectory.tum").read_text().splitlines()[-1].startswith("2147483647.999999999 ")
+
+
+# ==================================================================================================
+# Messages whose CDR bytes are damaged
+# ==================================================================================================
+def truncated(n: int) -> Callable[[bytes], bytes]:
+    return lambda data: data[:n]
+
+
+def absurd_data_length(data: bytes) -> bytes:
+    """The CompressedImage's data length word (the last uint32 before the payload) set to 2**31 - 1."""
+    import struct
+
+    for at in range(4, len(data) - 4):
+        (value,) = struct.unpack_from("<I", data, at)
+        if value == len(data) - at - 4:  # the sequence length: everything after it is the payload
+            return data[:at] + struct.pack("<I", 2**31 - 1) + data[at + 4:]
+    raise AssertionError("no data length word found")
+
+
+def test_damaged_image_messages_are_rejected_frames(tmp_path: Path, source: list[Source],
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """Three images whose CDR cannot be decoded (cut after the header, cut to 3 bytes, an absurd length word):
+    each is a rejected frame recorded under its log time, and the replay reads every later frame."""
+    n = 30
+    items = [good_jpeg(s) for s in source[:n]]
+    damage = {("image", 7): truncated(40), ("image", 13): truncated(3), ("image", 19): absurd_data_length}
+    bag = write_bag(tmp_path / "bag", items, damage=damage)
+    rc, err = run_cli([str(bag), "-o", str(tmp_path / "out")], capsys)
+    assert rc == 3, err
+    assert err.count("\n") == 1 and err.startswith(f"epi-vo: error: 3 of {n} frames rejected: 1 frame(s) from frame "
+                                                   "7: image message cannot be decoded: its 40 bytes of CDR are no "
+                                                   "valid sensor_msgs/msg/CompressedImage ("), err
+    recs = records(tmp_path / "out")
+    assert [r["index"] for r in recs] == list(range(n))
+    for i in (7, 13, 19):
+        r = recs[i]
+        assert r["skipped"] and r["state"] == "lost" and not r["has_pose"], r
+        assert r["reason"].startswith("frame rejected: image message cannot be decoded: its "), r["reason"]
+        assert r["reason"].endswith(f"frame skipped (recorded at {log_time(i) + 1} ns, its log time)"), r["reason"]
+        assert r["stamp_ns"] == log_time(i) + 1
+        assert recs[i + 1]["state"] == "tracking", recs[i + 1]  # the frames around it are not disturbed
+    assert not any("backwards" in r["reason"] for r in recs)
+    assert recs[-1]["state"] == "tracking"
+    stamps = assert_every_written_stamp_is_a_ros_time(tmp_path / "out")
+    assert len(stamps["/diagnostics"]) == n and len(stamps["/vo/odometry"]) == n - 3
+    stats = json.loads((tmp_path / "out" / "stats.json").read_text())
+    assert stats["frames"] == n and stats["rejected_frames"] == 3 and stats["skipped_messages"] == []
+
+
+def test_damaged_camera_info_is_skipped_with_a_reason(tmp_path: Path, source: list[Source],
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """Two camera_info messages that cannot be decoded: skipped and named; their images use the latest
+    calibration before them, every frame is processed, and the run exits 3 saying what was skipped."""
+    n = 30
+    items = [good_jpeg(s) for s in source[:n]]
+    bag = write_bag(tmp_path / "bag", items, damage={("info", 5): truncated(30), ("info", 6): truncated(2)})
+    rc, err = run_cli([str(bag), "-o", str(tmp_path / "out")], capsys)
+    assert rc == 3
+    assert err.count("\n") == 1 and err.startswith(
+        f"epi-vo: error: 2 message(s) skipped: camera_info message at log time {log_time(5)} ns skipped: it cannot "
+        "be decoded: its 30 bytes of CDR are no valid sensor_msgs/msg/CameraInfo ("), err
+    assert "frames rejected" not in err
+    recs = records(tmp_path / "out")
+    assert len(recs) == n and not any("frame rejected" in r["reason"] for r in recs)
+    assert all(r["has_pose"] for r in recs)
+    stats = json.loads((tmp_path / "out" / "stats.json").read_text())
+    assert stats["rejected_frames"] == 0 and len(stats["skipped_messages"]) == 2
+    assert stats["skipped_messages"][1].startswith(f"camera_info message at log time {log_time(6)} ns skipped: it "
+                                                   "cannot be decoded: its 2 bytes of CDR")
+
+
+def test_every_camera_info_damaged(tmp_path: Path, source: list[Source], capsys: pytest.CaptureFixture[str]) -> None:
+    items = [good_jpeg(s) for s in source[:5]]
+    bag = write_bag(tmp_path / "bag", items, damage={("info", i): truncated(10) for i in range(5)})
+    rc, err = run_cli([str(bag), "-o", str(tmp_path / "out")], capsys)
+    assert rc == 3 and err.count("\n") == 1
+    assert err.startswith("epi-vo: error: 5 of 5 frames rejected: 5 frame(s) from frame 0: no usable camera_info on "
+                          "/camera/camera_info (5 message(s) could not be decoded); 5 message(s) skipped: "), err
+    assert_rejected(records(tmp_path / "out"), range(5), "no usable camera_info on /camera/camera_info")
+
+
+def _set_image_count(bag: Path, count: int) -> None:
+    import yaml
+
+    meta_path = bag / "metadata.yaml"
+    meta = yaml.safe_load(meta_path.read_text())
+    for topic in meta["rosbag2_bagfile_information"]["topics_with_message_count"]:
+        if "image" in topic["topic_metadata"]["name"]:
+            topic["message_count"] = count
+    meta_path.write_text(yaml.safe_dump(meta))
+
+
+def test_rejected_count_is_of_the_frames_read(tmp_path: Path, source: list[Source],
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    """metadata.yaml announces 99 images, 10 are in the bag, 2 of them bad: '2 of 10 frames rejected' (it used to
+    say '89 of 10'), and the missing messages are a problem of their own."""
+    items = [good_jpeg(s) for s in source[:10]]
+    bag = write_bag(tmp_path / "bag", items, damage={("image", 3): truncated(20), ("image", 6): truncated(20)})
+    _set_image_count(bag, 99)
+    rc, err = run_cli([str(bag), "-o", str(tmp_path / "out")], capsys)
+    assert rc == 3 and err.count("\n") == 1, err
+    assert err.startswith("epi-vo: error: 2 of 10 frames rejected: "), err
+    assert err.rstrip().endswith("; 1 message(s) skipped: the bag announces 99 images on /camera/image_raw/compressed,"
+                                 " 10 could be read (damaged records?)"), err
+    assert len(records(tmp_path / "out")) == 10
+
+
+def test_overstated_and_understated_image_counts(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import shutil
+
+    for count, rc_expected in ((99, 3), (9, 0)):
+        bag = tmp_path / f"bag_{count}"
+        shutil.copytree(SOURCE_BAG, bag)
+        _set_image_count(bag, count)
+        rc = main(["replay", str(bag), "-o", str(tmp_path / f"out_{count}"), "--no-progress"])
+        captured = capsys.readouterr()
+        assert rc == rc_expected, captured.err
+        assert "Traceback" not in captured.err and len(records(tmp_path / f"out_{count}")) == 52
+        if count == 99:
+            assert captured.err == ("epi-vo: error: 1 message(s) skipped: the bag announces 99 images on "
+                                    "/camera/image_raw/compressed, 52 could be read (damaged records?)\n")
+        else:
+            assert captured.err == ""
+            assert ("note: the bag announces 9 images on /camera/image_raw/compressed, 52 were read (its metadata "
+                    "understates the count)") in captured.out

@@ -596,7 +596,7 @@ def test_output_bag_is_a_ros2_mcap(tmp_path: Path) -> None:
     """Profile ros2, cdr channels with QoS entry and type hash, ros2msg schemas with full text."""
     path = tmp_path / "output.mcap"
     with OutputBag(path) as out:
-        _write_everything(out, 5)
+        _write_everything(out, 15)  # the path's first pose is 10 ns earlier: still a valid ROS time
     with path.open("rb") as stream:
         reader = make_reader(stream)
         assert reader.get_header().profile == "ros2"
@@ -666,8 +666,131 @@ def test_output_bag_bad_use(tmp_path: Path) -> None:
         )
     with pytest.raises(BagError, match=r"positions has shape \(2, 3\), expected \(3, 3\)"):
         out.write_path(1, "odom", [1, 2, 3], np.zeros((2, 3)), np.zeros((3, 4)))
-    with pytest.raises(BagError, match="stamp_ns -5 is negative"):
+    with pytest.raises(BagError, match=r"/vo/points: stamp -5 ns is not a valid ROS time"):
         out.write_points(-5, "odom", np.zeros((1, 3)))
     out.close()
     with pytest.raises(BagError, match="is closed"):
         out.write_points(1, "odom", np.zeros((1, 3)))
+
+
+# --- damaged messages, invalid stamps, bad metadata -------------------------------------------------------------
+
+
+def _write_raw_bag(
+    path: Path, records: list[Record], damage: dict[int, bytes], storage: StoragePlugin = StoragePlugin.MCAP
+) -> Path:
+    """``write_bag`` where the CDR bytes of record ``i`` are replaced by ``damage[i]``."""
+    with Writer(path, version=9, storage_plugin=storage) as writer:
+        connections = {}
+        for i, record in enumerate(records):
+            if record.topic not in connections:
+                connections[record.topic] = writer.add_connection(record.topic, record.msgtype, typestore=TS)
+            data = damage.get(i)
+            if data is None:
+                data = bytes(TS.serialize_cdr(record.msg, record.msgtype))
+            writer.write(connections[record.topic], record.log_time_ns, data)
+    return path
+
+
+@pytest.mark.parametrize("storage", STORAGES, ids=lambda x: x.name.lower())
+def test_undecodable_messages_are_reported_one_by_one(tmp_path: Path, storage: StoragePlugin) -> None:
+    """An image whose CDR cannot be decoded is a frame with a problem; a camera_info or ground-truth message is
+    skipped with a line saying so; every other message is read as usual."""
+    records = _camera_records(frames=4)  # info 0, image 0, info 1, image 1, ...
+    records += [Record("/gt/pose", POSE_STAMPED, s, _pose_stamped(s, (0.0, 0.0, 0.0), (0, 0, 0, 1)))
+                for s in (10**8, 2 * 10**8)]
+    image_1 = bytes(TS.serialize_cdr(records[3].msg, IMAGE))
+    damage = {3: image_1[:40], 4: b"\x00\x01\x00\x00\xff\xff", 8: b"\x00\x01\x00\x00" + bytes(3)}
+    path = _write_raw_bag(tmp_path / "bag", records, damage, storage)
+    with open_camera_bag(path) as bag:
+        assert bag.problems == [
+            f"camera_info message at log time {3 * 10**8} ns skipped: it cannot be decoded: its 6 bytes of CDR "
+            f"are no valid {CAMERA_INFO} ({bag.problems[0].split('(', 1)[1]}"
+        ]
+        frames = list(bag.iter_frames())
+        gt = bag.read_ground_truth()
+        assert len(bag.problems) == 2 and bag.problems[1].startswith(
+            f"ground-truth message on /gt/pose at log time {10**8} ns skipped: it cannot be decoded: its 7 bytes")
+    assert [f.index for f in frames] == [0, 1, 2, 3]
+    bad = frames[1]
+    assert bad.image_msg is None and bad.camera_info_msg is None
+    assert bad.problem is not None and bad.problem.startswith(
+        f"image message cannot be decoded: its 40 bytes of CDR are no valid {IMAGE} (")
+    assert bad.stamp_ns == bad.log_time_ns == 2 * 10**8  # no header: filed under its log time
+    assert all(f.problem is None for f in (frames[0], frames[2], frames[3]))
+    # Frame 2's own camera_info (fx 502) was skipped: the latest one before it (fx 501) is used.
+    assert [f.camera_info_msg.k[0] for f in (frames[0], frames[2], frames[3])] == [500.0, 501.0, 503.0]
+    assert gt is not None and gt.stamps_ns.tolist() == [2 * 10**8]
+
+
+def test_image_stamps_that_are_no_ros_time_give_frames_with_a_problem(tmp_path: Path) -> None:
+    records = _camera_records(frames=4)
+    Time = T["builtin_interfaces/msg/Time"]
+    bad = {1: Time(sec=-3, nanosec=5), 3: Time(sec=1, nanosec=1_500_000_000), 5: Time(sec=2**31 - 1,
+                                                                                          nanosec=4_000_000_000)}
+    for i, stamp in bad.items():
+        records[i].msg.header.stamp = stamp
+    with open_camera_bag(write_bag(tmp_path / "bag", records)) as bag:
+        frames = list(bag.iter_frames())
+    assert [f.problem is None for f in frames] == [False, False, False, True]
+    assert frames[0].problem == ("image header stamp sec -3 nanosec 5 is not a valid ROS time (sec 0..2147483647, "
+                                 "nanosec 0..999999999)")
+    assert "sec 1 nanosec 1500000000 is not a valid ROS time" in frames[1].problem
+    assert "sec 2147483647 nanosec 4000000000 is not a valid ROS time" in frames[2].problem
+    # Filed under the header stamp clamped into the ROS time range.
+    assert [f.stamp_ns for f in frames[:3]] == [0, 2_500_000_000, (2**31 - 1) * 10**9 + 999_999_999]
+    assert all(f.image_msg is not None for f in frames)
+
+
+MAX_NS = (2**31 - 1) * 10**9 + 999_999_999
+
+
+@pytest.mark.parametrize("stamp", [-1, MAX_NS + 1, 2**63])
+def test_output_bag_refuses_times_that_are_no_ros_time(tmp_path: Path, stamp: int) -> None:
+    """Nothing of a message with an invalid stamp is written (no struct.error from the serialiser, no wrapped
+    time); the file stays valid, and the largest ROS time is written exactly."""
+    path = tmp_path / "output.mcap"
+    pattern = rf"stamp {stamp} ns is not a valid ROS time \(0\.\.{MAX_NS} ns\): message not written"
+    with OutputBag(path) as out:
+        with pytest.raises(BagError, match=r"/vo/odometry: " + pattern):
+            out.write_odometry(stamp, "odom", "cam", np.zeros(3), [0, 0, 0, 1], np.eye(6), np.zeros(3),
+                               np.zeros(3), np.eye(6))
+        with pytest.raises(BagError, match=r"/vo/points: " + pattern):
+            out.write_points(stamp, "odom", np.zeros((1, 3)))
+        with pytest.raises(BagError, match=r"/diagnostics: " + pattern):
+            out.write_diagnostics(stamp, [])
+        with pytest.raises(BagError, match=r"/vo/path: " + pattern):  # one pose of the path
+            out.write_path(5, "odom", [4, stamp], np.zeros((2, 3)), np.tile([0.0, 0, 0, 1], (2, 1)))
+        out.write_points(MAX_NS, "odom", np.zeros((1, 3)))
+        out.write_path(MAX_NS, "odom", [0, MAX_NS], np.zeros((2, 3)), np.tile([0.0, 0, 0, 1], (2, 1)))
+    messages = _read_back(path)
+    assert sorted(messages) == ["/vo/path", "/vo/points"]
+    ((log_time, cloud),) = messages["/vo/points"]
+    assert log_time == MAX_NS and (cloud.header.stamp.sec, cloud.header.stamp.nanosec) == (2**31 - 1, 999_999_999)
+    ((_, path_msg),) = messages["/vo/path"]
+    assert [(p.header.stamp.sec, p.header.stamp.nanosec) for p in path_msg.poses] == [(0, 0),
+                                                                                       (2**31 - 1, 999_999_999)]
+
+
+def _bag_dir_with_metadata(tmp_path: Path, edit: bytes | None = None, old: bytes = b"", new: bytes = b"") -> Path:
+    path = write_bag(tmp_path / "bag", _camera_records())
+    metadata = path / "metadata.yaml"
+    data = metadata.read_bytes()
+    metadata.write_bytes(data + edit if edit is not None else data.replace(old, new, 1))
+    return path
+
+
+def test_metadata_that_is_not_utf8(tmp_path: Path) -> None:
+    path = _bag_dir_with_metadata(tmp_path, edit=b"\n# \xff\xfe\n")
+    offset = (path / "metadata.yaml").read_bytes().index(b"\xff")
+    with pytest.raises(BagError, match=rf"metadata.yaml is not UTF-8 text \(byte 0xff at offset {offset}\)"):
+        open_camera_bag(path)
+
+
+@pytest.mark.parametrize(("old", "new"), [(b"message_count: 3", b"message_count: 3x"),
+                                          (b"message_count: 3", b"message_count: [3]")])
+def test_metadata_with_a_count_that_is_no_number(tmp_path: Path, old: bytes, new: bytes) -> None:
+    path = _bag_dir_with_metadata(tmp_path, old=old, new=new)
+    assert new in (path / "metadata.yaml").read_bytes()
+    with pytest.raises(BagError, match=rf"bag {path} has malformed metadata"):
+        open_camera_bag(path)

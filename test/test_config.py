@@ -11,11 +11,13 @@ import pytest
 
 from epi_vo.config import (
     FRONTENDS,
+    NODE_PARAMETER_NAMES,
     ROBUST_METHODS,
     VoConfig,
     config_fields,
     field_doc,
     from_dict,
+    is_parameter_name,
     load_config,
     load_params_file,
     to_params_yaml,
@@ -131,8 +133,10 @@ def test_from_dict_wrong_type_for_klt_window(value: object) -> None:
 
 
 def test_from_dict_unknown_parameter() -> None:
-    with pytest.raises(ConfigError, match=r"unknown parameters: max_featurez$"):
+    with pytest.raises(ConfigError, match=r"unknown parameters: max_featurez \(did you mean max_features\?\)$"):
         from_dict({"max_featurez": 300})
+    with pytest.raises(ConfigError, match=r"unknown parameters: zzz$"):  # nothing close: no suggestion
+        from_dict({"zzz": 300})
     # Unknown names and bad values are reported together.
     with pytest.raises(ConfigError, match=r"min_inliers=2 \(minimum 8\).*unknown parameters: a_knob, b_knob"):
         from_dict({"b_knob": 1, "min_inliers": 2, "a_knob": 2})
@@ -155,9 +159,9 @@ def test_config_error_is_an_epi_vo_error() -> None:
 
 @pytest.mark.parametrize("node_key", ["/**", "vo_node", "/vo_node"])
 def test_load_params_file_node_keys(tmp_path: Path, node_key: str) -> None:
-    path = _write(tmp_path, f"{node_key}:\n  ros__parameters:\n    max_features: 450\n    image_topic: /cam/image\n")
-    assert load_params_file(path) == {"max_features": 450, "image_topic": "/cam/image"}
-    assert load_config(path) == dataclasses.replace(VoConfig(), max_features=450)
+    path = _write(tmp_path, f"{node_key}:\n  ros__parameters:\n    max_features: 450\n    frame_id: map\n")
+    assert load_params_file(path) == {"max_features": 450, "frame_id": "map"}
+    assert load_config(path) == dataclasses.replace(VoConfig(), max_features=450)  # node parameter: ignored
 
 
 def test_load_params_file_other_node_name(tmp_path: Path) -> None:
@@ -239,3 +243,67 @@ def test_to_params_yaml_layout_and_extra(tmp_path: Path) -> None:
     assert params["image_topic"] == "/camera/image_raw"
     assert params["publish_tf"] is True
     assert len(params) == len(config_fields()) + 2
+
+
+# --- names that are not parameters ---------------------------------------------------------------------------
+
+
+def test_unknown_names_in_a_params_file_are_errors_with_the_closest_name(tmp_path: Path) -> None:
+    path = _write(tmp_path, "vo_node:\n  ros__parameters:\n    max_featurs: 50\n    kf_min_inlier: 30\n"
+                            "    colour: red\n    frame_idd: map\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert str(info.value) == (
+        f"parameter file {path}: invalid epi_vo parameters: unknown parameters: colour, frame_idd (did you mean "
+        "frame_id?), kf_min_inlier (did you mean kf_min_inliers?), max_featurs (did you mean max_features?)")
+
+
+def test_unknown_names_and_bad_values_are_reported_together(tmp_path: Path) -> None:
+    path = _write(tmp_path, "/**:\n  ros__parameters:\n    min_inliers: 2\n    max_featurs: 50\n")
+    with pytest.raises(ConfigError, match=r"min_inliers=2 \(minimum 8\); unknown parameters: max_featurs \(did you "
+                                          r"mean max_features\?\)$"):
+        load_config(path)
+
+
+def test_node_and_ros_parameters_are_valid_names_in_a_params_file(tmp_path: Path) -> None:
+    """The ROS form with the node's own parameters (config/epi_vo.yaml plus NodeOptions): accepted, ignored."""
+    node_params = "".join(f"    {name}: {value}\n" for name, value in [
+        ("frame_id", "odom"), ("child_frame_id", "base_link"), ("camera_xyz", "[0.2, 0.0, 0.5]"),
+        ("camera_rpy", "[0.0, 0.0, 0.0]"), ("image_transport", "compressed"), ("qos_reliability", "reliable"),
+        ("qos_depth", 5), ("queue_size", 2), ("process_every_frame", "true"), ("publish_tf", "false"),
+        ("publish_debug_image", "false"), ("path_max_length", 100), ("watchdog_timeout_s", 1.0),
+        ("camera_info_wait_s", 0.2), ("hardware_id", "cam"), ("use_sim_time", "true"),
+        ("start_type_description_service", "false"),
+        ("qos_overrides./camera/image_raw.subscription.depth", 3)])
+    assert len(NODE_PARAMETER_NAMES) == 15 and all(f"    {n}:" in node_params for n in NODE_PARAMETER_NAMES)
+    path = _write(tmp_path, "vo_node:\n  ros__parameters:\n    max_features: 300\n" + node_params
+                  + "    qos_overrides:\n      /camera/camera_info:\n        subscription:\n          depth: 4\n")
+    assert load_config(path) == dataclasses.replace(VoConfig(), max_features=300)
+
+
+@pytest.mark.parametrize(("name", "ok"), [("max_features", True), ("frame_id", True), ("use_sim_time", True),
+                                          ("qos_overrides", True), ("qos_overrides./a.publisher.depth", True),
+                                          ("image_topic", False), ("qos_override", False), ("", False), (3, False)])
+def test_is_parameter_name(name: object, ok: bool) -> None:
+    assert is_parameter_name(name) is ok
+
+
+def test_node_parameter_names_match_the_node_options() -> None:
+    """config.NODE_PARAMETER_NAMES (no rclpy) lists exactly the node's own options (epi_vo/node.py)."""
+    pytest.importorskip("rclpy")
+    from epi_vo.node import NodeOptions
+
+    assert set(NODE_PARAMETER_NAMES) == {f.name for f in dataclasses.fields(NodeOptions)}
+
+
+def test_params_file_that_is_not_utf8(tmp_path: Path) -> None:
+    path = tmp_path / "params.yaml"
+    path.write_bytes(b"/**:\n  ros__parameters:\n    max_features: 300 # \xe9t\xe9\n")
+    with pytest.raises(ConfigError, match=rf"parameter file {re.escape(str(path))} is not UTF-8 text \(byte 0xe9 at "
+                                          r"offset 48\)$"):
+        load_config(path)
+
+
+def test_params_path_that_is_a_directory(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=rf"cannot read parameter file {re.escape(str(tmp_path))}: Is a directory"):
+        load_config(tmp_path)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import array
+import math
 from types import SimpleNamespace
 
 import cv2
@@ -13,11 +14,17 @@ from epi_vo.errors import EpiVoError, ImageConversionError
 from epi_vo.msgconv import (
     POINT_FIELD_FLOAT32,
     POINT_FIELD_FLOAT64,
+    ROS_TIME_MAX_NS,
     PointFieldSpec,
+    clamp_stamp_ns,
     compressed_to_gray,
+    decode_frame,
     image_to_gray,
+    ns_to_ros_time,
     point_cloud2_fields,
     read_points_xyz,
+    stamp_problem,
+    stamp_to_ns,
 )
 
 
@@ -362,3 +369,64 @@ def test_read_points_errors() -> None:
     cloud.data = cloud.data[:30]
     with pytest.raises(EpiVoError, match="PointCloud2 data has 30 bytes, expected at least 36"):
         read_points_xyz(cloud)
+
+
+# --- stamps (builtin_interfaces/Time) --------------------------------------------------------------------
+def _stamp(sec: object, nanosec: object) -> SimpleNamespace:
+    return SimpleNamespace(sec=sec, nanosec=nanosec)
+
+
+def test_ros_time_limit_equals_the_pipelines() -> None:
+    from epi_vo.pipeline import MAX_STAMP_NS
+
+    assert ROS_TIME_MAX_NS == MAX_STAMP_NS == (2**31 - 1) * 10**9 + 999_999_999
+
+
+@pytest.mark.parametrize(("sec", "nanosec"), [(0, 0), (1, 999_999_999), (2**31 - 1, 999_999_999),
+                                              (np.int32(5), np.uint32(7))])
+def test_valid_stamps(sec: int, nanosec: int) -> None:
+    stamp = _stamp(sec, nanosec)
+    assert stamp_problem(stamp) is None
+    ns = stamp_to_ns(stamp)
+    assert ns == int(sec) * 10**9 + int(nanosec) and type(ns) is int
+    assert ns_to_ros_time(ns) == (int(sec), int(nanosec))
+
+
+@pytest.mark.parametrize(("sec", "nanosec", "ns"), [
+    (-3, 5, -2_999_999_995),                                   # negative seconds
+    (2**31 - 1, 1_500_000_000, (2**31 - 1) * 10**9 + 1_500_000_000),  # at the int32 limit, nanosec >= 1e9
+    (7, 1_000_000_000, 8 * 10**9),                             # nanosec == 1e9: carries, but no valid ROS time
+    (7, 2**32 - 1, 7 * 10**9 + 2**32 - 1),                     # uint32 max nanosec
+    (2**31, 0, 2**31 * 10**9),                                 # beyond int32
+])
+def test_invalid_stamps_are_named_and_never_crash(sec: int, nanosec: int, ns: int) -> None:
+    stamp = _stamp(sec, nanosec)
+    problem = stamp_problem(stamp)
+    assert problem == (f"header stamp sec {sec} nanosec {nanosec} is not a valid ROS time (sec 0..2147483647, "
+                       "nanosec 0..999999999)")
+    assert stamp_to_ns(stamp) == ns  # the plain sum, as the node normalises it
+    clamped = clamp_stamp_ns(ns)
+    assert 0 <= clamped <= ROS_TIME_MAX_NS
+    sec_c, nsec_c = ns_to_ros_time(clamped)
+    assert 0 <= sec_c <= 2**31 - 1 and 0 <= nsec_c < 10**9
+    if not 0 <= ns <= ROS_TIME_MAX_NS:
+        with pytest.raises(ValueError, match=rf"stamp {ns} ns is not a valid ROS time"):
+            ns_to_ros_time(ns)
+
+
+@pytest.mark.parametrize(("sec", "nanosec"), [(None, 0), (1.5, 0), ("1", 0), (1, math.nan), (True, 0)])
+def test_non_integer_stamp_fields(sec: object, nanosec: object) -> None:
+    stamp = _stamp(sec, nanosec)
+    assert stamp_problem(stamp) is not None and "not a builtin_interfaces/Time" in stamp_problem(stamp)
+    with pytest.raises(ImageConversionError, match="header stamp is not a builtin_interfaces/Time"):
+        stamp_to_ns(stamp)
+    assert "not a builtin_interfaces/Time" in (stamp_problem(None) or "")
+
+
+@pytest.mark.parametrize("compressed", [False, True])
+def test_decode_frame_of_a_missing_or_malformed_message_is_a_conversion_error(compressed: bool) -> None:
+    with pytest.raises(ImageConversionError, match=r"no image message \(its bytes could not be decoded\)"):
+        decode_frame(None, compressed)
+    with pytest.raises(ImageConversionError, match="not a usable sensor_msgs/"):
+        decode_frame(SimpleNamespace(encoding="mono8", height="x", width=2, step=2, data=b"ab", format="png"),
+                     compressed=False) if not compressed else decode_frame(SimpleNamespace(), compressed=True)
