@@ -186,3 +186,17 @@ def rotation_scene() -> TwoViewScene:
 # ============================================================================================
 # End of the synthetic two-view scenes section.
 # ============================================================================================
+
+
+# ============================================================================================
+# Whole-replay fuzzing (hypothesis) -- used by test_fuzz_replay.py
+# ============================================================================================
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--fuzz-examples", type=int, default=None, metavar="N",
+                     help="test_fuzz_replay.py: run N generated bags (default 40) and shrink failures to a "
+                          "minimal example")
+
+
+# ============================================================================================
+# End of the whole-replay fuzzing section.
+# ============================================================================================
