@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+_DRAIN_TIMEOUT_S = 10.0  # after the last frame: bound on waiting for its odometry
+
 
 @dataclass(frozen=True)
 class LatencyResult:
@@ -111,7 +113,12 @@ def run_latency(rates: list[float], seconds: float = 8.0, bag: str | Path | None
                     pub_info.publish(info)
                     sent[stamp] = time.perf_counter()
                     pub_img.publish(img)
-                time.sleep(1.0)
+                # Live mode keeps the newest frame: its odometry ends the run (the node's queue drained),
+                # however long a loaded machine takes; a node that never answers is bounded.
+                last_stamp = max(sent, default=None)
+                deadline = time.monotonic() + _DRAIN_TIMEOUT_S
+                while last_stamp is not None and last_stamp not in received and time.monotonic() < deadline:
+                    time.sleep(0.01)
                 lat = np.array([(received[s] - t) * 1e3 for s, t in sent.items() if s in received])
                 results.append(LatencyResult(rate, len(sent), len(lat), *(
                     (float(np.percentile(lat, 50)), float(np.percentile(lat, 95)), float(lat.max()))

@@ -294,12 +294,18 @@ class VoNode(Node):
 
     def _process(self, item: Ready) -> None:
         stamp = item.stamp_ns
-        if item.info is None:
-            raise CameraModelError("no camera_info received yet on camera/camera_info")
-        if item.first_mismatch:
-            self.get_logger().warning("camera_info stamps do not match image stamps; using the latest camera_info")
-        gray = msgconv.decode_frame(item.image, self._compressed)
-        result = self._pipeline.process(gray, self._cameras.get(item.info), stamp)
+        problem = msgconv.stamp_problem(item.image.header.stamp)
+        if problem is not None:
+            # As in replay: a header stamp that is no ROS time is a rejected frame, tracking untouched.
+            result = self._pipeline.skip(stamp, problem)
+        else:
+            if item.info is None:
+                raise CameraModelError("no camera_info received yet on camera/camera_info")
+            if item.first_mismatch:
+                self.get_logger().warning("camera_info stamps do not match image stamps; using the latest "
+                                          "camera_info")
+            gray = msgconv.decode_frame(item.image, self._compressed)
+            result = self._pipeline.process(gray, self._cameras.get(item.info), stamp)
         self._n_processed += 1
         if result.skipped:
             self.get_logger().warning(f"{result.reason} ({stamp * 1e-9:.6f} s)", throttle_duration_sec=5.0)
@@ -405,8 +411,7 @@ class VoNode(Node):
 
 
 def _stamp_msg(stamp_ns: int) -> Time:
-    """The image stamp as a valid ROS time (the pipeline's results carry stamps in range only; an input
-    header with nanosec >= 1e9 comes out normalised)."""
+    """A frame result's stamp as a ROS time (results carry valid stamps only)."""
     sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
     return Time(sec=sec, nanosec=nanosec)
 

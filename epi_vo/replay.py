@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import collections
 import contextlib
-import dataclasses
 import json
 import logging
 import math
@@ -25,7 +24,6 @@ import signal
 import threading
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
-from fractions import Fraction
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
@@ -152,7 +150,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                 n_kf += int(result.is_keyframe)
                 for k, v in result.timings_ms.items():
                     stage_times[k].append(v)
-                frames_f.write(json.dumps(_record(result)) + "\n")
+                frames_f.write(json.dumps(result.to_record()) + "\n")
                 frames_f.flush()
                 if result.has_pose:
                     n_pose += 1
@@ -235,16 +233,6 @@ def _open_output(path: Path) -> Iterator[IO[str]]:
         yield f
 
 
-def _record(result: FrameResult) -> dict[str, Any]:
-    """The frame record for frames.jsonl; its float ``stamp`` (s) never rounds above the exact ``stamp_ns``
-    (near 2**31 s a double rounds 2147483647.999999999 up to 2**31, which is no ROS time)."""
-    record = result.to_record()
-    stamp = float(record["stamp"])
-    if Fraction(stamp) > Fraction(int(result.stamp_ns), 1_000_000_000):
-        record["stamp"] = math.nextafter(stamp, 0.0)
-    return record
-
-
 def _tum_stamp(stamp_ns: int) -> str:
     """The stamp in seconds with 9 decimals, exact (a float would round large stamps)."""
     sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
@@ -280,12 +268,6 @@ class _Progress:
             self._bar = None
 
 
-# The stamp handed to the pipeline for a frame whose stamp is unknown or no valid ROS time: the pipeline
-# skips a frame with an invalid stamp without booking it (the next frame is judged against the last good
-# stamp, tracking is not restarted); the record then gets the frame's own problem and a valid stamp.
-_INVALID_STAMP_NS = -1
-
-
 @dataclass(frozen=True)
 class ProcessedFrame:
     """What one bag frame gave: its record, why it was rejected (None when it was not), and the image and
@@ -306,10 +288,8 @@ def process_frame(pipeline: VoPipeline, cameras: CameraModelCache, bag: bagio.Ca
     """
     if frame.problem is not None:
         # Undecodable message or stamp that is no valid ROS time: nothing of the frame is used.
-        result = pipeline.reject(_INVALID_STAMP_NS, frame.problem)
         filed = "its log time" if frame.image_msg is None else "its header stamp clamped to a ROS time"
-        result = dataclasses.replace(result, stamp_ns=frame.stamp_ns, reason=(
-            f"frame rejected: {frame.problem}; frame skipped (recorded at {frame.stamp_ns} ns, {filed})"))
+        result = pipeline.skip(frame.stamp_ns, frame.problem, f"recorded at {frame.stamp_ns} ns, {filed}")
         return ProcessedFrame(result, frame.problem)
     gray = camera = None
     try:
@@ -321,7 +301,7 @@ def process_frame(pipeline: VoPipeline, cameras: CameraModelCache, bag: bagio.Ca
     except EpiVoError as exc:
         # Bad input in one frame: the frame is recorded with the reason and replay goes on.
         return ProcessedFrame(pipeline.reject(frame.stamp_ns, str(exc)), str(exc))
-    return ProcessedFrame(result, _rejection(result), gray, camera)
+    return ProcessedFrame(result, result.problem or None, gray, camera)
 
 
 def _no_camera_info(bag: bagio.CameraBag) -> str:
@@ -329,20 +309,6 @@ def _no_camera_info(bag: bagio.CameraBag) -> str:
     if skipped:
         return f"no usable camera_info on {bag.camera_info_topic} ({skipped} message(s) could not be decoded)"
     return f"no camera_info on {bag.camera_info_topic}"
-
-
-_REJECTED = "frame rejected: "
-
-
-def _rejection(result: FrameResult) -> str | None:
-    """The problem of a frame the pipeline itself rejected (image it cannot use, invalid stamp), or None.
-
-    The pipeline says so in the record: ``frame rejected: <problem>; <what tracking did>``.
-    """
-    at = result.reason.find(_REJECTED)
-    if at < 0:
-        return None
-    return result.reason[at + len(_REJECTED):].split("; ")[0].removesuffix(": frame skipped")
 
 
 class _StopRequest:

@@ -138,18 +138,30 @@ def test_internal_error_is_reported_as_such_and_tracking_restarts(ros: RosSessio
         assert stamp.sec * 1_000_000_000 + stamp.nanosec == r.stamp_ns
 
 
-def test_header_nanosec_beyond_a_second_is_published_normalised(ros: RosSession) -> None:
+def test_header_stamp_that_is_no_ros_time_is_a_rejected_frame(ros: RosSession) -> None:
+    """As in replay: nanosec >= 1e9 is no valid ROS time; the frame gets a status with the reason and no
+    odometry, and the frames after it track on (the bad stamp was not booked)."""
     node = _make_node(ros)
-    published: list[Any] = []
-    real_publish = node._publish
-    node._publish = lambda r, stamp_msg, gray: (published.append(stamp_msg), real_publish(r, stamp_msg, gray))
+    statuses: list[Any] = []
+    published: list[FrameResult] = []
+    real_status, real_publish = node._publish_status, node._publish
+    node._publish_status = lambda status, stamp_msg: (statuses.append((status, stamp_msg)),
+                                                      real_status(status, stamp_msg))
+    node._publish = lambda r, stamp_msg, gray: (published.append(r), real_publish(r, stamp_msg, gray))
     try:
         img, info = _image(0)
         img.header.stamp.sec, img.header.stamp.nanosec = 5, 1_500_000_000
         info.header.stamp = img.header.stamp
         node._on_camera_info(info)
         node._on_image(img)
+        assert _wait(lambda: len(statuses) >= 1)
+        img, info = _image(5_100_000_000, seed=1)
+        node._on_camera_info(info)
+        node._on_image(img)
         assert _wait(lambda: len(published) >= 1)
     finally:
         node.destroy_node()
-    assert (published[0].sec, published[0].nanosec) == (6, 500_000_000)
+    status, stamp_msg = statuses[0]
+    assert "header stamp sec 5 nanosec 1500000000 is not a valid ROS time" in status.message
+    assert 0 <= stamp_msg.nanosec < 1_000_000_000
+    assert published[0].stamp_ns == 5_100_000_000 and "backwards" not in published[0].reason

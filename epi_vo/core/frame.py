@@ -10,6 +10,7 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass, field
+from fractions import Fraction
 from typing import Any
 
 import numpy as np
@@ -35,6 +36,15 @@ class Model(enum.Enum):
     ESSENTIAL = "E"
     HOMOGRAPHY = "H"
     NONE = "none"
+
+
+def stamp_seconds(stamp_ns: int) -> float:
+    """``stamp_ns`` in seconds as the nearest double not above it: near 2**31 s a plain ``ns * 1e-9`` rounds
+    2147483647.999999999 up to 2**31 s, which is no ROS time."""
+    s = int(stamp_ns) / 1_000_000_000  # correctly rounded
+    if Fraction(s) > Fraction(int(stamp_ns), 1_000_000_000):
+        s = math.nextafter(s, -math.inf)
+    return s
 
 
 def frozen(a: F64) -> F64:
@@ -103,7 +113,13 @@ class FrameResult:
     timings_ms: dict[str, float]
     reason: str
     matches: Matches
-    skipped: bool = False  # not processed (duplicate stamp): consumers publish no pose for it
+    skipped: bool = False  # not processed (duplicate or invalid stamp, undecodable): no pose is published for it
+    problem: str = ""  # why the frame was rejected (bad input); "" when it was not
+
+    @property
+    def rejected(self) -> bool:
+        """The frame could not be used (its input was bad); ``problem`` says why."""
+        return bool(self.problem)
 
     def __post_init__(self) -> None:
         problems = []
@@ -136,7 +152,7 @@ class FrameResult:
 
         return {
             "index": self.index,
-            "stamp": self.stamp_ns * 1e-9,
+            "stamp": stamp_seconds(self.stamp_ns),
             "stamp_ns": self.stamp_ns,
             "state": self.state.value,
             "has_pose": self.has_pose,
@@ -160,6 +176,7 @@ class FrameResult:
             "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
             "reason": self.reason,
             "skipped": self.skipped,
+            "rejected": self.rejected,
         }
 
 

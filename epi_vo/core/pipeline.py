@@ -103,22 +103,29 @@ class VoPipeline:
         """
         stamp_ns = int(stamp_ns)
         if not 0 <= stamp_ns <= MAX_STAMP_NS:
-            return self._skip(min(max(stamp_ns, 0), MAX_STAMP_NS),
-                              f"frame rejected: image stamp {stamp_ns} ns is not a valid ROS time (0 to "
-                              f"{MAX_STAMP_NS} ns): frame skipped")
+            return self.skip(stamp_ns, f"image stamp {stamp_ns} ns is not a valid ROS time (0 to {MAX_STAMP_NS} ns)")
         last = self._last_stamp_ns
         if last is not None and stamp_ns == last:
-            return self._skip(stamp_ns, "duplicate image stamp: frame skipped")
+            return self._skip(stamp_ns, "duplicate image stamp: frame skipped", "")
         if last is not None and stamp_ns < last:
             self.reset(f"time jumped backwards by {(last - stamp_ns) * 1e-9:.3f} s: tracking restarted from the "
                        "last pose")
         return None
 
-    def _skip(self, stamp_ns: int, reason: str) -> FrameResult:
+    def skip(self, stamp_ns: int, problem: str, note: str = "") -> FrameResult:
+        """Record a frame that cannot be used at all and must not touch tracking: its message could not be
+        decoded, or its stamp is no valid ROS time. Nothing is processed, the stamp is not booked (the
+        next frame is judged against the last good one) and no failure is counted; the record (skipped,
+        rejected, with ``problem``; ``note`` is added to the reason) carries ``stamp_ns`` clamped into the
+        valid range."""
+        reason = f"frame rejected: {problem}; frame skipped" + (f" ({note})" if note else "")
+        return self._skip(min(max(int(stamp_ns), 0), MAX_STAMP_NS), reason, problem)
+
+    def _skip(self, stamp_ns: int, reason: str, problem: str) -> FrameResult:
         st = FrameStats(stamp_ns=stamp_ns)
         st.reasons.append(reason)
         result = self._result(stamp_ns, TrackingState.LOST, False, False, st, time.perf_counter(), book=False)
-        return dataclasses.replace(result, skipped=True)
+        return dataclasses.replace(result, skipped=True, problem=problem)
 
     def reject(self, stamp_ns: int, reason: str) -> FrameResult:
         """Account for a frame that could not be used (corrupt image, unusable calibration, ...).
@@ -137,7 +144,8 @@ class VoPipeline:
         st.reasons.append(f"frame rejected: {reason}")
         if self._on_failure(st):
             self._kf = None
-        return self._result(stamp_ns, TrackingState.LOST, False, False, st, t_start)
+        return dataclasses.replace(self._result(stamp_ns, TrackingState.LOST, False, False, st, t_start),
+                                   problem=reason)
 
     def process(self, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int) -> FrameResult:
         """Process one grayscale frame taken with ``camera`` at ``stamp_ns``.
