@@ -21,11 +21,12 @@ from scipy.spatial.transform import Rotation
 
 from epi_vo import bagio
 from epi_vo.cli import main
+from epi_vo.errors import ReportError
 from epi_vo.evaluation import evaluate_trajectory
 from epi_vo.replay import run_replay
-from epi_vo.report import (
+from epi_vo.report import write_report
+from epi_vo.report_data import (
     AlignmentKind,
-    ReportError,
     Span,
     error_series,
     gt_alignment,
@@ -35,7 +36,6 @@ from epi_vo.report import (
     spans,
     timeline,
     trajectory_views,
-    write_report,
 )
 
 REPO = Path(__file__).resolve().parent.parent
