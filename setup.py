@@ -23,7 +23,7 @@ setup(
     entry_points={
         "console_scripts": [
             "epi-vo = epi_vo.cli:main",
-            "vo_node = epi_vo.node:main",
+            "vo_node = epi_vo.ros.node:main",
         ],
     },
 )

@@ -1,6 +1,6 @@
 """epi_vo: monocular visual odometry that says when a pose cannot be trusted.
 
-The core (camera, frontend, geometry, pipeline) imports numpy and cv2 only; ``epi_vo.node`` is the only
+The core (camera, frontend, geometry, pipeline) imports numpy and cv2 only; ``epi_vo.ros.node`` is the only
 module importing rclpy.
 """
 

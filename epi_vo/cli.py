@@ -9,10 +9,10 @@ import sys
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
-from epi_vo.errors import EpiVoError
+from epi_vo.core.errors import EpiVoError
 
 if TYPE_CHECKING:
-    from epi_vo.replay import ReplaySummary
+    from epi_vo.tools.replay import ReplaySummary
 
 # Exit codes: 0 done; 1 a verdict failed (soak); 2 unusable bag, file or arguments (one line names the
 # problem); 3 the replay ran but frames were rejected or messages skipped; 129 stopped by SIGHUP, 130
@@ -137,34 +137,35 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "replay":
             return _replay(args)
         if args.command == "benchmark":
-            from epi_vo.benchmark import run_benchmark
+            from epi_vo.tools.benchmark import run_benchmark
 
             return run_benchmark(args.bags, args.kitti, args.params, args.output)
         if args.command == "monitor":
-            from epi_vo.monitor import run as monitor_run
+            from epi_vo.ros.monitor import run as monitor_run
 
             return monitor_run(args)
         if args.command == "report":
-            from epi_vo.report import run as report_run
+            from epi_vo.tools.report import run as report_run
 
             return report_run(args)
         if args.command == "inspect":
-            from epi_vo.inspect_frame import run as inspect_run
+            from epi_vo.tools.inspect_frame import run as inspect_run
 
             return inspect_run(args)
         if args.command == "latency":
-            from epi_vo.live_bench import main as latency_main
+            from epi_vo.ros.live_bench import main as latency_main
 
             return latency_main([float(r) for r in args.rates.split(",")], args.seconds)
         if args.command == "params":
-            from epi_vo.config import VoConfig, to_params_yaml
+            from epi_vo.core.config import VoConfig
+            from epi_vo.io.params import to_params_yaml
 
             sys.stdout.write(to_params_yaml(VoConfig()))
             return 0
         if args.command == "play":
             return _play(args)
         if args.command == "soak":
-            from epi_vo.soak import run as soak_run
+            from epi_vo.tools.soak import run as soak_run
 
             return soak_run(args)
     except EpiVoError as exc:
@@ -202,8 +203,8 @@ def _say(line: str, *, stdout: bool = False) -> None:
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from epi_vo.config import load_config
-    from epi_vo.replay import format_summary, run_replay
+    from epi_vo.io.params import load_config
+    from epi_vo.tools.replay import format_summary, run_replay
 
 
     cfg = load_config(args.params)
@@ -212,7 +213,7 @@ def _replay(args: argparse.Namespace) -> int:
                          progress=not args.no_progress)
     _say(format_summary(summary), stdout=True)
     if args.report:
-        from epi_vo.report import write_report
+        from epi_vo.tools.report import write_report
 
         _say(f"  report        {write_report(args.output)}", stdout=True)
     if summary.has_problems:
@@ -234,7 +235,7 @@ def replay_problem_line(summary: ReplaySummary) -> str:
 
 
 def _play(args: argparse.Namespace) -> int:
-    from epi_vo.play import PlayOptions, Reliability, format_summary, run_play
+    from epi_vo.ros.play import PlayOptions, Reliability, format_summary, run_play
 
     options = PlayOptions(rate=args.rate, image_topic=args.image_topic, camera_info_topic=args.camera_info_topic,
                           remap_image=args.remap_image, remap_camera_info=args.remap_camera_info, clock=args.clock,

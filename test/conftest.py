@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 # Synthetic two-view scenes (seeded) -- used by test_geometry.py
 # ============================================================================================
 #
-# Frames and conventions are those of epi_vo.geometry: X_cur = R_cur_ref @ X_ref + t_cur_ref, pixels
+# Frames and conventions are those of epi_vo.core.geometry: X_cur = R_cur_ref @ X_ref + t_cur_ref, pixels
 # of an ideal pinhole camera K (no distortion), the reference camera at the origin looking along +z.
 
 SCENE_K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])

@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from epi_vo.config import VoConfig, load_config
+from epi_vo.core.config import VoConfig
+from epi_vo.io.params import load_config
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -57,6 +58,6 @@ def test_colcon_build_installs_scripts_into_lib(tmp_path: Path) -> None:
 
 
 def load_config_text(text: str) -> VoConfig:
-    from epi_vo.config import from_dict
+    from epi_vo.core.config import from_dict
 
     return from_dict(yaml.safe_load(text)["/**"]["ros__parameters"])

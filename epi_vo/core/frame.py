@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from epi_vo.transforms import quat_xyzw_from_rotation
+from epi_vo.core.transforms import quat_xyzw_from_rotation
 
 F64 = NDArray[np.float64]
 

@@ -14,9 +14,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from epi_vo import frontend as fe
-from epi_vo.camera import CameraModel
-from epi_vo.config import VoConfig
+from epi_vo.core import features as fe
+from epi_vo.core.camera import CameraModel
+from epi_vo.core.config import VoConfig
 
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]

@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from epi_vo.config import VoConfig
 from epi_vo.core import geometry as geo
+from epi_vo.core.config import VoConfig
 from epi_vo.core.frame import FrameStats, TrackingState
 from epi_vo.core.keyframe import Keyframe
 from epi_vo.core.motion import Motion

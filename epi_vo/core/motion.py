@@ -22,13 +22,13 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from epi_vo.config import VoConfig
 from epi_vo.core import covariance as covm
 from epi_vo.core import geometry as geo
+from epi_vo.core.config import VoConfig
 from epi_vo.core.frame import FrameStats, Model, TrackingState
 from epi_vo.core.keyframe import Keyframe
 from epi_vo.core.selection import ModelSelection
-from epi_vo.transforms import rotation_angle_deg
+from epi_vo.core.transforms import rotation_angle_deg
 
 F64 = NDArray[np.float64]
 

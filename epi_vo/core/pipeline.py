@@ -42,17 +42,17 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from epi_vo import frontend as fe
-from epi_vo.camera import CameraModel
-from epi_vo.config import VoConfig, validate
 from epi_vo.core import covariance as covm
+from epi_vo.core import features as fe
 from epi_vo.core import motion as mo
+from epi_vo.core.camera import CameraModel
+from epi_vo.core.config import VoConfig, validate
 from epi_vo.core.frame import MAX_STAMP_NS, STAT_FIELDS, FrameResult, FrameStats, Matches, TrackingState, frozen
 from epi_vo.core.keyframe import Keyframe, make_keyframe
 from epi_vo.core.mapping import keyframe_map
 from epi_vo.core.scale import VoUnitsScale
 from epi_vo.core.selection import select_model
-from epi_vo.transforms import invert_T, make_T
+from epi_vo.core.transforms import invert_T, make_T
 
 _log = logging.getLogger(__name__)
 

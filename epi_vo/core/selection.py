@@ -12,8 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from epi_vo.config import VoConfig
 from epi_vo.core import geometry as geo
+from epi_vo.core.config import VoConfig
 from epi_vo.core.frame import Model
 
 F64 = NDArray[np.float64]

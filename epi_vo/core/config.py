@@ -1,0 +1,199 @@
+"""One frozen config object holding every tuning knob of the pipeline.
+
+The defaults here are the values of ``config/epi_vo.yaml`` (a test keeps them equal). The node
+declares one ROS parameter per field by iterating over :func:`config_fields`; the offline tools read
+the same YAML (``/**: ros__parameters:`` block) through ``epi_vo.io.params``. :func:`validate`
+reports every bad field at once. Thresholds are in pixels of the undistorted (ideal pinhole) image
+unless the name says otherwise.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from epi_vo.core.errors import ConfigError
+
+ROBUST_METHODS = ("magsac", "ransac", "lmeds", "usac_default", "usac_accurate", "usac_fast")
+FRONTENDS = ("klt", "orb")
+
+# The node's own parameters (``NodeOptions`` in epi_vo/node.py, which imports rclpy): valid names in a
+# parameter file, which the offline tools (replay, inspect, benchmark, soak) accept and ignore. A test
+# keeps this tuple equal to NodeOptions' fields.
+NODE_PARAMETER_NAMES: tuple[str, ...] = (
+    "frame_id", "child_frame_id", "camera_xyz", "camera_rpy", "image_transport", "qos_reliability", "qos_depth",
+    "queue_size", "process_every_frame", "publish_tf", "publish_debug_image", "path_max_length",
+    "watchdog_timeout_s", "camera_info_wait_s", "hardware_id",
+)
+# Parameters every rclpy node declares or reads, also valid in a parameter file; ``qos_overrides`` (a
+# mapping, or dotted ``qos_overrides./topic...`` names) configures a node's QoS.
+ROS_PARAMETER_NAMES: tuple[str, ...] = ("use_sim_time", "start_type_description_service", "qos_overrides")
+
+
+def _knob(default: Any, doc: str, lo: float | None = None, hi: float | None = None,
+          choices: tuple[str, ...] | None = None) -> Any:
+    """A config field with its doc line and allowed range, kept in the dataclass metadata."""
+    return field(default=default, metadata={"doc": doc, "min": lo, "max": hi, "choices": choices})
+
+
+@dataclass(frozen=True)
+class VoConfig:
+    """Every threshold of the pipeline, with its default and one line saying why it exists."""
+
+    # --- frontend -------------------------------------------------------------------------
+    frontend: str = _knob("klt", "feature frontend: 'klt' (track + re-detect, fast) or 'orb' (descriptor matching)",
+                          choices=FRONTENDS)
+    max_features: int = _knob(200, "features kept per keyframe, spread over the grid", 20, 5000)
+    grid_rows: int = _knob(6, "rows of the bucketing grid that spreads features over the image", 1, 64)
+    grid_cols: int = _knob(8, "columns of the bucketing grid", 1, 64)
+    min_feature_distance_px: float = _knob(12.0, "minimum distance between detected corners (px)", 1.0, 200.0)
+    corner_quality: float = _knob(0.005, "Shi-Tomasi quality level relative to the best corner", 1e-5, 1.0)
+    klt_window_px: int = _knob(15, "KLT window size (px, odd)", 5, 101)
+    klt_levels: int = _knob(3, "KLT pyramid levels above the base image", 0, 8)
+    klt_max_fb_error_px: float = _knob(1.0, "forward-backward KLT consistency gate (px)", 0.01, 50.0)
+    orb_features: int = _knob(1500, "ORB features detected per frame (frontend 'orb')", 50, 20000)
+    orb_ratio: float = _knob(0.8, "Lowe ratio test for ORB kNN matching (with mutual check)", 0.1, 1.0)
+    max_image_width: int = _knob(0, "downscale wider images to this width before processing (0: never)", 0, 20000)
+
+    # --- two-view models --------------------------------------------------------------------
+    essential_method: str = _knob("magsac", "robust estimator for the 5-point essential matrix",
+                                  choices=ROBUST_METHODS)
+    homography_method: str = _knob("usac_fast", "robust estimator for the homography (findHomography)",
+                                   choices=ROBUST_METHODS)
+    ransac_threshold_px: float = _knob(1.0, "inlier threshold of the E and H robust estimators (px)", 0.05, 50.0)
+    ransac_confidence: float = _knob(0.999, "robust estimator confidence", 0.5, 0.999999)
+    ransac_max_iters: int = _knob(1000, "robust estimator iteration cap", 10, 100000)
+    score_sigma_px: float = _knob(1.0, "pixel noise sigma of the ORB-SLAM style chi-square scoring", 0.05, 50.0)
+    rh_threshold: float = _knob(0.45, "choose H when RH = S_H / (S_H + S_E) exceeds this", 0.0, 1.0)
+    min_inliers: int = _knob(25, "fewer model inliers than this: the frame gives no pose", 8, 10000)
+
+    # --- degeneracy, parallax and triangulation gates ----------------------------------------
+    init_min_parallax_deg: float = _knob(0.5, "median parallax needed to initialise the map (deg)", 0.01, 45.0)
+    kf_min_parallax_deg: float = _knob(1.0, "median parallax that makes a new keyframe (deg)", 0.01, 45.0)
+    e_pose_min_parallax_deg: float = _knob(
+        0.5, "above this median parallax the pose comes from E (scaled by the map), below from the map", 0.0, 45.0)
+    rotation_only_parallax_deg: float = _knob(
+        0.15, "with H chosen, median parallax below this is treated as rotation only (deg)", 0.0, 10.0)
+    min_rotation_for_rotation_only_deg: float = _knob(
+        0.5, "rotation needed before a no-parallax motion is called pure rotation (deg)", 0.0, 90.0)
+    min_triangulation_angle_deg: float = _knob(0.5, "points seen under a smaller ray angle get no depth (deg)",
+                                               0.0, 45.0)
+    max_reprojection_error_px: float = _knob(2.0, "triangulated points above this error are rejected (px)",
+                                             0.05, 100.0)
+    min_positive_depth_ratio: float = _knob(0.8, "cheirality: fraction of inliers in front of both views", 0.0, 1.0)
+    min_triangulated: int = _knob(20, "fewer points passing the gates: no map update", 3, 10000)
+    min_scale_points: int = _knob(8, "map points needed to carry the scale to a new frame", 3, 10000)
+
+    # --- keyframes ---------------------------------------------------------------------------
+    kf_min_tracked_ratio: float = _knob(0.5, "new keyframe when fewer of the keyframe's features are tracked", 0.0, 1.0)
+    kf_min_inliers: int = _knob(60, "new keyframe when model inliers fall below this", 8, 10000)
+    kf_max_interval_s: float = _knob(2.0, "new keyframe at the latest after this time (s)", 0.01, 3600.0)
+
+    # --- tracking lost -------------------------------------------------------------------------
+    lost_after_frames: int = _knob(3, "consecutive frames without a pose before tracking is declared lost", 1, 1000)
+
+    # --- covariance ----------------------------------------------------------------------------
+    scale_drift_per_keyframe: float = _knob(0.02, "relative scale uncertainty added at each keyframe (1 sigma)",
+                                            0.0, 1.0)
+    lost_position_variance: float = _knob(1.0e4, "position variance reported when no pose can be justified",
+                                          1.0, 1.0e12)
+    lost_rotation_variance: float = _knob(1.0e2, "rotation variance (rad^2) reported when no pose can be justified",
+                                          1.0e-3, 1.0e6)
+
+
+def config_fields() -> tuple[dataclasses.Field[Any], ...]:
+    """The config fields in declaration order (for declaring ROS parameters)."""
+    return dataclasses.fields(VoConfig)
+
+
+PIPELINE_NAMES: tuple[str, ...] = tuple(f.name for f in config_fields())
+
+
+def field_doc(f: dataclasses.Field[Any]) -> str:
+    return str(f.metadata.get("doc", ""))
+
+
+def validate(cfg: VoConfig) -> None:
+    """Raise :class:`ConfigError` naming every bad field at once."""
+    problems: list[str] = []
+    for f in config_fields():
+        value = getattr(cfg, f.name)
+        kind = type(f.default)
+        if kind is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if not isinstance(value, kind) or isinstance(value, bool) != isinstance(f.default, bool):
+            problems.append(f"{f.name}={value!r} (expected {kind.__name__})")
+            continue
+        if isinstance(value, float) and not math.isfinite(value):
+            problems.append(f"{f.name}={value!r} (not finite)")
+            continue
+        lo, hi, choices = f.metadata.get("min"), f.metadata.get("max"), f.metadata.get("choices")
+        if choices is not None and value not in choices:
+            problems.append(f"{f.name}={value!r} (choose one of {', '.join(choices)})")
+        if lo is not None and value < lo:
+            problems.append(f"{f.name}={value!r} (minimum {lo})")
+        if hi is not None and value > hi:
+            problems.append(f"{f.name}={value!r} (maximum {hi})")
+    if isinstance(cfg.klt_window_px, int) and cfg.klt_window_px % 2 == 0:
+        problems.append(f"klt_window_px={cfg.klt_window_px} (must be odd)")
+    if problems:
+        raise ConfigError("invalid epi_vo parameters: " + "; ".join(problems))
+
+
+def is_parameter_name(name: object) -> bool:
+    """True for a name a parameter file may hold: a pipeline knob, a node option or a ROS node parameter."""
+    if not isinstance(name, str):
+        return False
+    if name in PIPELINE_NAMES or name in NODE_PARAMETER_NAMES or name in ROS_PARAMETER_NAMES:
+        return True
+    return name.startswith("qos_overrides.")
+
+
+def unknown_names_text(names: list[str], candidates: tuple[str, ...] | None = None) -> str:
+    """'a (did you mean b?), c': each unknown name with its closest parameter name when one is close."""
+    pool = list(candidates) if candidates is not None else [*PIPELINE_NAMES, *NODE_PARAMETER_NAMES,
+                                                            *ROS_PARAMETER_NAMES]
+    parts = []
+    for name in sorted(names, key=str):
+        close = difflib.get_close_matches(str(name), pool, n=1)
+        parts.append(f"{name} (did you mean {close[0]}?)" if close else str(name))
+    return ", ".join(parts)
+
+
+def _as_float(value: Any) -> Any:
+    """Widen ints, and read strings like '1e4' as ROS 2's YAML parser does (PyYAML leaves them str)."""
+    if isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if isinstance(value, str):
+        try:
+            return float(value)
+        except ValueError:
+            return value
+    return value
+
+
+def from_dict(values: dict[str, Any], base: VoConfig | None = None) -> VoConfig:
+    """Build a validated config from ``{name: value}``; unknown names are errors, ints widen to floats."""
+    base = base or VoConfig()
+    known = {f.name: f for f in config_fields()}
+    unknown = sorted(set(values) - set(known))
+    kwargs: dict[str, Any] = {}
+    for name, value in values.items():
+        if name in known and isinstance(known[name].default, float):
+            value = _as_float(value)
+        if name in known:
+            kwargs[name] = value
+    cfg = dataclasses.replace(base, **kwargs)
+    try:
+        validate(cfg)
+    except ConfigError as exc:
+        if unknown:
+            raise ConfigError(f"{exc}; unknown parameters: {unknown_names_text(unknown, PIPELINE_NAMES)}") from None
+        raise
+    if unknown:
+        raise ConfigError("invalid epi_vo parameters: unknown parameters: "
+                          + unknown_names_text(unknown, PIPELINE_NAMES))
+    return cfg

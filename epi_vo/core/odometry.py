@@ -1,0 +1,133 @@
+"""From camera poses to what a robot stack consumes: odom -> base_link poses, twist, covariances.
+
+Frames (REP-103 / REP-105):
+- ``w``: the optical frame of the first camera pose (x right, y down, z forward); the pipeline's frame.
+- ``odom``: the base frame at the first pose (x forward, y left, z up).
+- ``T_base_cam``: the extrinsic, camera optical frame -> base frame (default: the usual optical-frame
+  rotation, zero offset). Then ``T_odom_base = T_base_cam @ T_w_c @ inv(T_base_cam)``, since at the
+  first frame ``T_w_c = I`` and base sits where it was.
+Covariances are 6x6 over (x, y, z, rot_x, rot_y, rot_z), the ROS order. Numpy only; the node and the
+replay both use this module so that the same bag gives the same odometry live and offline.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from epi_vo.core.transforms import invert_T, make_T, quat_xyzw_from_rotation
+
+F64 = NDArray[np.float64]
+
+# Optical frame (x right, y down, z forward) expressed in a body frame (x forward, y left, z up).
+R_BASE_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+# Reported for twist when no motion estimate justifies it (finite, never 1e308: consumers square it).
+_UNKNOWN_TWIST_VARIANCE = 1.0e4
+
+
+def default_T_base_cam() -> F64:
+    return make_T(R_BASE_OPTICAL, np.zeros(3))
+
+
+def T_base_cam_from_params(xyz: list[float] | tuple[float, ...], rpy: list[float] | tuple[float, ...]) -> F64:
+    """Extrinsic from a translation and roll/pitch/yaw (rad, fixed axes X then Y then Z) of the camera
+    *body* frame in base; the optical rotation is appended, as for a URDF ``camera_optical_frame``."""
+    r, p, y = rpy
+    cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
+    R_base_body = np.array([
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ])
+    return make_T(R_base_body @ R_BASE_OPTICAL, np.asarray(xyz, dtype=np.float64))
+
+
+def rotate_covariance(cov: F64, R: F64) -> F64:
+    """Express a (position, rotation) covariance in a frame rotated by R (new = R @ old)."""
+    A = np.zeros((6, 6))
+    A[:3, :3] = R
+    A[3:, 3:] = R
+    return A @ cov @ A.T
+
+
+@dataclass(frozen=True)
+class OdometrySample:
+    """One odometry message's content (pose of base in odom, twist of base in base)."""
+
+    stamp_ns: int
+    position: F64
+    quat_xyzw: F64
+    pose_covariance: F64
+    linear_velocity: F64
+    angular_velocity: F64
+    twist_covariance: F64
+
+
+class OdometryConverter:
+    """Turns successive camera poses T_w_c (with covariance) into odom -> base odometry samples."""
+
+    def __init__(self, T_base_cam: F64 | None = None) -> None:
+        self.T_base_cam = default_T_base_cam() if T_base_cam is None else np.asarray(T_base_cam, np.float64)
+        self._T_cam_base = invert_T(self.T_base_cam)
+        self._prev: tuple[int, F64, F64] | None = None  # stamp, T_odom_base, pose covariance
+
+    def reset_twist(self) -> None:
+        """Forget the previous pose (after a time jump) so no twist is differentiated across it."""
+        self._prev = None
+
+    def base_pose(self, T_w_c: F64) -> F64:
+        return self.T_base_cam @ T_w_c @ self._T_cam_base
+
+    def convert(self, stamp_ns: int, T_w_c: F64, cov_w: F64, has_pose: bool) -> OdometrySample:
+        T_odom_base = self.base_pose(T_w_c)
+        R_ob = T_odom_base[:3, :3]
+        cov_odom = rotate_covariance(cov_w, self.T_base_cam[:3, :3])
+        lin, ang = np.zeros(3), np.zeros(3)
+        twist_cov = np.eye(6) * _UNKNOWN_TWIST_VARIANCE
+        if has_pose and self._prev is not None and stamp_ns > self._prev[0]:
+            lin, ang, twist_cov = self._twist(stamp_ns, T_odom_base, cov_odom)
+        if has_pose:
+            self._prev = (stamp_ns, T_odom_base, cov_odom)
+        return OdometrySample(stamp_ns, T_odom_base[:3, 3].copy(), quat_xyzw_from_rotation(R_ob), cov_odom, lin,
+                              ang, twist_cov)
+
+    def _twist(self, stamp_ns: int, T_odom_base: F64, cov_odom: F64) -> tuple[F64, F64, F64]:
+        """Twist in the child frame by differencing with the previous pose; unknown when not finite."""
+        assert self._prev is not None
+        with np.errstate(all="ignore"):
+            dt = (stamp_ns - self._prev[0]) * 1e-9
+            T_prev = self._prev[1]
+            T_prev_cur = invert_T(T_prev) @ T_odom_base  # motion expressed in the previous base frame
+            lin = T_prev_cur[:3, 3] / dt
+            ang = _log_so3(T_prev_cur[:3, :3]) / dt
+            # Twist in the child (base) frame of the current pose.
+            lin = T_prev_cur[:3, :3].T @ lin
+            ang = T_prev_cur[:3, :3].T @ ang
+            # Velocity variance from the pose variance gained over this step (first order): the
+            # accumulated pose covariance grows by the relative motion's covariance each frame.
+            step_var = np.maximum(np.diag(cov_odom) - np.diag(self._prev[2]), 1e-9)
+            twist_cov = np.diag(step_var / (dt * dt))
+            if not (np.all(np.isfinite(lin)) and np.all(np.isfinite(ang)) and np.all(np.isfinite(twist_cov))):
+                # A step too short for the motion (nanoseconds apart): no usable velocity this frame.
+                return np.zeros(3), np.zeros(3), np.eye(6) * _UNKNOWN_TWIST_VARIANCE
+        return lin, ang, twist_cov
+
+
+def _log_so3(R: F64) -> F64:
+    """Rotation vector (axis * angle) of R."""
+    cos_a = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    angle = math.acos(cos_a)
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if angle < 1e-9:
+        return 0.5 * w
+    if math.pi - angle < 1e-6:
+        # Near 180 deg: axis from the largest diagonal entry of (R + I) / 2.
+        B = (R + np.eye(3)) / 2.0
+        k = int(np.argmax(np.diag(B)))
+        axis = B[:, k] / math.sqrt(max(B[k, k], 1e-12))
+        return axis * angle
+    return w * (angle / (2.0 * math.sin(angle)))

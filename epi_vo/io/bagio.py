@@ -1,0 +1,573 @@
+"""Camera bags in: rosbag2 reading through rosbags (no rclpy).
+
+``open_camera_bag`` opens a rosbag2 directory (MCAP or sqlite3 storage) or a bare ``.mcap`` /
+``.db3`` file, picks the image, camera_info and ground-truth topics, and yields ``BagFrame`` records
+in bag order. Messages are rosbags dataclasses; ``epi_vo.io.msgconv`` reads them by field name.
+``CameraTopicsBag`` gives the raw CDR bytes of the same topics (what ``epi-vo play`` republishes).
+Writing results is ``epi_vo.io.outbag``; TUM trajectories ``epi_vo.io.tum``.
+
+Every failure to read as asked is a BagError with a one-line message naming the bag and the reason
+(the rosbags exception is chained, not leaked).
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, NamedTuple, Self
+
+import numpy as np
+from numpy.typing import NDArray
+from rosbags.highlevel import AnyReader, AnyReaderError
+from rosbags.rosbag2 import ReaderError
+from rosbags.serde import SerdeError
+from rosbags.typesys import Stores, get_typestore
+
+from epi_vo.core.errors import BagError, EpiVoError
+from epi_vo.io.msgconv import (
+    clamp_stamp_ns,
+    stamp_problem,
+    stamp_to_ns,
+)
+
+if TYPE_CHECKING:
+    from collections.abc import Iterator
+    from types import TracebackType
+
+    from rosbags.interfaces import Connection
+
+
+logger = logging.getLogger(__name__)
+
+IMAGE_TYPE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"
+CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+POSE_STAMPED_TYPE = "geometry_msgs/msg/PoseStamped"
+ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
+POINT_CLOUD2_TYPE = "sensor_msgs/msg/PointCloud2"
+PATH_TYPE = "nav_msgs/msg/Path"
+DIAGNOSTIC_ARRAY_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
+
+ODOMETRY_TOPIC = "/vo/odometry"
+POINTS_TOPIC = "/vo/points"
+PATH_TOPIC = "/vo/path"
+DIAGNOSTICS_TOPIC = "/diagnostics"
+
+# Message definitions for serialising output and for bags recorded without them (old sqlite3).
+_TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+
+# What rosbags raises for a missing, truncated or corrupt bag (it wraps most parser errors in its own;
+# a metadata.yaml that is not UTF-8, or holds a field of the wrong type, comes out as the builtin errors).
+_READ_ERRORS = (
+    AnyReaderError,
+    ReaderError,
+    SerdeError,
+    OSError,
+    UnicodeDecodeError,
+    KeyError,
+    TypeError,
+    ValueError,
+)
+# What deserialising the CDR bytes of one damaged message can raise (AnyReader.deserialize wraps
+# rosbags' SerdeError in AnyReaderError): that message is bad input, the bag goes on.
+_DECODE_ERRORS = (
+    AnyReaderError,
+    SerdeError,
+    ValueError,
+    TypeError,
+    IndexError,
+    KeyError,
+    AttributeError,
+    OverflowError,
+    struct.error,
+)
+
+
+# --------------------------------------------------------------------------------------------------
+# Reading
+
+
+@dataclass(frozen=True)
+class BagFrame:
+    """One image of the bag with its calibration message.
+
+    ``index`` counts image messages from 0 in bag order (every message read, also one that cannot be
+    decoded); ``stamp_ns`` is the image header stamp; ``camera_info_msg`` is the associated CameraInfo
+    (see ``CameraBag.camera_info_for``) or None when the camera_info topic holds no message.
+
+    ``problem`` says why the frame cannot be used whatever its pixels (None when it can): its CDR
+    bytes cannot be decoded (``image_msg`` is then None) or its header stamp is not a valid ROS time.
+    ``stamp_ns`` is then a valid ROS time to file the frame under: the header stamp clamped into
+    [0, 2**31 s), or, when there is no header, the message's log time (clamped the same way).
+    """
+
+    index: int
+    stamp_ns: int
+    image_msg: Any
+    camera_info_msg: Any | None
+    problem: str | None = None
+    log_time_ns: int = 0
+
+
+@dataclass(frozen=True, eq=False)
+class GroundTruth:
+    """Ground-truth poses ``T_parent_child`` from a PoseStamped or Odometry topic, sorted by stamp.
+
+    ``positions`` (N, 3) is the child origin in the parent frame ``frame_id`` (header.frame_id),
+    ``quats_xyzw`` (N, 4) the child orientation in that frame, ``stamps_ns`` (N,) the header stamps.
+    Arrays are read-only.
+    """
+
+    topic: str
+    frame_id: str
+    stamps_ns: NDArray[np.int64]
+    positions: NDArray[np.float64]
+    quats_xyzw: NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class _TopicKind:
+    label: str  # for messages: 'sensor_msgs/Image or CompressedImage'
+    msgtypes: frozenset[str]
+    flag: str  # command-line flag that chooses the topic
+
+
+_IMAGE_KIND = _TopicKind(
+    "sensor_msgs/Image or CompressedImage",
+    frozenset({IMAGE_TYPE, COMPRESSED_IMAGE_TYPE}),
+    "--image-topic",
+)
+_CAMERA_INFO_KIND = _TopicKind(
+    "sensor_msgs/CameraInfo", frozenset({CAMERA_INFO_TYPE}), "--camera-info-topic"
+)
+_GT_KIND = _TopicKind(
+    "geometry_msgs/PoseStamped or nav_msgs/Odometry",
+    frozenset({POSE_STAMPED_TYPE, ODOMETRY_TYPE}),
+    "--gt-topic",
+)
+
+
+def _describe_topics(topic_types: dict[str, str | None]) -> str:
+    if not topic_types:
+        return "(none)"
+    return ", ".join(
+        f"{name} ({msgtype or 'mixed types'})" for name, msgtype in topic_types.items()
+    )
+
+
+def _camera_namespace(topic: str) -> str:
+    """'/cam0/image_raw', '/cam0/image_raw/compressed' and '/cam0/camera_info' all give '/cam0'."""
+    topic = topic.rstrip("/")
+    topic = topic.removesuffix("/compressed")
+    return topic.rsplit("/", 1)[0]
+
+
+def _choose_topic(
+    topic_types: dict[str, str | None],
+    kind: _TopicKind,
+    explicit: str | None,
+    sibling_of: str | None = None,
+) -> str | None:
+    """The topic of ``kind``: ``explicit`` if given, else the only candidate; None if none.
+
+    With several candidates and ``sibling_of`` set, the single candidate in the same namespace is
+    taken (image_transport pairs '/cam0/image_raw' with '/cam0/camera_info'); otherwise BagError
+    lists them.
+    """
+    if explicit is not None:
+        if explicit not in topic_types:
+            msg = (
+                f"{kind.flag} {explicit!r} is not in the bag; "
+                f"topics: {_describe_topics(topic_types)}"
+            )
+            raise BagError(msg)
+        if topic_types[explicit] not in kind.msgtypes:
+            msg = (
+                f"{kind.flag} {explicit!r} has type {topic_types[explicit]}, expected {kind.label}"
+            )
+            raise BagError(msg)
+        return explicit
+
+    candidates = [name for name, msgtype in topic_types.items() if msgtype in kind.msgtypes]
+    if len(candidates) <= 1:
+        return candidates[0] if candidates else None
+    if sibling_of is not None:
+        siblings = [x for x in candidates if _camera_namespace(x) == _camera_namespace(sibling_of)]
+        if len(siblings) == 1:
+            return siblings[0]
+    msg = (
+        f"bag has several {kind.label} topics: {', '.join(candidates)}; choose one with {kind.flag}"
+    )
+    raise BagError(msg)
+
+
+def _required_topic(
+    topic_types: dict[str, str | None],
+    kind: _TopicKind,
+    explicit: str | None,
+    sibling_of: str | None = None,
+) -> str:
+    """``_choose_topic`` for a kind the bag must have."""
+    topic = _choose_topic(topic_types, kind, explicit, sibling_of)
+    if topic is None:
+        msg = f"bag has no {kind.label} topic; topics: {_describe_topics(topic_types)}"
+        raise BagError(msg)
+    return topic
+
+
+def _message_count(path: Path, topics: Any, topic: str) -> int:
+    """The message count the bag announces for ``topic``; BagError when its metadata says no number."""
+    try:
+        count = topics[topic].msgcount
+        return int(count)
+    except (*_READ_ERRORS, AttributeError) as err:
+        msg = f"bag {path} has malformed metadata: message count of {topic}: {err}"
+        raise BagError(msg) from err
+
+
+def _check_metadata_text(path: Path) -> None:
+    """A bag directory's metadata.yaml must be UTF-8 text (rosbags would raise UnicodeDecodeError)."""
+    metadata = path / "metadata.yaml"
+    try:
+        metadata.read_bytes().decode("utf-8")
+    except OSError as err:
+        msg = f"cannot read {metadata}: {err.strerror or err}"
+        raise BagError(msg) from err
+    except UnicodeDecodeError as err:
+        msg = (
+            f"{metadata} is not UTF-8 text (byte 0x{err.object[err.start]:02x} at offset "
+            f"{err.start}): not a rosbag2 metadata file"
+        )
+        raise BagError(msg) from None
+
+
+class CameraBag:
+    """An open camera bag: chosen topics, frame count, frames and ground truth.
+
+    Create it with ``open_camera_bag``; close it with ``close()`` or use it in a ``with`` block.
+    """
+
+    def __init__(
+        self,
+        path: Path,
+        reader: AnyReader,
+        image_topic: str,
+        camera_info_topic: str,
+        gt_topic: str | None,
+    ) -> None:
+        """Wrap an open ``reader``; reads all camera_info messages (they are small) right away."""
+        self.path = path
+        self.image_topic = image_topic
+        self.camera_info_topic = camera_info_topic
+        self.gt_topic = gt_topic
+        self._reader: AnyReader | None = reader
+        topics = reader.topics
+        self._connections: dict[str, list[Connection]] = {
+            name: list(topics[name].connections)
+            for name in (image_topic, camera_info_topic, gt_topic)
+            if name is not None
+        }
+        self.image_is_compressed = topics[image_topic].msgtype == COMPRESSED_IMAGE_TYPE
+        self.frame_count = _message_count(path, topics, image_topic)
+        # Messages of the camera_info and ground-truth topics that could not be decoded (skipped),
+        # one line each; images that cannot be decoded are frames with a problem instead.
+        self.problems: list[str] = []
+
+        camera_infos = []
+        for log_time_ns, msg, problem in self._read(camera_info_topic):
+            if msg is None:
+                self._skipped(f"camera_info message at log time {log_time_ns} ns skipped: it {problem}")
+                continue
+            try:
+                camera_infos.append((stamp_to_ns(msg.header.stamp), msg))
+            except EpiVoError as err:
+                self._skipped(f"camera_info message at log time {log_time_ns} ns skipped: {err}")
+        # Stable sort by header stamp: among equal stamps the last one is the latest recorded.
+        camera_infos.sort(key=lambda item: item[0])
+        self._camera_info_stamps_ns = [stamp for stamp, _ in camera_infos]
+        self._camera_info_msgs = [msg for _, msg in camera_infos]
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc_val: BaseException | None,
+        exc_tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the underlying reader; calling it again does nothing."""
+        reader, self._reader = self._reader, None
+        if reader is not None:
+            reader.close()
+
+    def _skipped(self, problem: str) -> None:
+        logger.warning("bag %s: %s", self.path, problem)
+        self.problems.append(problem)
+
+    def _read(self, topic: str) -> Iterator[tuple[int, Any | None, str | None]]:
+        """(log time ns, deserialised message, None) of ``topic`` in bag order.
+
+        A message whose CDR bytes cannot be deserialised gives (log time, None, the reason) and reading
+        goes on; a bag that cannot be read further (truncated, damaged record) raises BagError.
+        """
+        if self._reader is None:
+            msg = f"bag {self.path} is closed"
+            raise BagError(msg)
+        reader = self._reader
+        try:
+            for connection, log_time_ns, rawdata in reader.messages(self._connections[topic]):
+                try:
+                    message = reader.deserialize(rawdata, connection.msgtype)
+                except _DECODE_ERRORS as err:
+                    reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+                    yield (
+                        int(log_time_ns),
+                        None,
+                        f"cannot be decoded: its {len(rawdata)} bytes of CDR are no valid "
+                        f"{connection.msgtype} ({reason})",
+                    )
+                    continue
+                yield int(log_time_ns), message, None
+        except _READ_ERRORS as err:
+            msg = f"cannot read {topic} from bag {self.path}: {err}"
+            raise BagError(msg) from err
+
+    def camera_info_for(self, stamp_ns: int) -> Any | None:
+        """CameraInfo for an image stamped ``stamp_ns``.
+
+        The one with exactly that header stamp, else the latest with stamp <= ``stamp_ns``, else
+        (info recorded only after the first images) the earliest; None when the topic is empty.
+        """
+        if not self._camera_info_msgs:
+            return None
+        # bisect_right lands after every stamp <= stamp_ns, so an exact match is the one taken.
+        position = bisect.bisect_right(self._camera_info_stamps_ns, stamp_ns)
+        return self._camera_info_msgs[max(position - 1, 0)]
+
+    def iter_frames(self) -> Iterator[BagFrame]:
+        """Images in bag order, each with ``camera_info_for`` its header stamp.
+
+        Every image message read gives a frame: one that cannot be decoded, or whose header stamp is
+        no valid ROS time, comes with its ``problem`` (see :class:`BagFrame`).
+        """
+        for index, (log_time_ns, image_msg, problem) in enumerate(self._read(self.image_topic)):
+            if image_msg is None:
+                stamp_ns = clamp_stamp_ns(log_time_ns)
+                problem = f"image message {problem}"
+                yield BagFrame(index, stamp_ns, None, None, problem, log_time_ns)
+                continue
+            stamp = getattr(getattr(image_msg, "header", None), "stamp", None)
+            bad_stamp = stamp_problem(stamp)
+            if bad_stamp is None:
+                stamp_ns = stamp_to_ns(stamp)
+            else:
+                try:
+                    stamp_ns = clamp_stamp_ns(stamp_to_ns(stamp))
+                except EpiVoError:
+                    stamp_ns = clamp_stamp_ns(log_time_ns)
+                problem = f"image {bad_stamp}"
+            yield BagFrame(
+                index, stamp_ns, image_msg, self.camera_info_for(stamp_ns), problem, log_time_ns
+            )
+
+    def read_ground_truth(self) -> GroundTruth | None:
+        """Poses of the ground-truth topic sorted by header stamp, or None when the bag has none."""
+        if self.gt_topic is None:
+            return None
+        stamps_ns: list[int] = []
+        positions: list[tuple[float, float, float]] = []
+        quats_xyzw: list[tuple[float, float, float, float]] = []
+        frame_id = ""
+        for log_time_ns, msg, problem in self._read(self.gt_topic):
+            if msg is None:
+                self._skipped(
+                    f"ground-truth message on {self.gt_topic} at log time {log_time_ns} ns skipped: "
+                    f"it {problem}"
+                )
+                continue
+            # PoseStamped has pose.position; Odometry has pose.pose.position (PoseWithCovariance).
+            pose = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose
+            stamps_ns.append(stamp_to_ns(msg.header.stamp))
+            positions.append((pose.position.x, pose.position.y, pose.position.z))
+            o = pose.orientation
+            quats_xyzw.append((o.x, o.y, o.z, o.w))
+            frame_id = frame_id or str(msg.header.frame_id)
+        order = np.argsort(np.asarray(stamps_ns, dtype=np.int64), kind="stable")
+        arrays = (
+            np.asarray(stamps_ns, dtype=np.int64)[order],
+            np.asarray(positions, dtype=np.float64).reshape(-1, 3)[order],
+            np.asarray(quats_xyzw, dtype=np.float64).reshape(-1, 4)[order],
+        )
+        for array in arrays:
+            array.setflags(write=False)
+        return GroundTruth(self.gt_topic, frame_id, *arrays)
+
+
+def open_camera_bag(
+    path: str | Path,
+    image_topic: str | None = None,
+    camera_info_topic: str | None = None,
+    gt_topic: str | None = None,
+) -> CameraBag:
+    """Open a camera bag and choose its topics.
+
+    ``path`` is a rosbag2 directory (metadata.yaml, MCAP or sqlite3 storage) or a single ``.mcap``
+    or ``.db3`` file. Topics not given are discovered by type: images are sensor_msgs/Image or
+    CompressedImage, calibration sensor_msgs/CameraInfo, ground truth geometry_msgs/PoseStamped or
+    nav_msgs/Odometry (optional). A kind with exactly one topic is taken; with several, a
+    camera_info in the image topic's namespace is taken, anything else is a BagError naming the
+    candidates and the flag that chooses. A given topic must exist with a matching type.
+
+    Raises BagError for a missing path, a non-bag, an unreadable or truncated file, an empty bag, a
+    missing image or camera_info topic, an image topic without messages and ambiguous topics.
+    """
+    path = Path(path)
+    if not path.exists():
+        msg = f"bag not found: {path}"
+        raise BagError(msg)
+    if path.is_dir() and not (path / "metadata.yaml").exists():
+        files = sorted(x.name for x in path.iterdir() if x.suffix in {".mcap", ".db3"})
+        hint = f"; to read a file in it, pass its path: {', '.join(files)}" if files else ""
+        msg = f"{path} is a directory without metadata.yaml, not a rosbag2 bag{hint}"
+        raise BagError(msg)
+    if path.is_file() and path.suffix not in {".mcap", ".db3"}:
+        msg = f"{path} is not a rosbag2 bag: expected a bag directory, a .mcap or a .db3 file"
+        raise BagError(msg)
+    if path.is_dir():
+        _check_metadata_text(path)
+
+    try:
+        reader = AnyReader([path], default_typestore=_TYPESTORE)
+        reader.open()
+    except _READ_ERRORS as err:
+        msg = f"cannot open bag {path}: {err}"
+        raise BagError(msg) from err
+
+    try:
+        try:
+            # rosbags parses the metadata lazily: a field of the wrong type surfaces here.
+            message_count = int(reader.message_count)
+            topic_types = {name: info.msgtype for name, info in reader.topics.items()}
+        except (*_READ_ERRORS, AttributeError) as err:
+            msg = f"bag {path} has malformed metadata: {err}"
+            raise BagError(msg) from err
+        if message_count == 0:
+            msg = f"bag {path} is empty (no messages)"
+            raise BagError(msg)
+        chosen_image = _required_topic(topic_types, _IMAGE_KIND, image_topic)
+        if _message_count(path, reader.topics, chosen_image) == 0:
+            msg = f"image topic {chosen_image} in bag {path} has no messages"
+            raise BagError(msg)
+        chosen_info = _required_topic(
+            topic_types, _CAMERA_INFO_KIND, camera_info_topic, sibling_of=chosen_image
+        )
+        chosen_gt = _choose_topic(topic_types, _GT_KIND, gt_topic)
+        bag = CameraBag(path, reader, chosen_image, chosen_info, chosen_gt)
+    except BaseException:
+        reader.close()
+        raise
+    logger.info(
+        "bag %s: %d frames on %s, camera_info %s, ground truth %s",
+        path,
+        bag.frame_count,
+        bag.image_topic,
+        bag.camera_info_topic,
+        bag.gt_topic or "(none)",
+    )
+    return bag
+
+
+class BagMessage(NamedTuple):
+    """One recorded message: log time (ns), bag topic, raw CDR bytes as stored."""
+
+    log_time_ns: int
+    topic: str
+    rawdata: bytes
+
+
+class CameraTopicsBag:
+    """A rosbag2 bag opened for playing its image and camera_info topics: raw CDR bytes, no
+    deserialisation (``epi-vo play`` republishes them as they are).
+
+    Raises BagError (one line, naming the bag) for a missing path, a bag that cannot be opened, a
+    ROS 1 bag, and missing, empty or ambiguous topics.
+    """
+
+    def __init__(self, path: str | Path, image_topic: str | None = None,
+                 camera_info_topic: str | None = None) -> None:
+        self.path = Path(path)
+        if not self.path.exists():
+            msg = f"bag not found: {self.path}"
+            raise BagError(msg)
+        try:
+            reader = AnyReader([self.path], default_typestore=_TYPESTORE)
+            reader.open()
+        except _READ_ERRORS as err:
+            msg = f"cannot open bag {self.path}: {err}"
+            raise BagError(msg) from err
+        self._reader: AnyReader | None = reader
+        try:
+            if not reader.is2:
+                msg = f"{self.path} is a ROS 1 bag; play publishes ROS 2 (rosbag2, CDR) bags only"
+                raise BagError(msg)
+            topic_types = {name: info.msgtype for name, info in reader.topics.items()}
+            self.image_topic = _required_topic(topic_types, _IMAGE_KIND, image_topic)
+            self.camera_info_topic = _required_topic(topic_types, _CAMERA_INFO_KIND, camera_info_topic,
+                                                     sibling_of=self.image_topic)
+            self.image_count = int(reader.topics[self.image_topic].msgcount)
+            if self.image_count == 0:
+                msg = f"image topic {self.image_topic} in bag {self.path} has no messages"
+                raise BagError(msg)
+            self.camera_info_count = int(reader.topics[self.camera_info_topic].msgcount)
+            self.image_msgtype = str(topic_types[self.image_topic])
+            self._connections = [c for c in reader.connections
+                                 if c.topic in (self.image_topic, self.camera_info_topic)]
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def image_is_compressed(self) -> bool:
+        return self.image_msgtype == COMPRESSED_IMAGE_TYPE
+
+    def msgtype(self, topic: str) -> str:
+        """ROS type name ('sensor_msgs/msg/CameraInfo') of a chosen topic."""
+        return CAMERA_INFO_TYPE if topic == self.camera_info_topic else self.image_msgtype
+
+    def messages(self) -> Iterator[BagMessage]:
+        """Image and camera_info messages in bag (log time) order; each call starts from the beginning."""
+        if self._reader is None:
+            msg = f"bag {self.path} is closed"
+            raise BagError(msg)
+        try:
+            for connection, log_time_ns, rawdata in self._reader.messages(self._connections):
+                yield BagMessage(int(log_time_ns), connection.topic, bytes(rawdata))
+        except _READ_ERRORS as err:
+            msg = f"cannot read bag {self.path}: {err}"
+            raise BagError(msg) from err
+
+    def close(self) -> None:
+        """Close the reader; calling it again does nothing."""
+        reader, self._reader = self._reader, None
+        if reader is not None:
+            reader.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc_val: BaseException | None,
+                 exc_tb: TracebackType | None) -> None:
+        self.close()
+
+
+def to_cdr(msg: Any) -> bytes:
+    """The CDR bytes of a message read from a bag (a rosbags dataclass), e.g. to hand it to rclpy's
+    ``deserialize_message``."""
+    return bytes(_TYPESTORE.serialize_cdr(msg, msg.__msgtype__))

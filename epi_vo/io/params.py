@@ -1,0 +1,84 @@
+"""ROS 2 parameter files: read the ``ros__parameters`` of ``vo_node`` (or ``/**``) into a ``VoConfig``,
+and write a config back as such a file (``epi-vo params``).
+
+Every name in a file must be a parameter: a pipeline knob, a node option or a ROS node parameter
+(``epi_vo.core.config``); any other is an error naming it with the closest parameter name.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from epi_vo.core.config import (
+    PIPELINE_NAMES,
+    VoConfig,
+    config_fields,
+    field_doc,
+    from_dict,
+    is_parameter_name,
+    unknown_names_text,
+)
+from epi_vo.core.errors import ConfigError
+
+
+def load_params_file(path: str | Path, node_name: str = "vo_node") -> dict[str, Any]:
+    """Read the ``ros__parameters`` of a ROS 2 parameter file (``/**`` or the node's own key).
+
+    Returns every parameter found (pipeline and node parameters alike); the caller splits them.
+    """
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_bytes().decode("utf-8"))
+    except OSError as exc:
+        raise ConfigError(f"cannot read parameter file {path}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"parameter file {path} is not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset "
+                          f"{exc.start})") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"parameter file {path} is not valid YAML: {' '.join(str(exc).split())}") from None
+    if not isinstance(doc, dict):
+        raise ConfigError(f"parameter file {path}: expected a mapping of node names to ros__parameters")
+    params: dict[str, Any] = {}
+    for key in ("/**", node_name, f"/{node_name}"):
+        block = doc.get(key)
+        if isinstance(block, dict) and isinstance(block.get("ros__parameters"), dict):
+            params.update(block["ros__parameters"])
+    if not params and doc:
+        raise ConfigError(f"parameter file {path}: no '/**' or '{node_name}' block with ros__parameters")
+    return params
+
+
+def load_config(path: str | Path | None = None) -> VoConfig:
+    """The pipeline config from a ROS 2 parameter file.
+
+    The node's own parameters and the ROS ones (``NODE_PARAMETER_NAMES``, ``ROS_PARAMETER_NAMES``) are
+    accepted and ignored; any other name that is not a pipeline knob is an error naming it (with the
+    closest parameter name), reported together with every bad value.
+    """
+    if path is None:
+        return VoConfig()
+    params = load_params_file(path)
+    unknown = [k for k in params if not is_parameter_name(k)]
+    unknown_text = f"unknown parameters: {unknown_names_text(unknown)}" if unknown else ""
+    try:
+        cfg = from_dict({k: v for k, v in params.items() if k in PIPELINE_NAMES})
+    except ConfigError as exc:
+        raise ConfigError(f"parameter file {path}: {exc}" + (f"; {unknown_text}" if unknown else "")) from None
+    if unknown:
+        raise ConfigError(f"parameter file {path}: invalid epi_vo parameters: {unknown_text}")
+    return cfg
+
+
+def to_params_yaml(cfg: VoConfig, extra: dict[str, Any] | None = None) -> str:
+    """The config as a ROS 2 parameter file (``/**: ros__parameters:``) with doc comments."""
+    lines = ["/**:", "  ros__parameters:"]
+    for f in config_fields():
+        lines.append(f"    # {field_doc(f)}")
+        lines.append(f"    {f.name}: {yaml.safe_dump(getattr(cfg, f.name), default_flow_style=True).strip()}"
+                     .replace("\n...", ""))
+    for name, value in (extra or {}).items():
+        lines.append(f"    {name}: {yaml.safe_dump(value, default_flow_style=True).strip()}".replace("\n...", ""))
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,362 @@
+"""``epi-vo monitor``: a live terminal view of a running ``vo_node``, from ``/diagnostics`` and its odometry.
+
+Two parts, as the node / pipeline split:
+
+- :class:`MonitorState` is an immutable snapshot with no rclpy: ``update_from_status`` and
+  ``update_from_odometry`` return a new state, ``render_text`` gives the text shown by ``--once``, by
+  non-TTY output and inside the live panel. Tests feed it plain values.
+- :func:`run` owns rclpy: it subscribes to ``/diagnostics`` (statuses named ``<node name>: tracking``,
+  published by the node once per frame and by its watchdog) and to the odometry topic (relative, so
+  it follows the user's namespace), and shows the state with ``rich.live`` on a terminal, as plain
+  snapshots once a second otherwise.
+
+DDS settings (ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE) come from the user's environment: this is
+a user tool, it does not force loopback discovery.
+
+Distance travelled is the sum of the odometry position steps, in VO units (the scale of the map built
+at initialisation: a monocular VO has no metric scale of its own).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import importlib.util
+import math
+import os
+import re
+import signal
+import sys
+import threading
+import time
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from types import FrameType, MappingProxyType
+from typing import Any
+
+from epi_vo.core.diagnostics import DiagnosticLevel
+
+STATUS_SUFFIX = ": tracking"
+HISTORY_LENGTH = 8  # distinct warning/error reasons kept
+SILENT_AFTER_S = 3.0  # no status for this long: the node (not only its camera) may be gone
+_NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?")
+
+
+def level_value(level: int | bytes | bytearray) -> int:
+    """``DiagnosticStatus.level`` as an int (rclpy gives a 1-byte ``bytes``)."""
+    if isinstance(level, bytes | bytearray):
+        return level[0] if level else 0
+    return int(level)
+
+
+def level_name(level: int) -> str:
+    """OK / WARN / ERROR / STALE; an unknown value is shown, not refused (the monitor reads others' data)."""
+    try:
+        return DiagnosticLevel(level).name
+    except ValueError:
+        return f"LEVEL {level}"
+
+
+def is_vo_status(name: str, node_name: str | None = None) -> bool:
+    """Whether a status name is a VO tracking status, of ``node_name`` when given.
+
+    The node names its status after ``get_name()``, without namespace, so ``/robot1/vo_node`` matches
+    ``vo_node: tracking``.
+    """
+    if not name.endswith(STATUS_SUFFIX):
+        return False
+    return node_name is None or name == node_name.rstrip("/").rsplit("/", 1)[-1] + STATUS_SUFFIX
+
+
+def reason_key(message: str) -> str:
+    """Warnings that differ only in their numbers ('no image for 1.5 s', '... 2.0 s') are one reason."""
+    return _NUMBER.sub("#", message)
+
+
+@dataclass(frozen=True)
+class HistoryEntry:
+    """One distinct warning/error reason: its latest wording and level, how often and when last seen."""
+
+    key: str
+    message: str
+    level: int
+    count: int
+    first_s: float
+    last_s: float
+
+
+@dataclass(frozen=True)
+class MonitorState:
+    """What the monitor knows of one VO node. Immutable: the ``update_*`` methods return a new state.
+
+    ``frame`` holds the key/values of the latest per-frame status (the frame record: state, inliers,
+    model, ...); ``latest`` those of the latest status of any kind (a watchdog or problem status carries
+    only the input figures), so the input rate and image age stay current while the last frame's
+    numbers stay on screen. Times are wall-clock seconds (``time.time()``).
+    """
+
+    node_name: str | None = None  # follow only '<node_name>: tracking'; None: the first VO status seen
+    source: str | None = None  # the status name followed
+    hardware_id: str = ""
+    level: int = -1  # -1: no status yet
+    message: str = ""
+    latest: Mapping[str, str] = dataclasses.field(default_factory=lambda: MappingProxyType({}))
+    frame: Mapping[str, str] = dataclasses.field(default_factory=lambda: MappingProxyType({}))
+    n_statuses: int = 0
+    status_s: float = math.nan
+    frame_s: float = math.nan
+    other_sources: frozenset[str] = frozenset()
+    history: tuple[HistoryEntry, ...] = ()  # most recent first
+    distance: float = 0.0
+    position: tuple[float, float, float] | None = None
+    n_odometry: int = 0
+    odometry_s: float = math.nan
+
+    @property
+    def has_status(self) -> bool:
+        return self.n_statuses > 0
+
+    def update_from_status(self, name: str, level: int | bytes | bytearray, message: str,
+                           values: Mapping[str, str] | Iterable[tuple[str, str]], now_s: float,
+                           hardware_id: str = "") -> MonitorState:
+        """Fold in one ``DiagnosticStatus``; statuses that are not this VO's are only noted by name."""
+        if not is_vo_status(name, self.node_name):
+            return self
+        if self.source is not None and name != self.source:
+            return dataclasses.replace(self, other_sources=self.other_sources | {name})
+        kv = MappingProxyType({str(k): str(v) for k, v in (values.items() if isinstance(values, Mapping)
+                                                           else values)})
+        lvl = level_value(level)
+        is_frame = "state" in kv  # per-frame statuses carry the frame record; watchdog/problem ones do not
+        history = self.history
+        if lvl >= DiagnosticLevel.WARN:
+            history = _add_history(history, message, lvl, now_s)
+        return dataclasses.replace(
+            self, source=name, hardware_id=hardware_id, level=lvl, message=message, latest=kv,
+            frame=kv if is_frame else self.frame, n_statuses=self.n_statuses + 1, status_s=now_s,
+            frame_s=now_s if is_frame else self.frame_s, history=history)
+
+    def update_from_odometry(self, position: Iterable[float], now_s: float) -> MonitorState:
+        """Fold in one odometry position (x, y, z in the odometry frame); the step length adds to the distance."""
+        p = tuple(float(v) for v in position)
+        if len(p) != 3 or not all(math.isfinite(v) for v in p):
+            return self  # a broken message must not poison the sum
+        step = math.dist(p, self.position) if self.position is not None else 0.0
+        return dataclasses.replace(self, position=(p[0], p[1], p[2]), distance=self.distance + step,
+                                   n_odometry=self.n_odometry + 1, odometry_s=now_s)
+
+    def render_text(self, now_s: float | None = None) -> str:
+        """The snapshot as plain text. ``now_s`` (wall clock) dates the ages; default: the latest update."""
+        if now_s is None:
+            known = [t for t in (self.status_s, self.odometry_s) if math.isfinite(t)]
+            now_s = max(known) if known else 0.0
+        if not self.has_status:
+            who = f"'{self.node_name}{STATUS_SUFFIX}'" if self.node_name else f"'<node>{STATUS_SUFFIX}'"
+            return f"waiting for a VO status {who} on /diagnostics ..."
+        f, lt = self.frame, self.latest
+        lines = [f"{self.source}" + (f"  (hardware {self.hardware_id})" if self.hardware_id else "")]
+        age = now_s - self.status_s
+        if age >= SILENT_AFTER_S:
+            lines.append(f"  !! no status for {age:.1f} s: is the node still running?")
+        lines.append(f"  level       {level_name(self.level)}")
+        lines.append(f"  reason      {self.message or 'n/a'}")
+        state = f.get("state", "n/a")
+        frame_line = f"  state       {state}  frame {_int(f, 'index')}  stamp {_float(f, 'stamp', 3)}"
+        if f and self.frame_s < self.status_s:
+            frame_line += f"  (last frame {now_s - self.frame_s:.1f} s ago)"
+        lines.append(frame_line)
+        lines.append(f"  input       {_float(lt, 'input_rate_hz', 1, ' Hz')}  received {_int(lt, 'frames_received')}"
+                     f"  dropped {_int(lt, 'dropped_frames')}  queue {_int(lt, 'queue_depth')}"
+                     f"  last image {_float(lt, 'time_since_last_image_s', 2, ' s ago')}")
+        lines.append(f"  latency     {_float(lt, 'latency_ms', 1, ' ms')}")
+        lines.append(f"  matches     features {_int(f, 'n_features')}  tracked {_int(f, 'n_tracked')}"
+                     f"  inliers {_int(f, 'n_inliers')}  inlier ratio {_float(f, 'inlier_ratio', 3)}")
+        lines.append(f"  model       {f.get('model', 'n/a')}  RH {_float(f, 'rh', 3)}"
+                     f"  parallax {_float(f, 'median_parallax_deg', 2, ' deg')}")
+        lines.append(f"  map         keyframes {_int(f, 'n_keyframes')}  triangulated {_int(f, 'n_triangulated')}"
+                     f"  reproj {_float(f, 'median_reproj_err_px', 2, ' px')}"
+                     f"  depth>0 {_float(f, 'positive_depth_ratio', 2)}")
+        pos = " ".join(f"{v:.3f}" for v in self.position) if self.position is not None else "n/a"
+        lines.append(f"  odometry    distance {self.distance:.3f} (VO units)  position {pos}"
+                     f"  messages {self.n_odometry}")
+        lines.append(f"  updated     {_clock(self.status_s)}  ({age:.1f} s ago)  statuses {self.n_statuses}")
+        if self.other_sources:
+            lines.append(f"  also seen   {', '.join(sorted(self.other_sources))} (choose with --node-name)")
+        lines.append(f"recent warnings/errors (last {HISTORY_LENGTH} reasons)")
+        if not self.history:
+            lines.append("  none")
+        for h in self.history:
+            lines.append(f"  {level_name(h.level):<5}  x{h.count:<5} {h.message}   last {_clock(h.last_s)}"
+                         f" ({now_s - h.last_s:.1f} s ago)")
+        return "\n".join(lines)
+
+
+def _add_history(history: tuple[HistoryEntry, ...], message: str, level: int,
+                 now_s: float) -> tuple[HistoryEntry, ...]:
+    key = reason_key(message)
+    old = next((h for h in history if h.key == key), None)
+    entry = HistoryEntry(key, message, level, 1, now_s, now_s) if old is None else \
+        dataclasses.replace(old, message=message, level=level, count=old.count + 1, last_s=now_s)
+    rest = tuple(h for h in history if h.key != key)
+    return (entry, *rest)[:HISTORY_LENGTH]
+
+
+def _number(values: Mapping[str, str], key: str) -> float | None:
+    """A key/value as a finite float; missing, 'None' (a non-finite record value) and 'nan' give None."""
+    try:
+        v = float(values[key])
+    except (KeyError, ValueError):
+        return None
+    return v if math.isfinite(v) else None
+
+
+def _float(values: Mapping[str, str], key: str, digits: int, unit: str = "") -> str:
+    v = _number(values, key)
+    return "n/a" if v is None else f"{v:.{digits}f}{unit}"
+
+
+def _int(values: Mapping[str, str], key: str) -> str:
+    v = _number(values, key)
+    return "n/a" if v is None else str(round(v))
+
+
+def _clock(t: float) -> str:
+    return time.strftime("%H:%M:%S", time.localtime(t)) if math.isfinite(t) else "n/a"
+
+
+# -- display -----------------------------------------------------------------------------------------------
+_LEVEL_STYLES = {"OK": "bold green", "WARN": "bold yellow", "ERROR": "bold red", "STALE": "bold magenta"}
+
+
+def _rich_view(state: MonitorState, now_s: float) -> Any:
+    """The snapshot text in a panel, level words coloured and the border in the colour of the level."""
+    from rich.panel import Panel
+    from rich.text import Text
+
+    text = Text(state.render_text(now_s))
+    for name, style in _LEVEL_STYLES.items():
+        text.highlight_regex(rf"(?<![\w-]){name}(?![\w-])", style)
+    text.highlight_regex(r"!!.*", "bold red")
+    border = _LEVEL_STYLES.get(level_name(state.level), "blue").removeprefix("bold ")
+    return Panel(text, title="epi-vo monitor", subtitle="Ctrl-C to quit", border_style=border, expand=False)
+
+
+def _timeout_message(args: argparse.Namespace) -> str:
+    who = f"'{args.node_name}{STATUS_SUFFIX}'" if args.node_name else f"'<node>{STATUS_SUFFIX}'"
+    domain = os.environ.get("ROS_DOMAIN_ID", "unset (0)")
+    discovery = os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "unset")
+    return (f"epi-vo monitor: no VO status {who} on /diagnostics within {args.timeout:g} s "
+            f"(ROS_DOMAIN_ID={domain}, ROS_AUTOMATIC_DISCOVERY_RANGE={discovery}); is vo_node running?")
+
+
+class _Subscriber:
+    """The rclpy side: a node whose callbacks replace ``self.state`` (read by the display thread as a whole)."""
+
+    def __init__(self, context: Any, args: argparse.Namespace) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
+        from nav_msgs.msg import Odometry
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+        self.state = MonitorState(node_name=args.node_name)
+        # Several monitors may run at once: a unique node name avoids the duplicate-name warning.
+        self.node = Node(f"epi_vo_monitor_{os.getpid()}", context=context)
+        # Reliable and deep, like the node's publishers: the warning counts should not miss statuses.
+        qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, qos)
+        self.node.create_subscription(Odometry, args.odometry_topic, self._on_odometry, qos)
+        self.executor = SingleThreadedExecutor(context=context)
+        self.executor.add_node(self.node)
+
+    def _on_diagnostics(self, msg: Any) -> None:
+        state, now = self.state, time.time()
+        for s in msg.status:
+            state = state.update_from_status(s.name, s.level, s.message, [(kv.key, kv.value) for kv in s.values],
+                                             now, s.hardware_id)
+        self.state = state
+
+    def _on_odometry(self, msg: Any) -> None:
+        p = msg.pose.pose.position
+        self.state = self.state.update_from_odometry((p.x, p.y, p.z), time.time())
+
+    def spin_until(self, predicate: Any, deadline: float, step_s: float = 0.1) -> bool:
+        """Spin until ``predicate()`` (True) or the monotonic ``deadline`` (False)."""
+        while not predicate():
+            if time.monotonic() >= deadline:
+                return False
+            self.executor.spin_once(timeout_sec=min(step_s, max(0.0, deadline - time.monotonic())))
+        return True
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+
+
+def _show(sub: _Subscriber, deadline: float) -> int:
+    """Live view until Ctrl-C; 1 when no VO status arrived before ``deadline``.
+
+    On a terminal: rich.live redrawing at 4 Hz (in place, no alternate screen, so it works over SSH and
+    the last view stays in the scrollback). Otherwise (a pipe, a log file, or rich not installed): a
+    plain snapshot every second.
+    """
+    if sys.stdout.isatty() and importlib.util.find_spec("rich") is not None:
+        from rich.console import Console
+        from rich.live import Live
+
+        with Live(get_renderable=lambda: _rich_view(sub.state, time.time()), console=Console(),
+                  refresh_per_second=4, screen=False, transient=False):
+            if not sub.spin_until(lambda: sub.state.has_status, deadline):
+                return 1
+            sub.spin_until(lambda: False, math.inf)
+        return 0
+    if not sub.spin_until(lambda: sub.state.has_status, deadline):
+        return 1
+    while True:
+        sys.stdout.write(sub.state.render_text(time.time()) + "\n\n")
+        sys.stdout.flush()
+        sub.spin_until(lambda: False, time.monotonic() + 1.0)
+
+
+def run(args: argparse.Namespace) -> int:
+    """``epi-vo monitor``: 0 on Ctrl-C (or after the ``--once`` snapshot), 1 when ``--timeout`` expired."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.signals import SignalHandlerOptions
+
+    # As in `epi-vo play`: without rclpy's handlers, SIGINT/SIGTERM raise KeyboardInterrupt in the spin
+    # loop and the context stays valid for a clean shutdown. Installed explicitly because a shell starts
+    # background jobs with SIGINT ignored.
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        previous = {sig: signal.signal(sig, _raise_keyboard_interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+    context = Context()
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
+    sub: _Subscriber | None = None
+    timed_out = False
+    try:
+        sub = _Subscriber(context, args)
+        deadline = time.monotonic() + args.timeout if args.timeout is not None else math.inf
+        if args.once:
+            timed_out = not sub.spin_until(lambda: sub.state.has_status, deadline)
+            if not timed_out:
+                sys.stdout.write(sub.state.render_text(time.time()) + "\n")
+        else:
+            timed_out = _show(sub, deadline) != 0
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if sub is not None:
+            sub.close()
+        rclpy.try_shutdown(context=context)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    if timed_out:
+        print(_timeout_message(args), file=sys.stderr)
+        return 1
+    return 0
+
+
+def _raise_keyboard_interrupt(signum: int, frame: FrameType | None) -> None:
+    raise KeyboardInterrupt

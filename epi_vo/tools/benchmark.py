@@ -1,0 +1,177 @@
+"""``epi-vo benchmark``: epi_vo and the seed article's reference pipeline, side by side, in one run.
+
+For every bundled bag (``bags/<name>/bag`` with ``bags/<name>/groundtruth_tum.txt``) and the shared
+KITTI clip when present, both pipelines see the same decoded frames. Reported per pipeline: tracked %
+(frames with a pose), ATE as % of the ground-truth path after Sim(3) alignment, RPE rotation
+(deg/frame), translation-direction error (deg), median ms/frame (processing only: bag reading and
+image decoding excluded for both), and the number of frames whose position moved (on a pure-rotation
+bag any movement is invented translation).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from epi_vo.core.config import VoConfig
+from epi_vo.core.errors import EpiVoError, OutputError
+from epi_vo.core.transforms import quat_xyzw_from_rotation
+from epi_vo.io import bagio, tum
+from epi_vo.io.msgconv import decode_frame
+from epi_vo.io.params import load_config
+from epi_vo.tools.evaluation import evaluate_trajectory
+from epi_vo.tools.reference import ReferencePipeline
+from epi_vo.tools.replay import run_replay
+
+
+@dataclass(frozen=True)
+class BenchRow:
+    bag: str
+    pipeline: str
+    frames: int
+    tracked_percent: float
+    ate_percent: float
+    rpe_rot_deg: float
+    trans_dir_deg: float
+    ms_per_frame: float
+    moving_frames: int
+    gt_path_length: float
+
+
+def _repo_root() -> Path:
+    return Path(__file__).resolve().parents[2]
+
+
+def find_datasets(bags_dir: str | Path | None, kitti_dir: str | Path | None) -> list[tuple[str, Path, Path]]:
+    """(name, bag path, ground-truth TUM) for every bundled bag and the KITTI clip when present."""
+    root = _repo_root()
+    bags = Path(bags_dir) if bags_dir else root / "bags"
+    found = []
+    for d in sorted(p for p in bags.iterdir() if p.is_dir()) if bags.is_dir() else []:
+        if (d / "bag").is_dir() and (d / "groundtruth_tum.txt").is_file():
+            found.append((d.name, d / "bag", d / "groundtruth_tum.txt"))
+    kitti = Path(kitti_dir) if kitti_dir else root.parent / "shared" / "data" / "kitti06_0-50"
+    if (kitti / "bag").is_dir() and (kitti / "groundtruth_tum.txt").is_file():
+        found.append((kitti.name, kitti / "bag", kitti / "groundtruth_tum.txt"))
+    return found
+
+
+def _moving_frames(positions: np.ndarray) -> int:
+    if positions.shape[0] < 2:
+        return 0
+    return int(np.count_nonzero(np.linalg.norm(np.diff(positions, axis=0), axis=1) > 1e-9))
+
+
+def _metrics_row(name: str, pipeline: str, frames: int, n_pose: int, ms: float, stamps: np.ndarray,
+                 positions: np.ndarray, quats: np.ndarray, gt: tuple[np.ndarray, np.ndarray, np.ndarray]
+                 ) -> BenchRow:
+    gt_len = float(np.sum(np.linalg.norm(np.diff(gt[1], axis=0), axis=1)))
+    ate = rpe = tdir = math.nan
+    try:
+        m = evaluate_trajectory((stamps, positions, quats), gt)
+        ate, rpe, tdir = m.ate_percent_of_path, m.rpe_rot_deg_per_frame, m.trans_direction_err_deg
+    except EpiVoError:
+        pass
+    if gt_len < 1e-6:
+        ate = tdir = math.nan  # no path: ATE % and direction are undefined (pure rotation)
+    return BenchRow(name, pipeline, frames, 100.0 * n_pose / max(frames, 1), ate, rpe, tdir, ms,
+                    _moving_frames(positions), gt_len)
+
+
+def bench_epi_vo(name: str, bag: Path, gt_path: Path, cfg: VoConfig) -> BenchRow:
+    gt = tum.read_tum(gt_path)
+    with tempfile.TemporaryDirectory() as tmp:
+        summary = run_replay(bag, tmp, cfg)
+        stamps, positions, quats = tum.read_tum(Path(tmp) / "trajectory.tum")
+    return _metrics_row(name, "epi_vo", summary.frames, summary.frames_with_pose, summary.ms_per_frame,
+                        stamps, positions, quats, gt)
+
+
+def bench_reference(name: str, bag_path: Path, gt_path: Path) -> BenchRow:
+    gt = tum.read_tum(gt_path)
+    stamps, positions, quats, times = [], [], [], []
+    frames = n_ok = 0
+    ref: ReferencePipeline | None = None
+    with bagio.open_camera_bag(bag_path) as bag:
+        for frame in bag.iter_frames():
+            frames += 1
+            # A frame epi_vo's replay would reject before decoding (undecodable message, bad stamp, no
+            # camera_info, undecodable pixels) is a frame without a pose for the reference too.
+            if frame.problem is not None or frame.camera_info_msg is None:
+                continue
+            try:
+                gray = decode_frame(frame.image_msg, bag.image_is_compressed)
+            except EpiVoError:
+                continue
+            if ref is None:
+                info = frame.camera_info_msg
+                ref = ReferencePipeline(np.asarray(info.k, np.float64).reshape(3, 3), np.asarray(info.d, np.float64))
+            r = ref.process(gray, frame.stamp_ns * 1e-9)
+            times.append(r.ms)
+            if r.ok:
+                n_ok += 1
+                stamps.append(r.stamp_s)
+                positions.append(r.T_w_c[:3, 3])
+                quats.append(quat_xyzw_from_rotation(r.T_w_c[:3, :3]))
+    return _metrics_row(name, "reference", frames, n_ok, float(np.median(times)) if times else math.nan,
+                        np.array(stamps),
+                        np.array(positions).reshape(-1, 3), np.array(quats).reshape(-1, 4), gt)
+
+
+def format_table(rows: list[BenchRow]) -> str:
+    head = (f"{'bag':<16} {'pipeline':<10} {'frames':>6} {'tracked%':>8} {'ATE%path':>9} {'RPErot°/f':>10} "
+            f"{'tdir°':>7} {'ms/frame':>9} {'moving':>7}")
+    lines = [head, "-" * len(head)]
+
+    def f(x: float, nd: int = 3) -> str:
+        return "n/a" if not math.isfinite(x) else f"{x:.{nd}f}"
+
+    for r in rows:
+        lines.append(f"{r.bag:<16} {r.pipeline:<10} {r.frames:>6} {r.tracked_percent:>8.1f} {f(r.ate_percent):>9} "
+                     f"{f(r.rpe_rot_deg, 4):>10} {f(r.trans_dir_deg, 2):>7} {r.ms_per_frame:>9.2f} "
+                     f"{r.moving_frames:>7}")
+    return "\n".join(lines)
+
+
+def _check_output_file(output: str) -> Path:
+    """Fail before a long run, not after it, when ``--output`` cannot be a file."""
+    out = Path(output)
+    if out.is_dir():
+        raise OutputError(f"--output {out} is a directory; name the JSON file to write")
+    if not out.parent.is_dir():
+        what = "does not exist" if not out.parent.exists() else "is not a directory"
+        raise OutputError(f"cannot write {out}: {out.parent} {what}")
+    return out
+
+
+def run_benchmark(bags_dir: str | None, kitti_dir: str | None, params: str | None, output: str | None) -> int:
+    cfg = load_config(params)
+    out = _check_output_file(output) if output else None
+    if bags_dir is not None and not Path(bags_dir).is_dir():
+        raise EpiVoError(f"benchmark: --bags {bags_dir} is not a directory")
+    datasets = find_datasets(bags_dir, kitti_dir)
+    if not datasets:
+        raise EpiVoError("benchmark: no bags found (expected bags/<name>/bag with groundtruth_tum.txt)")
+    rows: list[BenchRow] = []
+    for name, bag, gt in datasets:
+        rows.append(bench_epi_vo(name, bag, gt, cfg))
+        rows.append(bench_reference(name, bag, gt))
+        print(format_table(rows[-2:]).splitlines()[-2] + "\n" + format_table(rows[-2:]).splitlines()[-1],
+              flush=True)
+    print()
+    print(format_table(rows))
+    print("\nATE after Sim(3) alignment (evo); 'moving' = frames whose position changed (on pure_rotation "
+          "any is invented translation); ms/frame = median processing time, decoding excluded.")
+    if out is not None:
+        try:
+            table = [{k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in r.__dict__.items()}
+                     for r in rows]  # n/a is null: strict JSON has no NaN
+            out.write_text(json.dumps(table, indent=2, allow_nan=False) + "\n")
+        except OSError as exc:
+            raise OutputError(f"cannot write {out}: {exc.strerror or exc}") from None
+    return 0

@@ -1,0 +1,418 @@
+"""Offline replay: drive the same :class:`~epi_vo.core.pipeline.VoPipeline` as the node over a recorded bag.
+
+Writes into the output directory:
+- ``trajectory.tum``: ``stamp tx ty tz qx qy qz qw`` per frame that has a pose, the camera optical
+  frame relative to the first frame (the pipeline's ``T_w_c``), stamp = image header stamp in seconds;
+- ``frames.jsonl``: one JSON object per input frame (:meth:`FrameResult.to_record`), flushed per line;
+- ``output.mcap``: /vo/odometry, /vo/points, /vo/path, /diagnostics stamped with the image stamps;
+- ``stats.json``: run totals, per-stage median times and, with ground truth, evo metrics;
+- ``groundtruth.tum``: the ground truth used (when there is one), in the same TUM form.
+
+Every image message read gives exactly one record, also one that cannot be used (undecodable CDR,
+header stamp that is no valid ROS time, bad pixels or calibration): that frame is rejected with the
+reason and the replay goes on. Every stamp written is a valid ROS time.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import json
+import logging
+import math
+import signal
+import threading
+from collections.abc import Callable, Iterator
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import IO, TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from epi_vo.core.camera import CameraModel, CameraModelCache
+from epi_vo.core.config import VoConfig
+from epi_vo.core.errors import BagError, EpiVoError, Interrupted, OutputError
+from epi_vo.core.frame import FrameResult
+from epi_vo.core.odometry import OdometryConverter
+from epi_vo.core.pipeline import VoPipeline
+from epi_vo.core.status import frame_status
+from epi_vo.io import bagio, outbag, tum
+from epi_vo.io.msgconv import decode_frame
+
+if TYPE_CHECKING:
+    from epi_vo.tools.evaluation import TrajectoryMetrics
+
+_log = logging.getLogger(__name__)
+
+ODOM_FRAME = "odom"
+BASE_FRAME = "base_link"
+PATH_MAX_POSES = 1000
+
+
+@dataclass(frozen=True)
+class ReplaySummary:
+    """Totals of one replay run (what ``stats.json`` holds)."""
+
+    bag: str
+    image_topic: str
+    camera_info_topic: str
+    frames: int
+    frames_with_pose: int
+    tracked_percent: float
+    keyframes: int
+    states: dict[str, int]
+    models: dict[str, int]
+    ms_per_frame: float
+    stage_ms: dict[str, float]
+    path_length: float
+    metrics: dict[str, Any] | None = None
+    gt_source: str = ""
+    output_dir: str = ""
+    notes: list[str] = field(default_factory=list)
+    parameters: dict[str, Any] = field(default_factory=dict)  # the pipeline config of the run
+    rejected: list[str] = field(default_factory=list)  # one line per distinct problem of rejected frames
+    rejected_frames: int = 0  # frames (image messages read) that were rejected
+    skipped_messages: list[str] = field(default_factory=list)  # camera_info / ground truth not decodable,
+    # image messages announced by the bag but not read
+
+    @property
+    def has_problems(self) -> bool:
+        """Frames rejected or messages skipped: ``epi-vo replay`` exits 3."""
+        return bool(self.rejected_frames or self.rejected or self.skipped_messages)
+
+    def to_json(self) -> dict[str, Any]:
+        return _jsonable(asdict(self))
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | None = None, *,
+               image_topic: str | None = None, camera_info_topic: str | None = None,
+               gt_tum: str | Path | None = None, progress: bool = False,
+               on_result: Callable[[FrameResult], None] | None = None) -> ReplaySummary:
+    """Replay every image of a bag through the pipeline and write the outputs (see module doc).
+
+    A frame that cannot be used (undecodable message or image, header stamp that is no ROS time,
+    unsupported encoding, unusable calibration, no camera_info) is recorded with its reason
+    (``FrameResult`` of state lost) and replay goes on; ``ReplaySummary.rejected`` lists the problems,
+    ``rejected_frames`` counts those frames, ``skipped_messages`` lists camera_info / ground-truth
+    messages that could not be decoded and images the bag announces but that could not be read.
+
+    Raises:
+        BagError: unreadable or empty bag, missing or ambiguous topics.
+        OutputError: the output directory or a file in it cannot be created or written.
+        Interrupted: SIGINT, SIGTERM or SIGHUP arrived; raised between two frames, outputs finalised.
+    """
+    cfg = cfg or VoConfig()
+    out = _output_dir(output_dir)
+    pipeline = VoPipeline(cfg)
+    converter = OdometryConverter()
+    cameras = CameraModelCache()
+    results_pose: list[tuple[float, np.ndarray, np.ndarray]] = []
+    path_poses: collections.deque[tuple[int, np.ndarray, np.ndarray]] = collections.deque(maxlen=PATH_MAX_POSES)
+    states: collections.Counter[str] = collections.Counter()
+    models: collections.Counter[str] = collections.Counter()
+    stage_times: dict[str, list[float]] = collections.defaultdict(list)
+    rejected: collections.Counter[str] = collections.Counter()
+    first_rejected: dict[str, int] = {}
+    n_frames = n_pose = n_kf = 0
+    path_length = 0.0
+    last_pos: np.ndarray | None = None
+
+    try:
+        with _interrupts_at_frame_boundaries() as stop, \
+                bagio.open_camera_bag(bag_path, image_topic, camera_info_topic) as bag, \
+                _open_output(out / "frames.jsonl") as frames_f, _open_output(out / "trajectory.tum") as tum_f, \
+                outbag.OutputBag(out / "output.mcap", overwrite=True) as obag, \
+                _Progress(progress, bag.frame_count) as bar:
+            gt = _ground_truth(bag, gt_tum)
+            if gt is not None:  # kept beside the estimate so that reports can be made from DIR alone
+                tum.write_tum(out / "groundtruth.tum", *gt[1])
+            for frame in bag.iter_frames():
+                if stop.requested:  # a signal arrived during the previous frame: all its outputs are written
+                    raise Interrupted(stop.signum)
+                processed = process_frame(pipeline, cameras, bag, frame)
+                result, problem = processed.result, processed.problem
+                if problem is not None:
+                    rejected[problem] += 1
+                    first_rejected.setdefault(problem, frame.index)
+                n_frames += 1
+                states[result.state.value] += 1
+                models[result.model.value] += 1
+                n_kf += int(result.is_keyframe)
+                for k, v in result.timings_ms.items():
+                    stage_times[k].append(v)
+                frames_f.write(json.dumps(result.to_record()) + "\n")
+                frames_f.flush()
+                if result.has_pose:
+                    n_pose += 1
+                    p, q = result.position, result.quat_xyzw
+                    stamp_s = result.stamp_ns * 1e-9
+                    tum_f.write(f"{_tum_stamp(result.stamp_ns)} " + " ".join(f"{v:.9f}" for v in (*p, *q)) + "\n")
+                    results_pose.append((stamp_s, p.copy(), q.copy()))
+                    if last_pos is not None:
+                        path_length += float(np.linalg.norm(p - last_pos))
+                    last_pos = p.copy()
+                if not result.skipped:  # a skipped frame gets its record and status, but no pose
+                    _write_outputs(obag, converter, result, path_poses)
+                else:
+                    obag.write_diagnostics(result.stamp_ns, [frame_status(result, "epi_vo", "replay")])
+                bar.update()
+                if on_result is not None:
+                    on_result(result)
+    except OSError as exc:  # reading is wrapped in BagError by bagio: this is an output file
+        raise OutputError(f"cannot write the outputs in {out}: {_os_reason(exc)}") from exc
+
+    if n_frames == 0:
+        raise BagError(f"bag {bag_path} has no image messages on {bag.image_topic}")
+    skipped = list(bag.problems)
+    notes: list[str] = []
+    if n_frames < bag.frame_count:
+        # rosbags skips a damaged record silently; the bag's summary still counts it.
+        skipped.append(f"the bag announces {bag.frame_count} images on {bag.image_topic}, {n_frames} could be "
+                       "read (damaged records?)")
+    elif n_frames > bag.frame_count:
+        notes.append(f"the bag announces {bag.frame_count} images on {bag.image_topic}, {n_frames} were read "
+                     "(its metadata understates the count)")
+    metrics, gt_source = None, ""
+    if gt is not None:
+        gt_source = gt[0]
+        try:
+            m = _evaluate(results_pose, gt[1])
+            metrics = asdict(m)
+        except EpiVoError as exc:
+            notes.append(f"evaluation skipped: {exc}")
+    totals = stage_times.get("total", [0.0])
+    summary = ReplaySummary(
+        bag=str(bag_path), image_topic=bag.image_topic, camera_info_topic=bag.camera_info_topic,
+        frames=n_frames, frames_with_pose=n_pose, tracked_percent=100.0 * n_pose / n_frames, keyframes=n_kf,
+        states=dict(states), models=dict(models), ms_per_frame=float(np.median(totals)),
+        stage_ms={k: float(np.median(v)) for k, v in stage_times.items()}, path_length=path_length,
+        metrics=metrics, gt_source=gt_source, output_dir=str(out), notes=notes, parameters=asdict(cfg),
+        rejected=[f"{n} frame(s) from frame {first_rejected[r]}: {r}" for r, n in rejected.items()],
+        rejected_frames=sum(rejected.values()), skipped_messages=skipped)
+    try:
+        (out / "stats.json").write_text(json.dumps(summary.to_json(), indent=2) + "\n")
+    except OSError as exc:
+        raise OutputError(f"cannot write {out / 'stats.json'}: {_os_reason(exc)}") from exc
+    return summary
+
+
+def _os_reason(exc: OSError) -> str:
+    where = f" ({exc.filename})" if exc.filename else ""
+    return f"{exc.strerror or exc}{where}"
+
+
+def _output_dir(output_dir: str | Path) -> Path:
+    """The output directory, created if needed; OutputError naming the problem when it cannot be."""
+    out = Path(output_dir)
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"output {out} exists and is not a directory")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"cannot create the output directory {out}: {_os_reason(exc)}") from None
+    return out
+
+
+@contextlib.contextmanager
+def _open_output(path: Path) -> Iterator[IO[str]]:
+    try:
+        f = path.open("w", encoding="utf-8")
+    except OSError as exc:
+        raise OutputError(f"cannot create {path}: {_os_reason(exc)}") from None
+    with f:
+        yield f
+
+
+def _tum_stamp(stamp_ns: int) -> str:
+    """The stamp in seconds with 9 decimals, exact (a float would round large stamps)."""
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return f"{sec}.{nanosec:09d}"
+
+
+class _Progress:
+    """tqdm bar over the frames, when asked for; a terminal that went away (SIGHUP) ends the bar, never the
+    replay."""
+
+    def __init__(self, enabled: bool, total: int) -> None:
+        self._bar: Any = None
+        if enabled:
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=total if total > 0 else None, unit="frame", desc="replay", leave=False)
+
+    def __enter__(self) -> _Progress:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        bar, self._bar = self._bar, None
+        if bar is not None:
+            with contextlib.suppress(OSError, ValueError):
+                bar.close()
+
+    def update(self) -> None:
+        if self._bar is None:
+            return
+        try:
+            self._bar.update(1)
+        except (OSError, ValueError):  # stderr closed or gone
+            self._bar = None
+
+
+@dataclass(frozen=True)
+class ProcessedFrame:
+    """What one bag frame gave: its record, why it was rejected (None when it was not), and the image and
+    camera the pipeline saw (None when the frame was rejected before)."""
+
+    result: FrameResult
+    problem: str | None
+    gray: NDArray[np.uint8] | None = None
+    camera: CameraModel | None = None
+
+
+def process_frame(pipeline: VoPipeline, cameras: CameraModelCache, bag: bagio.CameraBag, frame: bagio.BagFrame
+                  ) -> ProcessedFrame:
+    """Decode one bag frame and run it through ``pipeline``: the one per-frame rule of replay and inspect.
+
+    Bad input in the frame (undecodable message, stamp that is no ROS time, image or calibration that
+    cannot be used, no camera_info) gives a rejected record with the reason; never an exception.
+    """
+    if frame.problem is not None:
+        # Undecodable message or stamp that is no valid ROS time: nothing of the frame is used.
+        filed = "its log time" if frame.image_msg is None else "its header stamp clamped to a ROS time"
+        result = pipeline.skip(frame.stamp_ns, frame.problem, f"recorded at {frame.stamp_ns} ns, {filed}")
+        return ProcessedFrame(result, frame.problem)
+    gray = camera = None
+    try:
+        if frame.camera_info_msg is None:
+            raise BagError(_no_camera_info(bag))
+        gray = decode_frame(frame.image_msg, bag.image_is_compressed)
+        camera = cameras.get(frame.camera_info_msg)
+        result = pipeline.process(gray, camera, frame.stamp_ns)
+    except EpiVoError as exc:
+        # Bad input in one frame: the frame is recorded with the reason and replay goes on.
+        return ProcessedFrame(pipeline.reject(frame.stamp_ns, str(exc)), str(exc))
+    return ProcessedFrame(result, result.problem or None, gray, camera)
+
+
+def _no_camera_info(bag: bagio.CameraBag) -> str:
+    skipped = sum(p.startswith("camera_info") for p in bag.problems)
+    if skipped:
+        return f"no usable camera_info on {bag.camera_info_topic} ({skipped} message(s) could not be decoded)"
+    return f"no camera_info on {bag.camera_info_topic}"
+
+
+class _StopRequest:
+    requested = False
+    signum = signal.SIGINT
+
+
+@contextlib.contextmanager
+def _interrupts_at_frame_boundaries() -> Iterator[_StopRequest]:
+    """SIGINT / SIGTERM / SIGHUP during a replay stop it between frames, never between a frame's writes.
+
+    Each frame writes a record, a trajectory line and several bag messages; an interrupt raised in the
+    middle would leave the outputs disagreeing about the last frame, and SIGHUP's default action (the
+    terminal closed, SSH dropped) would end the process before output.mcap gets its summary. The replay
+    then raises :class:`~epi_vo.core.errors.Interrupted` (with the signal) at the next frame boundary, and
+    every output is finalised on the way out. Outside the main thread (where signals cannot be
+    handled) nothing changes.
+    """
+    stop = _StopRequest()
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+
+    def request(signum: int, frame: object) -> None:
+        if not stop.requested:
+            stop.signum = signum
+        stop.requested = True
+
+    signals = [signal.SIGINT, signal.SIGTERM]
+    if hasattr(signal, "SIGHUP"):
+        signals.append(signal.SIGHUP)
+    saved = {sig: signal.signal(sig, request) for sig in signals}
+    try:
+        yield stop
+    finally:
+        for sig, handler in saved.items():
+            signal.signal(sig, handler)
+
+
+def _write_outputs(obag: outbag.OutputBag, converter: OdometryConverter, result: FrameResult,
+                   path_poses: collections.deque[tuple[int, np.ndarray, np.ndarray]]) -> None:
+    sample = converter.convert(result.stamp_ns, result.T_w_c, result.covariance, result.has_pose)
+    obag.write_odometry(result.stamp_ns, ODOM_FRAME, BASE_FRAME, sample.position, sample.quat_xyzw,
+                        sample.pose_covariance, sample.linear_velocity, sample.angular_velocity,
+                        sample.twist_covariance)
+    if result.points_w.shape[0]:
+        # Points are in the pipeline frame w (first optical frame); publish them in odom.
+        T = converter.T_base_cam
+        pts_odom = result.points_w @ T[:3, :3].T + T[:3, 3]
+        obag.write_points(result.stamp_ns, ODOM_FRAME, pts_odom)
+    if result.has_pose:
+        path_poses.append((result.stamp_ns, sample.position, sample.quat_xyzw))
+        stamps = [s for s, _, _ in path_poses]
+        obag.write_path(result.stamp_ns, ODOM_FRAME, stamps, np.array([p for _, p, _ in path_poses]),
+                        np.array([q for _, _, q in path_poses]))
+    obag.write_diagnostics(result.stamp_ns, [frame_status(result, "epi_vo", "replay")])
+
+
+def _ground_truth(bag: bagio.CameraBag, gt_tum: str | Path | None
+                  ) -> tuple[str, tuple[np.ndarray, np.ndarray, np.ndarray]] | None:
+    if gt_tum is not None:
+        return str(gt_tum), tum.read_tum(gt_tum)
+    gt = bag.read_ground_truth()
+    if gt is None:
+        return None
+    return f"bag topic {bag.gt_topic}", (gt.stamps_ns * 1e-9, gt.positions, gt.quats_xyzw)
+
+
+def _evaluate(poses: list[tuple[float, np.ndarray, np.ndarray]],
+              gt: tuple[np.ndarray, np.ndarray, np.ndarray]) -> TrajectoryMetrics:
+    from epi_vo.tools.evaluation import evaluate_trajectory  # evo: imported only when there is ground truth
+
+    stamps = np.array([s for s, _, _ in poses])
+    pos = np.array([p for _, p, _ in poses]).reshape(-1, 3)
+    quat = np.array([q for _, _, q in poses]).reshape(-1, 4)
+    return evaluate_trajectory((stamps, pos, quat), gt)
+
+
+def format_summary(s: ReplaySummary) -> str:
+    """The one-screen summary printed by ``epi-vo replay``."""
+    lines = [
+        f"epi_vo replay: {s.bag}",
+        f"  topics        {s.image_topic} + {s.camera_info_topic}",
+        f"  frames        {s.frames}   with pose {s.frames_with_pose} ({s.tracked_percent:.1f} %)   "
+        f"keyframes {s.keyframes}",
+        "  states        " + ", ".join(f"{k} {v}" for k, v in sorted(s.states.items())),
+        "  models        " + ", ".join(f"{k} {v}" for k, v in sorted(s.models.items())),
+        f"  time          {s.ms_per_frame:.2f} ms/frame median (" +
+        ", ".join(f"{k} {v:.2f}" for k, v in s.stage_ms.items() if k != "total") + ")",
+        f"  path length   {s.path_length:.3f} (VO units)",
+    ]
+    if s.metrics is not None:
+        m = s.metrics
+        lines.append(f"  vs GT ({s.gt_source}): ATE {_f(m['ate_rmse'])} ({_f(m['ate_percent_of_path'])} % of path, "
+                     f"Sim3)  RPE rot {_f(m['rpe_rot_deg_per_frame'])} deg/frame  trans-dir "
+                     f"{_f(m['trans_direction_err_deg'])} deg  ({m['matched_poses']} poses)")
+    lines.extend(f"  note: {n}" for n in s.notes)
+    lines.extend(f"  rejected: {r}" for r in s.rejected)
+    lines.extend(f"  skipped: {m}" for m in s.skipped_messages)
+    lines.append(f"  outputs       {s.output_dir}/{{trajectory.tum, frames.jsonl, output.mcap, stats.json}}")
+    return "\n".join(lines)
+
+
+def _f(x: float | None) -> str:
+    return "n/a" if x is None or not math.isfinite(x) else f"{x:.4g}"
+

@@ -1,0 +1,219 @@
+"""The replay report: ``DIR/report/{trajectory,timeline,errors}.png`` and ``DIR/report.html``, one file
+that embeds the PNGs as data URIs and needs nothing else.
+
+The data come from :mod:`epi_vo.tools.report_data` (what the tests check), the figures from
+:mod:`epi_vo.tools.report_plots`; this module writes them and renders the HTML.
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import datetime
+import html
+import json
+import logging
+import math
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from epi_vo.core.config import config_fields, field_doc
+from epi_vo.core.errors import ReportError
+from epi_vo.tools.report_data import (
+    NO_SIM3,
+    REPORT_HTML,
+    REPORT_PNG_DIR,
+    STATE_COLOURS,
+    AlignmentKind,
+    GtAlignment,
+    Run,
+    RunFigures,
+    Span,
+    error_series,
+    fmt_num,
+    load_run,
+    reason_groups,
+    run_figures,
+    run_parameters,
+    spans,
+    timeline,
+    trajectory_views,
+)
+from epi_vo.tools.report_plots import draw_errors, draw_timeline, draw_trajectory
+
+_log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+def write_report(directory: str | Path) -> Path:
+    """Write ``DIR/report/*.png`` and the self-contained ``DIR/report.html``; return the HTML's path.
+
+    Raises:
+        ReportError: the directory cannot be read as a replay output (see :func:`load_run`), or the
+            report cannot be written into it.
+    """
+    run = load_run(directory)
+    try:
+        return _write_report(run)
+    except OSError as exc:  # DIR/report or report.html not writable, a file where a directory goes, disk full
+        where = f" ({exc.filename})" if exc.filename else ""
+        msg = f"cannot write the report in {run.directory}: {exc.strerror or exc}{where}"
+        raise ReportError(msg) from None
+
+
+def _write_report(run: Run) -> Path:
+    png_dir = run.directory / REPORT_PNG_DIR
+    png_dir.mkdir(exist_ok=True)
+    views = trajectory_views(run)
+    tl = timeline(run)
+    span_list = spans(run)
+    err = error_series(run)
+    pngs = [(draw_trajectory(views, png_dir / "trajectory.png"), "Trajectory: top view (x right, z forward) and "
+             "side view (z forward, -y up), estimate in VO units with its keyframes; ground truth in the same frame."),
+            (draw_timeline(tl, span_list, png_dir / "timeline.png"), "Per-frame timeline. Shaded: frames not "
+             "tracking, by state; ticks at the top of each panel: keyframes.")]
+    errors_png = png_dir / "errors.png"
+    if err is not None:
+        pngs.append((draw_errors(err, span_list, tl.keyframe_index, errors_png),
+                     "Errors against ground truth (evo): ATE of the Sim(3)-aligned estimate over time, RPE between "
+                     "consecutive frames."))
+    else:
+        errors_png.unlink(missing_ok=True)  # a stale plot of an earlier report would contradict this one
+    page = render_html(run, run_figures(run), span_list, views.alignment, pngs)
+    out = run.directory / REPORT_HTML
+    out.write_text(page, encoding="utf-8")
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    """``epi-vo report DIR``: write the report and print the HTML's path."""
+    print(write_report(args.dir))
+    return 0
+
+
+_CSS = """
+body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:0;background:#f4f5f7;color:#222}
+main{max-width:1320px;margin:0 auto;padding:18px 28px 40px;background:#fff}
+h1{font-size:1.5em;margin:.3em 0}
+h2{font-size:1.15em;margin:1.4em 0 .5em;border-bottom:1px solid #ddd;padding-bottom:3px}
+table{border-collapse:collapse;font-size:.9em;margin:.3em 0}
+th,td{border:1px solid #ddd;padding:3px 8px;text-align:left;vertical-align:top}
+th{background:#f0f2f5;font-weight:600}td.num{text-align:right;font-variant-numeric:tabular-nums}
+.kv th{width:16em}.chip{display:inline-block;padding:1px 7px;border-radius:8px;font-size:.9em}
+figure{margin:.8em 0}figure img{max-width:100%;border:1px solid #e3e3e3}
+figcaption{font-size:.85em;color:#555}.note{color:#8a5a00}.muted{color:#777}
+code{background:#f0f2f5;padding:0 3px;border-radius:3px}
+"""
+
+# After load, count the images the browser actually decoded (tests read it with --dump-dom).
+_SCRIPT = """
+window.addEventListener('load', function () {
+  var imgs = Array.prototype.slice.call(document.images);
+  var ok = imgs.filter(function (i) { return i.complete && i.naturalWidth > 0; });
+  document.body.setAttribute('data-images', String(imgs.length));
+  document.body.setAttribute('data-loaded', String(ok.length));
+});
+"""
+
+
+def render_html(run: Run, figs: RunFigures, span_list: Sequence[Span], alignment: GtAlignment | None,
+                pngs: Sequence[tuple[Path, str]]) -> str:
+    """The report page: inline CSS, PNGs as base64 data URIs, no external resource."""
+    e = html.escape
+    stats = run.stats or {}
+    parts = [f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+             f"<title>epi_vo report: {e(run.directory.name)}</title><style>{_CSS}</style></head><body><main>",
+             f"<h1>epi_vo report: {e(run.directory.name)}</h1>",
+             f"<p class=\"muted\">{e(str(run.directory.resolve()))} &middot; generated "
+             f"{e(datetime.datetime.now().astimezone().strftime('%Y-%m-%d %H:%M:%S %Z'))}</p>"]
+
+    unknown = "unknown (no stats.json)" if run.stats is None else "unknown"
+    gt_source = stats.get("gt_source") or ("groundtruth.tum" if run.gt is not None else "none")
+    parts.append("<h2>Input</h2>")
+    parts.append(_kv_table([("bag", e(str(stats.get("bag", unknown)))),
+                            ("image topic", e(str(stats.get("image_topic", unknown)))),
+                            ("camera_info topic", e(str(stats.get("camera_info_topic", unknown)))),
+                            ("ground truth", e(str(gt_source)))]))
+
+    parts.append("<h2>Summary</h2>")
+    rows = [("frames", f"{figs.frames}"),
+            ("with a pose", f"{figs.frames_with_pose} ({figs.tracked_percent:.1f} %)"),
+            ("states", ", ".join(f"{_chip(s)} {n} ({100.0 * n / figs.frames:.1f} %)"
+                                 for s, n in sorted(figs.states.items()))),
+            ("keyframes", f"{figs.keyframes}"),
+            ("models", ", ".join(f"{e(m)} {n}" for m, n in sorted(figs.models.items()))),
+            ("time per frame (median)", f"{fmt_num(figs.ms_per_frame, '.2f')} ms total; " +
+             ", ".join(f"{e(k)} {fmt_num(v, '.2f')}" for k, v in figs.stage_ms.items()) + " ms"),
+            ("path length (estimate)", f"{figs.path_length:.3f} VO units")]
+    m = figs.metrics
+    if m is not None:
+        no_sim3 = f"undefined: {NO_SIM3}"
+        rows += [("matched poses (GT)", f"{m.matched_poses}"),
+                 ("ATE RMSE (Sim(3))", f"{fmt_num(m.ate_rmse)} GT units ({fmt_num(m.ate_percent_of_path)} % of path), "
+                                       f"scale estimate&rarr;GT {fmt_num(m.sim3_scale)}"
+                  if math.isfinite(m.ate_rmse) else no_sim3),
+                 ("RPE rotation RMSE", f"{fmt_num(m.rpe_rot_deg_per_frame)} deg/frame"),
+                 ("RPE translation RMSE", f"{fmt_num(m.rpe_trans_rmse)} GT units/frame"
+                  if math.isfinite(m.rpe_trans_rmse) else no_sim3),
+                 ("translation direction error", f"{fmt_num(m.trans_direction_err_deg)} deg (mean over "
+                                                 f"{m.trans_direction_pairs} steps)"
+                  if m.trans_direction_pairs else "undefined: no step with a direction in both trajectories")]
+    else:
+        rows.append(("ATE / RPE", f"<span class=\"muted\">{e(figs.metrics_note)}</span>"))
+    parts.append(_kv_table(rows))
+    notes = [str(n) for n in stats.get("notes", []) or []]
+    if alignment is not None and alignment.kind is not AlignmentKind.SIM3:
+        notes.append(alignment.note)
+    parts.extend(f"<p class=\"note\">note: {e(n)}</p>" for n in notes)
+
+    parts.append(f"<h2 id=\"spans\">Degenerate and lost spans ({len(span_list)})</h2>")
+    if span_list:
+        head = ("<table class=\"spans\"><tr><th>state</th><th>frames</th><th>count</th><th>stamps [s]</th>"
+                "<th>duration [s]</th><th>reasons</th></tr>")
+        body = []
+        for s in span_list:
+            reasons = "<br>".join(e(ex) + (f" <span class=\"muted\">(and {n - 1} more like it)</span>" if n > 1 else "")
+                                  for ex, n in reason_groups(s.reasons)) or "<span class=\"muted\">-</span>"
+            frames = f"{s.start_index}" if s.end_index == s.start_index else f"{s.start_index}&ndash;{s.end_index}"
+            body.append(f"<tr><td>{_chip(s.state)}</td><td class=\"num\">{frames}</td>"
+                        f"<td class=\"num\">{s.n_frames}</td><td class=\"num\">{s.start_stamp_s:.3f}&ndash;"
+                        f"{s.end_stamp_s:.3f}</td><td class=\"num\">{s.duration_s:.3f}</td><td>{reasons}</td></tr>")
+        parts.append(head + "".join(body) + "</table>")
+    else:
+        parts.append("<p>None: every frame was tracking.</p>")
+    parts.append("<h2>Parameters</h2>")
+    params, source = run_parameters(run)
+    docs = {f.name: field_doc(f) for f in config_fields()}
+    if source == "stats.json":
+        parts.append("<p>As used by the replay (from <code>stats.json</code>).</p>")
+    else:
+        parts.append("<p>Not recorded in <code>stats.json</code>: the built-in defaults are shown "
+                     "(<code>epi-vo params</code>); a <code>--params</code> file given to the replay would not "
+                     "be reflected here.</p>")
+    # Collapsed: the plots, not 40 numbers, are what a reader scrolls to.
+    parts.append(f"<details><summary>{len(params)} values</summary><table><tr><th>parameter</th><th>value</th>"
+                 "<th>meaning</th></tr>" +
+                 "".join(f"<tr><td><code>{e(k)}</code></td><td>{e(json.dumps(v))}</td><td>{e(docs.get(k, ''))}"
+                         f"</td></tr>" for k, v in params.items()) + "</table></details>")
+
+    parts.append("<h2>Plots</h2>")
+    for png, caption in pngs:
+        data = base64.b64encode(png.read_bytes()).decode("ascii")
+        parts.append(f"<figure id=\"{e(png.stem)}\"><img alt=\"{e(png.stem)}\" src=\"data:image/png;base64,{data}\">"
+                     f"<figcaption>{e(caption)}</figcaption></figure>")
+
+    parts.append(f"</main><script>{_SCRIPT}</script></body></html>\n")
+    return "\n".join(parts)
+
+
+def _kv_table(rows: Sequence[tuple[str, str]]) -> str:
+    """Rows of already-escaped HTML."""
+    return "<table class=\"kv\">" + "".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in rows) + "</table>"
+
+
+def _chip(state: str) -> str:
+    return (f"<span class=\"chip\" style=\"background:{STATE_COLOURS.get(state, '#dddddd')}\">"
+            f"{html.escape(state)}</span>")

@@ -1,0 +1,321 @@
+"""The motion stage (epi_vo.core.motion) on synthetic two-view scenes with exact ground truth.
+
+The reference view of a scene is the keyframe, its second view the current frame. A keyframe without
+depth (X_kf all NaN) has no map: the stage initialises one; a keyframe holding the scene's true points
+(in map units) has a map, and the translation must come out in those units.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import pytest
+
+from epi_vo.core.camera import CameraModel
+from epi_vo.core.config import VoConfig
+from epi_vo.core.frame import FrameStats, Model, TrackingState
+from epi_vo.core.keyframe import Keyframe
+from epi_vo.core.motion import Motion, MotionContext, MotionStage, is_finite
+from epi_vo.core.scale import VoUnitsScale
+from epi_vo.core.selection import select_model
+from epi_vo.core.transforms import rotation_angle_deg
+
+CFG = VoConfig()
+KF_STAMP_NS = 10_000_000_000
+DT_NS = 100_000_000  # the current frame 0.1 s after the keyframe
+MAP_SCALE = 2.5  # map units per scene metre
+
+
+def _camera(scene: Any) -> CameraModel:
+    return CameraModel.create(640, 480, scene.K, [])
+
+
+def _keyframe(scene: Any, X_kf: np.ndarray) -> Keyframe:
+    cam = _camera(scene)
+    pts = np.asarray(scene.uv_ref_obs, dtype=np.float32)
+    xn = cam.normalize(pts)
+    return Keyframe(3, KF_STAMP_NS, np.eye(4), np.zeros((6, 6)), pts, xn, cam.to_pixels(xn), X_kf, None, cam)
+
+
+def _no_map(scene: Any) -> np.ndarray:
+    return np.full((scene.n, 3), np.nan)
+
+
+def _true_map(scene: Any) -> np.ndarray:
+    return np.array(scene.X_ref) * MAP_SCALE
+
+
+def _estimate(scene: Any, X_kf: np.ndarray, cfg: VoConfig = CFG, baseline: float = 1.0,
+              T_prev: np.ndarray | None = None) -> tuple[Motion | None, FrameStats, list[float]]:
+    """Run selection and the motion stage as the pipeline does; also return the dt the scale stage was asked for."""
+    kf = _keyframe(scene, X_kf)
+    cam = kf.camera
+    xn_cur = cam.normalize(scene.uv_cur_obs)
+    asked: list[float] = []
+
+    def initial_baseline(dt: float) -> float:
+        asked.append(dt)
+        return baseline
+
+    ctx = MotionContext(kf, np.arange(scene.n, dtype=np.int64), xn_cur, cam.to_pixels(xn_cur),
+                        np.eye(4) if T_prev is None else T_prev, initial_baseline)
+    sel = select_model(kf.uv, ctx.uv_cur, cam.K, cfg)
+    st = FrameStats(stamp_ns=KF_STAMP_NS + DT_NS)
+    st.rh = sel.rh
+    return MotionStage(cfg).estimate(ctx, sel, st), st, asked
+
+
+def _rot_err_deg(m: Motion, scene: Any) -> float:
+    return rotation_angle_deg(m.R_cur_kf @ scene.R_cur_ref.T)
+
+
+def _dir_err_deg(t: np.ndarray, t_true: np.ndarray) -> float:
+    c = float(t @ t_true) / (np.linalg.norm(t) * np.linalg.norm(t_true))
+    return math.degrees(math.acos(min(1.0, max(-1.0, c))))
+
+
+def _check_motion(m: Motion) -> None:
+    assert is_finite(m)
+    np.testing.assert_allclose(m.R_cur_kf @ m.R_cur_kf.T, np.eye(3), atol=1e-9)
+    assert m.cov_rel.shape == (6, 6)
+    np.testing.assert_allclose(m.cov_rel, m.cov_rel.T, atol=1e-15)
+    assert np.all(np.diag(m.cov_rel) > 0.0)
+
+
+# --- (a) no map yet: initialisation -----------------------------------------------------------
+@pytest.mark.parametrize("baseline", [1.0, 0.37])
+def test_no_map_with_parallax_initialises_the_map(general_scene, baseline: float) -> None:
+    s = general_scene
+    m, st, asked = _estimate(s, _no_map(s), baseline=baseline)
+    assert m is not None and m.state is TrackingState.TRACKING
+    _check_motion(m)
+    assert st.model is Model.ESSENTIAL
+    assert asked == [pytest.approx(DT_NS * 1e-9)]  # the scale stage is asked for dt = 0.1 s
+    assert np.linalg.norm(m.t_cur_kf) == pytest.approx(baseline, rel=1e-12)
+    assert _rot_err_deg(m, s) < 0.1
+    assert _dir_err_deg(m.t_cur_kf, s.t_cur_ref) < 1.0
+    # The new map: the scene's points in the units where the baseline is ``baseline``.
+    tri = m.new_map
+    assert tri is not None and tri.X_ref.shape == (s.n, 3)
+    assert np.count_nonzero(tri.good) == st.n_triangulated >= 0.95 * s.n
+    X_true = np.array(s.X_ref) * baseline / np.linalg.norm(s.t_cur_ref)
+    rel = np.linalg.norm(tri.X_ref[tri.good] - X_true[tri.good], axis=1) / np.linalg.norm(X_true[tri.good], axis=1)
+    assert np.median(rel) < 0.03 and np.max(rel) < 0.15
+    assert st.positive_depth_ratio == 1.0 and st.median_reproj_err_px < 1.0
+    assert st.n_inliers == s.n and st.median_parallax_deg > CFG.init_min_parallax_deg
+    assert m.cov_rel[0, 0] == pytest.approx((0.1 * baseline) ** 2)
+    assert any(r.startswith("map initialized from essential matrix") for r in st.reasons)
+    assert math.isnan(st.relative_scale)
+
+
+def test_initialisation_asks_the_scale_stage_for_the_baseline(general_scene) -> None:
+    # With VoUnitsScale after a keyframe at 3 units/s, the first baseline 0.1 s later is 0.3 units.
+    s = general_scene
+    scale = VoUnitsScale()
+    scale.on_keyframe(1.5, 0.5)
+    m, _, _ = _estimate(s, _no_map(s), baseline=scale.initial_baseline(DT_NS * 1e-9))
+    assert m is not None and m.new_map is not None
+    assert np.linalg.norm(m.t_cur_kf) == pytest.approx(0.3)
+
+
+def test_planar_scene_without_map_initialises_from_the_homography(planar_scene) -> None:
+    s = planar_scene
+    m, st, _ = _estimate(s, _no_map(s))
+    assert m is not None and m.state is TrackingState.TRACKING and m.new_map is not None
+    _check_motion(m)
+    assert st.model is Model.HOMOGRAPHY
+    assert np.linalg.norm(m.t_cur_kf) == pytest.approx(1.0)
+    assert _rot_err_deg(m, s) < 0.2
+    assert _dir_err_deg(m.t_cur_kf, s.t_cur_ref) < 1.5
+    assert any("homography (planar scene)" in r for r in st.reasons)
+    # The map points lie on the scene's plane n . X = d (d in the new map's units).
+    d = s.plane_d / np.linalg.norm(s.t_cur_ref)
+    X = m.new_map.X_ref[m.new_map.good]
+    assert np.median(np.abs(X @ s.plane_n_ref - d)) < 0.03 * d
+
+
+def test_not_enough_parallax_holds_the_position(general_scene) -> None:
+    # The scene has ~3.3 deg of median parallax; ask for more before initialising.
+    s = general_scene
+    cfg = dataclasses.replace(CFG, init_min_parallax_deg=5.0)
+    m, st, asked = _estimate(s, _no_map(s), cfg)
+    assert m is not None and m.state is TrackingState.INITIALIZING and m.new_map is None
+    _check_motion(m)
+    np.testing.assert_array_equal(m.t_cur_kf, 0.0)
+    assert _rot_err_deg(m, s) < 0.1  # the rotation is still estimated
+    assert asked == []
+    assert any(r.startswith("low parallax (3.") and "waiting for baseline, position held" in r for r in st.reasons)
+
+
+def test_initialisation_refused_when_too_few_points_pass_the_gates(general_scene) -> None:
+    s = general_scene
+    cfg = dataclasses.replace(CFG, min_triangulation_angle_deg=45.0)  # no point is seen under 45 deg
+    m, st, _ = _estimate(s, _no_map(s), cfg)
+    assert m is not None and m.state is TrackingState.INITIALIZING and m.new_map is None
+    np.testing.assert_array_equal(m.t_cur_kf, 0.0)
+    assert st.n_triangulated == 0
+    assert any("initialization rejected: 0 points pass the triangulation gates" in r for r in st.reasons)
+
+
+# --- (b) with a map: translation in map units --------------------------------------------------
+@pytest.mark.parametrize("scene_name", ["general_scene", "general_scene_outliers"])
+def test_with_a_map_the_translation_has_the_map_scale(scene_name: str, request: pytest.FixtureRequest) -> None:
+    s = request.getfixturevalue(scene_name)
+    m, st, asked = _estimate(s, _true_map(s))
+    assert m is not None and m.state is TrackingState.TRACKING and m.new_map is None
+    _check_motion(m)
+    assert asked == []  # the map carries the scale
+    t_true = np.array(s.t_cur_ref) * MAP_SCALE
+    np.testing.assert_allclose(np.linalg.norm(m.t_cur_kf), np.linalg.norm(t_true), rtol=0.02)
+    assert np.linalg.norm(m.t_cur_kf - t_true) < 0.03 * np.linalg.norm(t_true)
+    assert _rot_err_deg(m, s) < 0.1
+    assert st.relative_scale == pytest.approx(np.linalg.norm(m.t_cur_kf))
+    assert not np.any(m.inliers & s.is_outlier)
+
+
+def test_with_a_map_and_low_parallax_the_pose_comes_from_the_map(general_scene) -> None:
+    # Below e_pose_min_parallax_deg the pose is refined on the map points (motion-only LM).
+    s = general_scene
+    cfg = dataclasses.replace(CFG, e_pose_min_parallax_deg=10.0)
+    m, _, _ = _estimate(s, _true_map(s), cfg)
+    assert m is not None and m.state is TrackingState.TRACKING
+    _check_motion(m)
+    t_true = np.array(s.t_cur_ref) * MAP_SCALE
+    assert np.linalg.norm(m.t_cur_kf - t_true) < 0.02 * np.linalg.norm(t_true)
+    assert _rot_err_deg(m, s) < 0.05
+
+
+def test_planar_scene_with_a_map_tracks_on_the_map_points(planar_scene) -> None:
+    s = planar_scene
+    m, st, _ = _estimate(s, _true_map(s))
+    assert m is not None and m.state is TrackingState.TRACKING and st.model is Model.HOMOGRAPHY
+    _check_motion(m)
+    t_true = np.array(s.t_cur_ref) * MAP_SCALE
+    assert np.linalg.norm(m.t_cur_kf - t_true) < 0.02 * np.linalg.norm(t_true)
+    assert _rot_err_deg(m, s) < 0.1
+    assert any(r.startswith("planar or low-parallax view") for r in st.reasons)
+
+
+# --- (c) pure rotation --------------------------------------------------------------------------
+@pytest.mark.parametrize("with_map", [False, True])
+def test_rotation_scene_is_rotation_only_with_zero_translation(rotation_scene, with_map: bool) -> None:
+    s = rotation_scene
+    m, st, asked = _estimate(s, _true_map(s) if with_map else _no_map(s))
+    assert m is not None and m.state is TrackingState.ROTATION_ONLY and m.new_map is None
+    _check_motion(m)
+    assert st.model is Model.HOMOGRAPHY
+    np.testing.assert_array_equal(m.t_cur_kf, 0.0)
+    assert _rot_err_deg(m, s) < 0.1
+    assert st.median_parallax_deg < CFG.rotation_only_parallax_deg
+    assert asked == []
+    assert any(r.startswith("pure rotation: homography explains the motion") for r in st.reasons)
+
+
+# --- (d) refusals say why -------------------------------------------------------------------------
+def test_too_few_inliers_refuses_with_the_reason(general_scene) -> None:
+    s = general_scene
+    cfg = dataclasses.replace(CFG, min_inliers=s.n + 1)
+    m, st, _ = _estimate(s, _no_map(s), cfg)
+    assert m is None
+    assert st.model is Model.ESSENTIAL and st.n_inliers == s.n
+    assert st.reasons == [f"too few inliers after cheirality ({s.n} < {s.n + 1}, RH {st.rh:.2f})"]
+    assert "pose" in st.timings
+
+
+def test_too_few_homography_inliers_refuses_with_the_reason(rotation_scene) -> None:
+    s = rotation_scene
+    cfg = dataclasses.replace(CFG, min_inliers=s.n + 1)
+    m, st, _ = _estimate(s, _no_map(s), cfg)
+    assert m is None
+    assert st.reasons == [f"too few homography inliers ({s.n} < {s.n + 1})"]
+
+
+def test_outlier_rich_small_scene_refuses(two_view_scene) -> None:
+    # 40 correspondences of which 60 % are gross outliers: 16 inliers < min_inliers (25).
+    s = two_view_scene("general", seed=7, n_points=40, outlier_ratio=0.6)
+    m, st, _ = _estimate(s, _no_map(s))
+    assert m is None
+    assert st.model is Model.ESSENTIAL and st.n_inliers < CFG.min_inliers
+    assert st.reasons == [f"too few inliers after cheirality ({st.n_inliers} < {CFG.min_inliers}, RH {st.rh:.2f})"]
+
+
+def test_no_model_refuses_with_the_reason(general_scene) -> None:
+    s = general_scene
+    kf = _keyframe(s, _no_map(s))
+    xn = kf.camera.normalize(s.uv_cur_obs[:3])
+    ctx = MotionContext(kf, np.arange(3, dtype=np.int64), xn, kf.camera.to_pixels(xn), np.eye(4), lambda dt: 1.0)
+    sel = select_model(kf.uv[:3], ctx.uv_cur, kf.camera.K, CFG)
+    st = FrameStats(stamp_ns=KF_STAMP_NS + DT_NS)
+    assert MotionStage(CFG).estimate(ctx, sel, st) is None
+    assert st.reasons == ["no two-view model could be estimated"] and st.model is Model.NONE
+
+
+def test_a_map_whose_points_are_all_outliers_cannot_carry_the_scale(general_scene_outliers) -> None:
+    # Depth only on the gross outliers: the keyframe "has a map" but none of its points is an inlier.
+    s = general_scene_outliers
+    X = _no_map(s)
+    X[s.is_outlier] = np.array(s.X_ref)[s.is_outlier]
+    m, st, _ = _estimate(s, X)
+    assert m is None
+    assert st.reasons == ["too few map points to carry the scale (0)"]
+
+
+def test_has_map_needs_min_scale_points(general_scene) -> None:
+    s = general_scene
+    X = _no_map(s)
+    X[: CFG.min_scale_points - 1] = s.X_ref[: CFG.min_scale_points - 1]
+    stage = MotionStage(CFG)
+    assert not stage.has_map(_keyframe(s, X))
+    X[CFG.min_scale_points - 1] = s.X_ref[CFG.min_scale_points - 1]
+    assert stage.has_map(_keyframe(s, X))
+
+
+def test_is_finite_guards_the_motion() -> None:
+    ok = Motion(TrackingState.TRACKING, np.eye(3), np.ones(3), np.eye(6), np.ones(4, bool))
+    assert is_finite(ok)
+    assert not is_finite(dataclasses.replace(ok, t_cur_kf=np.array([0.0, math.nan, 0.0])))
+    assert not is_finite(dataclasses.replace(ok, cov_rel=np.full((6, 6), math.inf)))
+
+
+# --- the relative covariance against the actual errors (1 px noise, the configured score sigma) ----
+def _error_to_sigma(make_scene: Callable[..., Any], cfg: VoConfig, n_scenes: int = 30
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """RMS error / reported sigma per axis of the camera position and rotation in the keyframe frame."""
+    assert CFG.score_sigma_px == 1.0
+    pos_err, pos_var, rot_err, rot_var = [], [], [], []
+    for seed in range(n_scenes):
+        s = make_scene("general", seed=100 + seed, noise_px=1.0)
+        m, _, _ = _estimate(s, _true_map(s), cfg)
+        assert m is not None and m.state is TrackingState.TRACKING
+        c = -m.R_cur_kf.T @ m.t_cur_kf
+        c_true = -s.R_cur_ref.T @ s.t_cur_ref * MAP_SCALE
+        pos_err.append((c - c_true) ** 2)
+        rot_err.append(_rotvec(m.R_cur_kf.T @ s.R_cur_ref) ** 2)
+        pos_var.append(np.diag(m.cov_rel)[:3])
+        rot_var.append(np.diag(m.cov_rel)[3:])
+    return (np.sqrt(np.mean(pos_err, axis=0) / np.mean(pos_var, axis=0)),
+            np.sqrt(np.mean(rot_err, axis=0) / np.mean(rot_var, axis=0)))
+
+
+def _rotvec(R: np.ndarray) -> np.ndarray:
+    return 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])  # small angles
+
+
+def test_map_refined_pose_covariance_matches_its_errors(two_view_scene) -> None:
+    pos, rot = _error_to_sigma(two_view_scene, dataclasses.replace(CFG, e_pose_min_parallax_deg=10.0))
+    # Consistent within a factor 2 (30 scenes: the RMS itself is known to ~15 %).
+    assert np.all((pos > 0.5) & (pos < 2.0)), pos
+    assert np.all((rot > 0.5) & (rot < 2.0)), rot
+
+
+@pytest.mark.xfail(strict=True, reason="DEFECT: with E chosen and a map, cov_rel is overconfident by ~3-14x (sigma): "
+                                       "rotation_var ignores the rotation/translation-direction coupling of two "
+                                       "views, and the scale variance ignores that E's direction error biases it")
+def test_essential_pose_covariance_matches_its_errors(two_view_scene) -> None:
+    pos, rot = _error_to_sigma(two_view_scene, CFG)
+    assert np.all(pos < 2.0), pos
+    assert np.all(rot < 2.0), rot

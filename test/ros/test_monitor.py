@@ -1,0 +1,327 @@
+"""``epi-vo monitor``: the pure MonitorState fed plain values, and the command against a real vo_node.
+
+The integration tests start every rclpy process (vo_node, ``epi-vo play``, ``epi-vo monitor`` and this
+test's probe) with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and this test's own ROS_DOMAIN_ID
+(test/ros_fixtures.py): ``epi-vo monitor`` itself takes them from its environment.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import signal
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from ros_fixtures import RosSession, rclpy_session, ros_test_env, spin_until, wait_until
+
+from epi_vo.ros.monitor import HISTORY_LENGTH, MonitorState, is_vo_status, level_name, reason_key
+
+REPO = Path(__file__).resolve().parents[2]
+BAG = REPO / "bags" / "general_motion" / "bag"
+NAME = "vo_node: tracking"
+WAIT_S = 120.0  # bound on waiting for another process: generous, a loaded machine is slow, not broken
+
+
+def _record(**over: str) -> dict[str, str]:
+    """Key/values of a per-frame status as the node publishes them (frame record + input figures)."""
+    values = {"index": "41", "stamp": "1700000002.7", "stamp_ns": "1700000002700000000", "state": "tracking",
+              "has_pose": "True", "is_keyframe": "False", "model": "E", "rh": "0.183", "n_features": "300",
+              "n_tracked": "200", "n_inliers": "170", "inlier_ratio": "0.85", "median_parallax_deg": "2.91",
+              "n_triangulated": "0", "positive_depth_ratio": "None", "median_reproj_err_px": "None",
+              "relative_scale": "1", "n_keyframes": "4", "position": "1 2 3", "quat_xyzw": "0 0 0 1",
+              "n_points": "0", "timings_ms": "track=3.2", "reason": "",
+              "input_rate_hz": "15.02", "latency_ms": "12.34", "frames_received": "42", "dropped_frames": "1",
+              "queue_depth": "0", "time_since_last_image_s": "0.031"}
+    values.update(over)
+    return values
+
+
+def _tracking_session() -> MonitorState:
+    """Three initialising frames (WARN, numbers differing), then a tracking one, odometry in 3-4-5 steps."""
+    s = MonitorState()
+    for i, parallax in enumerate(("0.21", "0.35", "0.48")):
+        s = s.update_from_status(NAME, b"\x01", f"initializing: low parallax ({parallax} deg < 0.5)",
+                                 _record(state="initializing", index=str(i), model="none", rh="None"), 100.0 + i)
+    s = s.update_from_status(NAME, b"\x00", "tracking", _record(), 103.0, "monocular_camera")
+    for t, p in enumerate([(0.0, 0.0, 0.0), (3.0, 4.0, 0.0), (6.0, 8.0, 0.0), (6.0, 8.0, 0.0), (6.0, 4.0, -3.0)]):
+        s = s.update_from_odometry(p, 100.0 + t)
+    return s
+
+
+def test_snapshot_shows_level_state_reason_and_numbers() -> None:
+    text = _tracking_session().render_text(103.5)
+    assert text.startswith("vo_node: tracking  (hardware monocular_camera)")
+    assert re.search(r"level\s+OK\b", text)
+    assert re.search(r"reason\s+tracking\b", text)
+    assert re.search(r"state\s+tracking\s+frame 41\b", text)
+    for part in ("inliers 170", "inlier ratio 0.850", "tracked 200", "features 300", "RH 0.183",
+                 "parallax 2.91 deg", "model       E", "keyframes 4", "15.0 Hz", "dropped 1", "received 42",
+                 "latency     12.3 ms", "last image 0.03 s ago", "reproj n/a"):
+        assert part in text, part
+
+
+def test_distance_is_the_sum_of_odometry_steps() -> None:
+    s = _tracking_session()
+    assert s.distance == 15.0  # 5 + 5 + 0 + 5: 3-4-5 triangles, exact in floating point
+    assert "distance 15.000 (VO units)" in s.render_text()
+    assert "position 6.000 4.000 -3.000" in s.render_text()
+    assert s.update_from_odometry((math.nan, 0.0, 0.0), 110.0) is s  # a broken message is ignored
+
+
+def test_warning_history_groups_reasons_with_counts() -> None:
+    s = _tracking_session()
+    assert len(s.history) == 1
+    entry = s.history[0]
+    assert (entry.count, entry.level, entry.last_s) == (3, 1, 102.0)
+    assert entry.message == "initializing: low parallax (0.48 deg < 0.5)"  # the latest wording
+    text = s.render_text(103.5)
+    assert re.search(r"WARN\s+x3\s+initializing: low parallax \(0\.48 deg < 0\.5\)\s+last \d\d:\d\d:\d\d "
+                     r"\(1\.5 s ago\)", text), text
+
+
+def test_history_keeps_the_most_recent_distinct_reasons() -> None:
+    s = MonitorState()
+    for i in range(HISTORY_LENGTH + 3):
+        s = s.update_from_status(NAME, 2, f"lost: problem kind {chr(ord('a') + i)}", _record(state="lost"), float(i))
+    s = s.update_from_status(NAME, 2, "lost: problem kind k", _record(state="lost"), 50.0)
+    assert len(s.history) == HISTORY_LENGTH
+    assert [h.message[-1] for h in s.history[:3]] == ["k", "j", "i"]  # most recent first
+    assert s.history[0].count == 2
+    assert all(h.message[-1] not in "abc" for h in s.history)  # the oldest fell out
+    assert re.search(r"ERROR\s+x2\s+lost: problem kind k", s.render_text())
+
+
+def test_watchdog_status_is_stale_and_keeps_the_last_frame() -> None:
+    s = _tracking_session()
+    for t, gap in ((104.0, "1.1"), (105.0, "2.1"), (106.0, "3.1")):
+        level = 3 if float(gap) >= 3.0 else 1
+        s = s.update_from_status(NAME, bytes([level]), f"stalled: no image for {gap} s",
+                                 {"input_rate_hz": "0.00", "time_since_last_image_s": gap, "frames_received": "42",
+                                  "dropped_frames": "1", "queue_depth": "0", "latency_ms": "12.34"}, t)
+    text = s.render_text(106.0)
+    assert re.search(r"level\s+STALE\b", text)
+    assert re.search(r"reason\s+stalled: no image for 3\.1 s", text)
+    assert "(last frame 3.0 s ago)" in text and "inliers 170" in text  # the last frame's numbers stay
+    assert "last image 3.10 s ago" in text and "0.0 Hz" in text  # the input figures are the latest
+    assert re.search(r"STALE\s+x3\s+stalled: no image for 3\.1 s", text)  # one reason, whatever the seconds
+    assert "no status for" not in text
+    assert "!! no status for 4.0 s" in s.render_text(110.0)  # the node itself went silent
+
+
+def test_other_nodes_and_other_statuses() -> None:
+    s = MonitorState().update_from_status("camera_driver", 2, "fault", {}, 1.0)
+    assert not s.has_status and "waiting for a VO status" in s.render_text()
+    s = s.update_from_status(NAME, 0, "tracking", _record(), 2.0)
+    s = s.update_from_status("vo_other: tracking", 2, "lost", _record(state="lost"), 3.0)
+    assert s.source == NAME and s.level == 0 and s.n_statuses == 1
+    assert "also seen   vo_other: tracking" in s.render_text()
+    chosen = MonitorState(node_name="/robot1/vo_other").update_from_status(NAME, 0, "tracking", _record(), 1.0)
+    assert not chosen.has_status
+    chosen = chosen.update_from_status("vo_other: tracking", 2, "lost", _record(state="lost"), 2.0)
+    assert chosen.source == "vo_other: tracking" and re.search(r"level\s+ERROR", chosen.render_text())
+    assert is_vo_status(NAME) and is_vo_status(NAME, "vo_node") and not is_vo_status(NAME, "vo")
+    assert not is_vo_status("vo_node: tracking extra")
+
+
+def test_state_is_immutable_and_odd_values_are_shown_not_refused() -> None:
+    s0 = MonitorState()
+    s1 = s0.update_from_status(NAME, 7, "odd level", {"state": "tracking", "n_inliers": "nan", "rh": "x"}, 1.0)
+    assert s0.n_statuses == 0 and s1.n_statuses == 1
+    text = s1.render_text()
+    assert "level       LEVEL 7" in text and "inliers n/a" in text and "RH n/a" in text
+    assert [level_name(v) for v in range(4)] == ["OK", "WARN", "ERROR", "STALE"]
+    assert reason_key("no image for 1.5 s") == reason_key("no image for 12 s")
+    assert reason_key("lost: 3 inliers") != reason_key("tracking")
+
+
+def test_real_frame_records_render_their_numbers() -> None:
+    """The keys the monitor reads are the ones the node publishes (status.frame_status of real frames)."""
+    from epi_vo.core.camera import CameraModel
+    from epi_vo.core.pipeline import VoPipeline
+    from epi_vo.core.status import frame_status
+    from epi_vo.io import bagio
+    from epi_vo.io.msgconv import decode_frame
+
+    pipe = VoPipeline()
+    s = MonitorState()
+    with bagio.open_camera_bag(BAG) as bag:
+        for f in bag.iter_frames():
+            if f.index >= 12:
+                break
+            r = pipe.process(decode_frame(f.image_msg, bag.image_is_compressed),
+                             CameraModel.from_camera_info(f.camera_info_msg), f.stamp_ns)
+            st = frame_status(r, "vo_node", "cam")
+            s = s.update_from_status(st.name, int(st.level), st.message, st.values, float(f.index))
+    assert r.n_inliers > 0 and math.isfinite(r.inlier_ratio)
+    text = s.render_text()
+    assert f"state       {r.state.value}  frame {r.index}" in text
+    assert f"inliers {r.n_inliers}  inlier ratio {r.inlier_ratio:.3f}" in text
+    assert f"model       {r.model.value}" in text
+    assert f"keyframes {r.n_keyframes}" in text
+    assert f"features {r.n_features}" in text
+
+
+# -- the command, against real processes ------------------------------------------------------------------
+
+def _monitor(env: dict[str, str], *args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "epi_vo.cli", "monitor", *args], env=env, capture_output=True,
+                          text=True, timeout=timeout)
+
+
+@pytest.mark.parametrize("mode", [["--once"], []], ids=["once", "live"])
+def test_no_node_times_out_with_one_line(mode: list[str]) -> None:
+    with ros_test_env() as ros_env:
+        proc = _monitor(ros_env.env, *mode, "--timeout", "2")
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stdout == ""
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in proc.stderr
+    assert "no VO status" in lines[0] and "within 2 s" in lines[0] and f"ROS_DOMAIN_ID={ros_env.domain_id}" in lines[0]
+
+
+@pytest.fixture(scope="module")
+def ros() -> Iterator[RosSession]:
+    with rclpy_session() as session:
+        yield session
+
+
+def _stop(proc: subprocess.Popen[str]) -> None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def _ints(text: str, label: str) -> list[int]:
+    return [int(v) for v in re.findall(rf"\b{label}\s+(\d+)\b", text)]
+
+
+def _floats(text: str, label: str) -> list[float]:
+    return [float(v) for v in re.findall(rf"\b{label}\s+(-?\d+\.\d+)", text)]
+
+
+def test_monitor_against_a_running_node(ros: RosSession) -> None:
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    probe = rclpy.create_node("probe_monitor", context=ros.context)
+    executor = SingleThreadedExecutor(context=ros.context)
+    executor.add_node(probe)
+    statuses: list[Any] = []
+    probe.create_subscription(DiagnosticArray, "/diagnostics", lambda m: statuses.extend(m.status),
+                              QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+
+    def frame_records() -> list[dict[str, str]]:
+        return [{kv.key: kv.value for kv in s.values} for s in statuses if s.name == NAME
+                and any(kv.key == "state" for kv in s.values)]
+
+    # A long watchdog timeout: the gap between loops of the player must not produce 'stalled' statuses,
+    # so the first status --once sees is a frame's. --loop keeps frames coming however slow start-up is.
+    node = subprocess.Popen([sys.executable, "-m", "epi_vo.ros.node", "--ros-args", "-p", "image_transport:=compressed",
+                             "-p", "process_every_frame:=true", "-p", "qos_reliability:=reliable",
+                             "-p", "watchdog_timeout_s:=60.0"],
+                            env=ros.env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, text=True)
+    player = subprocess.Popen([sys.executable, "-m", "epi_vo.cli", "play", str(BAG), "--rate", "1.0", "--loop"],
+                              env=ros.env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, text=True)
+    live: subprocess.Popen[str] | None = None
+    try:
+        assert spin_until(executor, lambda: len(frame_records()) >= 3, WAIT_S), "no frame status from vo_node"
+
+        once = _monitor(ros.env, "--once", "--timeout", str(WAIT_S), timeout=2 * WAIT_S)
+        assert once.returncode == 0, once.stderr
+        assert "Traceback" not in once.stderr
+        out = once.stdout
+        assert out.startswith(NAME) and re.search(r"level\s+(OK|WARN)\b", out), out
+        assert re.search(r"state\s+(tracking|initializing|rotation_only)\s+frame \d+", out), out
+        (index,), (features,) = _ints(out, "frame"), _ints(out, "features")
+        assert 50 <= features <= 2000
+        assert 0.0 < _floats(out, "input")[0]  # Hz: the player's rate as the node measured it
+        # The numbers are those the node published for that frame (once the probe has its status too).
+        spin_until(executor, lambda: any(r["index"] == str(index) for r in frame_records()), WAIT_S)
+        published = [r for r in frame_records() if r["index"] == str(index)]
+        assert any(int(r["n_features"]) == features and f"inliers {r['n_inliers']}  " in out
+                   for r in published), (out, published)
+
+        # Live mode, stdout not a terminal: plain snapshots (one a second) until Ctrl-C, then exit 0. Ctrl-C
+        # comes once the snapshots show what is checked below (or after WAIT_S), however slow the machine.
+        live = subprocess.Popen([sys.executable, "-m", "epi_vo.cli", "monitor", "--timeout", str(WAIT_S)],
+                                env=ros.env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        reader = _Reader(live)
+        wait_until(lambda: _live_view_complete(_snapshots(reader.text())) or live.poll() is not None, WAIT_S)
+        live.send_signal(signal.SIGINT)
+        returncode = live.wait(timeout=WAIT_S)
+        stdout, stderr = reader.finish()
+        assert returncode == 0, stderr
+        assert "Traceback" not in stderr
+        snapshots = _snapshots(stdout)
+        assert len(snapshots) >= LIVE_SNAPSHOTS, stdout
+        assert any(re.search(r"state\s+tracking\b", s) for s in snapshots), stdout
+        inliers = [v for s in snapshots for v in _ints(s, "inliers")]
+        ratios = [v for s in snapshots for v in _floats(s, "inlier ratio")]
+        assert inliers and max(inliers) >= 30 and all(0.0 <= r <= 1.0 for r in ratios)
+        assert _floats(snapshots[-1], "distance")[0] > 0.0  # odometry arrived and moved
+        assert _ints(snapshots[-1], "messages")[0] >= 2
+    finally:
+        if live is not None:
+            _stop(live)
+        _stop(player)
+        _stop(node)
+        executor.shutdown()
+        probe.destroy_node()
+
+
+LIVE_SNAPSHOTS = 3
+
+
+def _snapshots(stdout: str) -> list[str]:
+    """The complete snapshots of the live monitor's plain output (each ends with an empty line)."""
+    return [s for s in stdout.split("\n\n")[:-1] if s.startswith(NAME)]
+
+
+def _live_view_complete(snapshots: list[str]) -> bool:
+    """Enough snapshots, one of them tracking with inliers, and the latest with odometry that moved."""
+    if len(snapshots) < LIVE_SNAPSHOTS or not any(re.search(r"state\s+tracking\b", s) for s in snapshots):
+        return False
+    if max((v for s in snapshots for v in _ints(s, "inliers")), default=0) < 30:
+        return False
+    distance, messages = _floats(snapshots[-1], "distance"), _ints(snapshots[-1], "messages")
+    return bool(distance and distance[0] > 0.0 and messages and messages[0] >= 2)
+
+
+class _Reader:
+    """Collects a child's stdout and stderr in threads while it runs (``text()``: stdout so far)."""
+
+    def __init__(self, proc: subprocess.Popen[str]) -> None:
+        self._parts: dict[str, list[str]] = {"out": [], "err": []}
+        self._lock = threading.Lock()
+        self._threads = [threading.Thread(target=self._pump, args=(stream, key), daemon=True)
+                         for stream, key in ((proc.stdout, "out"), (proc.stderr, "err"))]
+        for t in self._threads:
+            t.start()
+
+    def _pump(self, stream: Any, key: str) -> None:
+        for line in iter(stream.readline, ""):
+            with self._lock:
+                self._parts[key].append(line)
+
+    def text(self) -> str:
+        with self._lock:
+            return "".join(self._parts["out"])
+
+    def finish(self) -> tuple[str, str]:
+        """After the child exited: everything it wrote (stdout, stderr)."""
+        for t in self._threads:
+            t.join(timeout=WAIT_S)
+        with self._lock:
+            return "".join(self._parts["out"]), "".join(self._parts["err"])
