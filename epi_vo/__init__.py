@@ -1,7 +1,7 @@
 """epi_vo: monocular visual odometry that says when a pose cannot be trusted.
 
-The core (camera, frontend, geometry, pipeline) imports numpy and cv2 only; ``epi_vo.ros.node`` is the only
-module importing rclpy.
+Layers: ``core`` (numpy and cv2 only) <- ``io`` (bags, messages; no rclpy) <- ``ros`` (rclpy front doors)
+and ``tools`` (replay, benchmark, report); ``cli`` is the ``epi-vo`` front end. See README "Layers".
 """
 
 __version__ = "0.1.0"

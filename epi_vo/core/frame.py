@@ -84,10 +84,11 @@ class FrameResult:
     pose when ``has_pose`` is False. ``covariance`` is 6x6 over (x, y, z, rot_x, rot_y, rot_z) in the
     odometry frame (position in map units, rotation in radians).
 
-    Finite by construction (checked in ``__post_init__``): ``T_w_c`` (a rigid transform),
-    ``covariance`` (symmetric, positive diagonal), ``points_w`` and ``timings_ms`` are always finite,
-    ``stamp_ns`` is a valid ROS time. A statistic that was not measured this frame (``rh``,
-    ``median_parallax_deg``, ...) is NaN, never infinite; ``to_record`` writes it as null.
+    Finite by construction: ``__post_init__`` refuses a non-finite ``T_w_c``, ``covariance``,
+    ``points_w`` or ``timings_ms`` and a ``stamp_ns`` that is no valid ROS time (the pipeline also
+    keeps ``T_w_c`` rigid and the covariance symmetric with a positive diagonal). A statistic that was
+    not measured this frame (``median_parallax_deg``, ...) is NaN, never infinite; ``to_record`` writes
+    it as null.
     """
 
     index: int
