@@ -165,12 +165,12 @@ class VoPipeline:
             return skipped
         stamp_ns = int(stamp_ns)
         t_start = time.perf_counter()
-        work_w = gray.shape[1] if self.cfg.max_image_width <= 0 else min(gray.shape[1], self.cfg.max_image_width)
-        problem = fe.image_problem(work_w, round(gray.shape[0] * work_w / gray.shape[1]), self.cfg)
-        if problem is not None:
-            return self._reject_checked(stamp_ns, problem, t_start)
         held = (self._T_w_c.copy(), self._cov_w_c.copy())
         try:
+            gray, camera = downscale(gray, camera, self.cfg.max_image_width)
+            problem = fe.image_problem(gray.shape[1], gray.shape[0], self.cfg)
+            if problem is not None:
+                return self._reject_checked(stamp_ns, problem, t_start)
             return self._process(gray, camera, stamp_ns, t_start)
         except cv2.error as exc:
             # OpenCV refused this image or these points: nothing of the frame is trusted. Restore the
@@ -184,11 +184,12 @@ class VoPipeline:
 
     def _process(self, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int, t_start: float
                  ) -> FrameResult:
+        """One frame, already downscaled and checked usable: features -> model selection -> motion ->
+        keyframes / map -> frame record."""
         st = FrameStats(stamp_ns=stamp_ns)
         if self._pending_reason:
             st.reasons.append(self._pending_reason)
             self._pending_reason = ""
-        gray, camera = downscale(gray, camera, self.cfg.max_image_width)
         if self._kf is not None and not _same_camera(self._kf.camera, camera):
             st.reasons.append("camera_info changed: tracking restarted")
             self._kf = None
