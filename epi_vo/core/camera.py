@@ -148,13 +148,12 @@ class CameraModel:
         Kr[1, 1] /= by
         Kr[0, 2] = (Kr[0, 2] - rx) / bx
         Kr[1, 2] = (Kr[1, 2] - ry) / by
-        cam = cls.create(rw // bx, rh // by, Kr, full.D.copy(), model)
-        object.__setattr__(cam, "binning_roi", (bx, by, rx, ry, rw, rh))
-        return cam
+        return cls.create(rw // bx, rh // by, Kr, full.D.copy(), model, binning_roi=(bx, by, rx, ry, rw, rh))
 
     @classmethod
     def create(cls, width: int, height: int, K: NDArray[np.float64] | list[float],
-               D: NDArray[np.float64] | list[float], distortion_model: str = "plumb_bob") -> CameraModel:
+               D: NDArray[np.float64] | list[float], distortion_model: str = "plumb_bob", *,
+               binning_roi: tuple[int, int, int, int, int, int] = (1, 1, 0, 0, 0, 0)) -> CameraModel:
         """Validated constructor; see :meth:`from_camera_info` for the errors raised."""
         K = np.asarray(K, dtype=np.float64).reshape(-1)
         D = np.asarray(D, dtype=np.float64).reshape(-1)
@@ -203,7 +202,7 @@ class CameraModel:
                 f"coefficients, camera_info D has {D.size}")
         K.setflags(write=False)
         D.setflags(write=False)
-        return cls(int(width), int(height), K, D, model)
+        return cls(int(width), int(height), K, D, model, binning_roi)
 
     # ------------------------------------------------------------------------------------------
     @property

@@ -25,6 +25,11 @@ F64 = NDArray[np.float64]
 MAX_STAMP_NS = (2**31 - 1) * 1_000_000_000 + 999_999_999
 
 
+def clamp_stamp_ns(stamp_ns: int) -> int:
+    """``stamp_ns`` clamped into the valid ROS time range [0, MAX_STAMP_NS]."""
+    return min(max(int(stamp_ns), 0), MAX_STAMP_NS)
+
+
 class TrackingState(enum.Enum):
     INITIALIZING = "initializing"  # no map yet: waiting for parallax; rotation is estimated, position holds
     TRACKING = "tracking"  # pose with the map's scale

@@ -47,7 +47,16 @@ from epi_vo.core import features as fe
 from epi_vo.core import motion as mo
 from epi_vo.core.camera import CameraModel
 from epi_vo.core.config import VoConfig, validate
-from epi_vo.core.frame import MAX_STAMP_NS, STAT_FIELDS, FrameResult, FrameStats, Matches, TrackingState, frozen
+from epi_vo.core.frame import (
+    MAX_STAMP_NS,
+    STAT_FIELDS,
+    FrameResult,
+    FrameStats,
+    Matches,
+    TrackingState,
+    clamp_stamp_ns,
+    frozen,
+)
 from epi_vo.core.keyframe import Keyframe, make_keyframe
 from epi_vo.core.mapping import keyframe_map
 from epi_vo.core.scale import VoUnitsScale
@@ -119,7 +128,7 @@ class VoPipeline:
         rejected, with ``problem``; ``note`` is added to the reason) carries ``stamp_ns`` clamped into the
         valid range."""
         reason = f"frame rejected: {problem}; frame skipped" + (f" ({note})" if note else "")
-        return self._skip(min(max(int(stamp_ns), 0), MAX_STAMP_NS), reason, problem)
+        return self._skip(clamp_stamp_ns(stamp_ns), reason, problem)
 
     def _skip(self, stamp_ns: int, reason: str, problem: str) -> FrameResult:
         st = FrameStats(stamp_ns=stamp_ns)

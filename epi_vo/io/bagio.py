@@ -27,8 +27,8 @@ from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_typestore
 
 from epi_vo.core.errors import BagError, EpiVoError
+from epi_vo.core.frame import clamp_stamp_ns
 from epi_vo.io.msgconv import (
-    clamp_stamp_ns,
     stamp_problem,
     stamp_to_ns,
 )

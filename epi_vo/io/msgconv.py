@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from epi_vo.core.errors import EpiVoError, ImageConversionError
+from epi_vo.core.frame import MAX_STAMP_NS
 
 
 @dataclass(frozen=True)
@@ -187,9 +188,8 @@ def decode_frame(msg: Any, compressed: bool) -> NDArray[np.uint8]:
 # builtin_interfaces/Time: int32 sec (a ROS time is never negative), uint32 nanosec below one second.
 ROS_TIME_MAX_SEC = 2**31 - 1
 NS_PER_S = 1_000_000_000
-# The largest stamp a ROS time can hold, in nanoseconds (equal to epi_vo.core.pipeline.MAX_STAMP_NS; a test
-# keeps them equal: msgconv imports no pipeline).
-ROS_TIME_MAX_NS = ROS_TIME_MAX_SEC * NS_PER_S + NS_PER_S - 1
+# The largest stamp a ROS time can hold, in nanoseconds.
+ROS_TIME_MAX_NS = MAX_STAMP_NS
 
 
 def _stamp_fields(stamp: Any) -> tuple[int, int]:
@@ -248,9 +248,6 @@ def ns_to_ros_time(stamp_ns: int) -> tuple[int, int]:
     return sec, nanosec
 
 
-def clamp_stamp_ns(stamp_ns: int) -> int:
-    """``stamp_ns`` clamped into the valid ROS time range [0, ROS_TIME_MAX_NS]."""
-    return min(max(int(stamp_ns), 0), ROS_TIME_MAX_NS)
 
 
 def point_cloud2_fields(points_xyz: ArrayLike) -> dict[str, Any]:

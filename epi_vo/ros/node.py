@@ -16,7 +16,6 @@ Topics (relative names, so namespaces and remapping work):
 from __future__ import annotations
 
 import collections
-import difflib
 import math
 import sys
 import threading
@@ -38,7 +37,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, Poi
 from std_srvs.srv import Trigger
 
 from epi_vo.core.camera import CameraModelCache
-from epi_vo.core.config import VoConfig, config_fields, field_doc, from_dict
+from epi_vo.core.config import VoConfig, config_fields, field_doc, from_dict, unknown_names_text
 from epi_vo.core.debug_image import draw_matches
 from epi_vo.core.diagnostics import DiagnosticLevel, DiagnosticStatusRecord
 from epi_vo.core.errors import CameraModelError, ConfigError, EpiVoError
@@ -200,12 +199,8 @@ class VoNode(Node):
         unknown = sorted(n for n in overrides if not self.has_parameter(n) and not n.startswith("qos_overrides."))
         if not unknown:
             return
-        known = [f.name for f in config_fields()] + list(_NODE_DOCS)
-        names = []
-        for n in unknown:
-            close = difflib.get_close_matches(n, known, n=1)
-            names.append(f"{n} (did you mean {close[0]}?)" if close else n)
-        self.get_logger().warning("ignoring parameter overrides that vo_node does not declare: " + ", ".join(names))
+        self.get_logger().warning("ignoring parameter overrides that vo_node does not declare: "
+                                  + unknown_names_text(unknown))
 
     def _declare(self, name: str, default: Any, desc: ParameterDescriptor, problems: list[str]) -> Any:
         try:
@@ -413,7 +408,7 @@ class VoNode(Node):
 
 def _stamp_msg(stamp_ns: int) -> Time:
     """A frame result's stamp as a ROS time (results carry valid stamps only)."""
-    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    sec, nanosec = msgconv.ns_to_ros_time(stamp_ns)
     return Time(sec=sec, nanosec=nanosec)
 
 

@@ -38,7 +38,7 @@ from epi_vo.core.odometry import OdometryConverter
 from epi_vo.core.pipeline import VoPipeline
 from epi_vo.core.status import frame_status
 from epi_vo.io import bagio, outbag, tum
-from epi_vo.io.msgconv import decode_frame
+from epi_vo.io.msgconv import decode_frame, ns_to_ros_time
 
 if TYPE_CHECKING:
     from epi_vo.tools.evaluation import TrajectoryMetrics
@@ -236,7 +236,7 @@ def _open_output(path: Path) -> Iterator[IO[str]]:
 
 def _tum_stamp(stamp_ns: int) -> str:
     """The stamp in seconds with 9 decimals, exact (a float would round large stamps)."""
-    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    sec, nanosec = ns_to_ros_time(stamp_ns)
     return f"{sec}.{nanosec:09d}"
 
 

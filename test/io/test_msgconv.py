@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 
 from epi_vo.core.errors import EpiVoError, ImageConversionError
+from epi_vo.core.frame import clamp_stamp_ns
 from epi_vo.io.msgconv import (
     POINT_FIELD_FLOAT32,
     POINT_FIELD_FLOAT64,
     ROS_TIME_MAX_NS,
     PointFieldSpec,
-    clamp_stamp_ns,
     compressed_to_gray,
     decode_frame,
     image_to_gray,
