@@ -17,6 +17,7 @@ from typing import Any
 
 from epi_vo.core.errors import ConfigError
 
+SCALE_SOURCES = ("none", "ground_plane", "wheel_odometry")  # epi_vo.core.scale
 ROBUST_METHODS = ("magsac", "ransac", "lmeds", "usac_default", "usac_accurate", "usac_fast")
 FRONTENDS = ("klt", "orb")
 
@@ -95,6 +96,24 @@ class VoConfig:
     # --- tracking lost -------------------------------------------------------------------------
     lost_after_frames: int = _knob(3, "consecutive frames without a pose before tracking is declared lost", 1, 1000)
 
+    # --- metric scale ----------------------------------------------------------------------------
+    scale_source: str = _knob(
+        "none", "where metric scale comes from: 'none' (VO units), 'ground_plane' (needs camera_height_m) or "
+        "'wheel_odometry' (reads wheel_odometry_topic)", choices=SCALE_SOURCES)
+    camera_height_m: float = _knob(0.0, "height of the camera's optical centre above the floor (m; ground_plane)",
+                                   0.0, 100.0)
+    wheel_odometry_topic: str = _knob("/odom", "nav_msgs/Odometry topic of the wheel odometry (wheel_odometry)")
+    wheel_odometry_rel_sigma: float = _knob(0.03, "relative error (1 sigma) of a wheel distance between keyframes",
+                                            0.001, 1.0)
+    wheel_odometry_timeout_s: float = _knob(
+        0.5, "wheel messages further than this from an image stamp are stale: the last scale is held (s)", 0.01,
+        60.0)
+    ground_max_tilt_deg: float = _knob(35.0, "floor normals further than this from the camera's up axis are no "
+                                       "floor (deg)", 1.0, 89.0)
+    ground_inlier_ratio: float = _knob(0.04, "floor inliers lie within this fraction of the camera height", 0.001,
+                                       0.5)
+    ground_min_points: int = _knob(8, "map points on the floor needed to measure the scale", 3, 10000)
+
     # --- covariance ----------------------------------------------------------------------------
     scale_drift_per_keyframe: float = _knob(0.02, "relative scale uncertainty added at each keyframe (1 sigma)",
                                             0.0, 1.0)
@@ -139,6 +158,12 @@ def validate(cfg: VoConfig) -> None:
             problems.append(f"{f.name}={value!r} (maximum {hi})")
     if isinstance(cfg.klt_window_px, int) and cfg.klt_window_px % 2 == 0:
         problems.append(f"klt_window_px={cfg.klt_window_px} (must be odd)")
+    if cfg.scale_source == "ground_plane" and isinstance(cfg.camera_height_m, float) and not cfg.camera_height_m > 0:
+        problems.append("scale_source='ground_plane' needs camera_height_m > 0 (height of the camera's optical "
+                        "centre above the floor, m)")
+    if cfg.scale_source == "wheel_odometry" and isinstance(cfg.wheel_odometry_topic, str) \
+            and not cfg.wheel_odometry_topic.strip():
+        problems.append("scale_source='wheel_odometry' needs wheel_odometry_topic (a nav_msgs/Odometry topic)")
     if problems:
         raise ConfigError("invalid epi_vo parameters: " + "; ".join(problems))
 

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from epi_vo.core.scale import ScaleStatus
 from epi_vo.core.transforms import quat_xyzw_from_rotation
 
 F64 = NDArray[np.float64]
@@ -80,6 +81,9 @@ class Matches:
         return Matches(z2, z2, z2, z2, np.zeros(0, bool), np.zeros((3, 3)), np.zeros((3, 3)))
 
 
+VO_UNITS = ScaleStatus()  # no scale source: VO units
+
+
 @dataclass(frozen=True)
 class FrameResult:
     """Everything known about one input frame. Every field is always set.
@@ -87,7 +91,9 @@ class FrameResult:
     Counts refer to correspondences between the reference keyframe and this frame. Angles in degrees,
     errors in undistorted pixels, times in milliseconds. ``T_w_c`` is always a valid pose: the held
     pose when ``has_pose`` is False. ``covariance`` is 6x6 over (x, y, z, rot_x, rot_y, rot_z) in the
-    odometry frame (position in map units, rotation in radians).
+    odometry frame (rotation in radians). Positions, point cloud and position covariance are in metres
+    when ``scale.metric`` (a metric scale source is established), in VO units otherwise (``scale.units``
+    says which).
 
     Finite by construction: ``__post_init__`` refuses a non-finite ``T_w_c``, ``covariance``,
     ``points_w`` or ``timings_ms`` and a ``stamp_ns`` that is no valid ROS time (the pipeline also
@@ -121,6 +127,7 @@ class FrameResult:
     matches: Matches
     skipped: bool = False  # not processed (duplicate or invalid stamp, undecodable): no pose is published for it
     problem: str = ""  # why the frame was rejected (bad input); "" when it was not
+    scale: ScaleStatus = VO_UNITS  # scale source, metres or VO units, scale and its uncertainty
 
     @property
     def rejected(self) -> bool:
@@ -183,6 +190,14 @@ class FrameResult:
             "reason": self.reason,
             "skipped": self.skipped,
             "rejected": self.rejected,
+            "units": self.scale.units,
+            "scale_source": self.scale.source,
+            "metric_scale": self.scale.metric,
+            "scale": num(self.scale.scale),
+            "scale_rel_std": num(self.scale.rel_std),
+            "floor_pitch_deg": num(self.scale.floor_pitch_deg),
+            "floor_roll_deg": num(self.scale.floor_roll_deg),
+            "scale_reason": self.scale.reason,
         }
 
 

@@ -45,6 +45,7 @@ from numpy.typing import NDArray
 from epi_vo.core import covariance as covm
 from epi_vo.core import features as fe
 from epi_vo.core import motion as mo
+from epi_vo.core import scale as sc
 from epi_vo.core.camera import CameraModel
 from epi_vo.core.config import VoConfig, validate
 from epi_vo.core.frame import (
@@ -59,7 +60,6 @@ from epi_vo.core.frame import (
 )
 from epi_vo.core.keyframe import Keyframe, make_keyframe
 from epi_vo.core.mapping import keyframe_map
-from epi_vo.core.scale import VoUnitsScale
 from epi_vo.core.selection import select_model
 from epi_vo.core.transforms import invert_T, make_T
 
@@ -77,7 +77,9 @@ class VoPipeline:
         validate(self.cfg)
         self._orb = fe.make_orb(self.cfg) if self.cfg.frontend == "orb" else None
         self._motion = mo.MotionStage(self.cfg)
-        self._scale = VoUnitsScale()
+        self._wheel = sc.WheelOdometry()
+        self._scale = make_scale_source(self.cfg, self._wheel)
+        self._map_origin_w = np.zeros(3)  # where the current map was initialised (odometry frame)
         self._T_w_c = np.eye(4)
         self._cov_w_c = np.zeros((6, 6))
         self._kf: Keyframe | None = None
@@ -96,6 +98,17 @@ class VoPipeline:
     def pose(self) -> F64:
         """T_w_c of the last frame (a copy)."""
         return self._T_w_c.copy()
+
+    @property
+    def scale_status(self) -> sc.ScaleStatus:
+        """The scale source's state now: source, metric or VO units, scale and its uncertainty."""
+        return self._scale.status()
+
+    def add_wheel_odometry(self, stamp_ns: int, position_xyz: F64) -> bool:
+        """One wheel odometry position (any fixed odom frame, metres) at ``stamp_ns``, for the
+        ``wheel_odometry`` scale source; give them in stamp order as they arrive. False when the sample is
+        ignored (not finite, or not newer than the last one)."""
+        return self._wheel.add(int(stamp_ns), np.asarray(position_xyz, dtype=np.float64))
 
     def reset(self, reason: str = "reset requested") -> None:
         """Restart tracking from the current pose: the next frame becomes a new keyframe, no map."""
@@ -279,15 +292,38 @@ class VoPipeline:
             return False
         t = motion.t_cur_kf
         if motion.state is TrackingState.TRACKING:
+            X_cur, t = self._metric_step(motion, kf, X_cur, stamp_ns)
             self._scale.on_keyframe(float(np.linalg.norm(t)), (stamp_ns - kf.stamp_ns) * 1e-9)
         if motion.state is TrackingState.TRACKING and st.n_triangulated > 0:
             # The keyframe's point cloud: every map point it holds, in the odometry frame.
             st.points_w = _transform(self._T_w_c, X_cur[np.isfinite(X_cur[:, 0])])
         cov = self._cov_w_c.copy()
         if motion.state is TrackingState.TRACKING:
-            cov[:3, :3] += np.eye(3) * (self.cfg.scale_drift_per_keyframe * float(np.linalg.norm(t))) ** 2
+            rel = self._scale.filter.rel_std if self._scale.established else self.cfg.scale_drift_per_keyframe
+            cov[:3, :3] += np.eye(3) * (rel * float(np.linalg.norm(t))) ** 2
         self._set_keyframe(gray, camera, stamp_ns, cov, pts_cur, X_cur, orb_cur)
         return True
+
+    def _metric_step(self, motion: mo.Motion, kf: Keyframe, X_cur: F64, stamp_ns: int) -> tuple[F64, F64]:
+        """The scale source's correction of this keyframe step: the step from the last keyframe and the
+        new keyframe's map points are scaled by it (and, when it establishes metric scale, the whole path
+        of the current map about the point where the map was initialised). Returns the map points and
+        the step translation ``t_cur_kf`` as corrected."""
+        t = motion.t_cur_kf
+        if motion.new_map is not None:
+            self._map_origin_w = kf.T_w_kf[:3, 3].copy()
+            self._scale.on_new_map()
+        was_metric = self._scale.established
+        factor = self._scale.correction(sc.KeyframeStep(X_cur, float(np.linalg.norm(t)), kf.stamp_ns, stamp_ns))
+        if factor == 1.0:
+            return X_cur, t
+        t = t * factor
+        if was_metric:
+            self._T_w_c = kf.T_w_kf @ invert_T(make_T(motion.R_cur_kf, t))
+        else:  # metric from now on: the whole map so far was in VO units
+            self._T_w_c = self._T_w_c.copy()
+            self._T_w_c[:3, 3] = self._map_origin_w + factor * (self._T_w_c[:3, 3] - self._map_origin_w)
+        return X_cur * factor, t
 
     def _set_keyframe(self, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int, cov_w: F64,
                       pts_tracked: F32, X_tracked: F64, orb_cur: fe.OrbFeatures | None) -> None:
@@ -350,6 +386,8 @@ class VoPipeline:
         if not has_pose:
             cov[:3, :3] += np.eye(3) * self.cfg.lost_position_variance
             cov[3:, 3:] += np.eye(3) * self.cfg.lost_rotation_variance
+        if has_pose and self._scale.metric_source and not self._scale.established:
+            cov[:3, :3] += np.eye(3) * self.cfg.lost_position_variance  # metres asked for, VO units given
         cov = covm.floored(cov)
         st.timings["total"] = _ms(t_start)
         kf = self._kf
@@ -366,7 +404,7 @@ class VoPipeline:
             relative_scale=st.relative_scale, n_keyframes=self._n_keyframes, T_w_c=frozen(self._T_w_c),
             covariance=frozen(cov), points_w=frozen(st.points_w[np.all(np.isfinite(st.points_w), axis=1)]),
             timings_ms=dict(st.timings),
-            reason="; ".join(st.reasons), matches=st.matches)
+            reason="; ".join(st.reasons), matches=st.matches, scale=self._scale.status())
         self._index += 1
         return res
 
@@ -395,6 +433,18 @@ def downscale(gray: NDArray[np.uint8], camera: CameraModel, max_width: int
     factor = max_width / gray.shape[1]
     small = cv2.resize(gray, (max_width, round(gray.shape[0] * factor)), interpolation=cv2.INTER_AREA)
     return small, camera.scaled(factor)
+
+
+def make_scale_source(cfg: VoConfig, wheel: sc.WheelOdometry) -> sc.ScaleSource:
+    """The scale source ``cfg.scale_source`` names (see ``epi_vo.core.scale``)."""
+    drift = cfg.scale_drift_per_keyframe
+    if cfg.scale_source == "ground_plane":
+        return sc.GroundPlaneScale(cfg.camera_height_m, drift, max_tilt_deg=cfg.ground_max_tilt_deg,
+                                   inlier_ratio=cfg.ground_inlier_ratio, min_points=cfg.ground_min_points)
+    if cfg.scale_source == "wheel_odometry":
+        return sc.WheelOdometryScale(wheel, drift, rel_sigma=cfg.wheel_odometry_rel_sigma,
+                                     timeout_s=cfg.wheel_odometry_timeout_s)
+    return sc.VoUnitsScale(drift)
 
 
 def _ms(t0: float) -> float:

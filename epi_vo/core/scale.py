@@ -1,22 +1,247 @@
-"""The scale stage: what length a monocular map's translation gets.
+"""The scale stage: what length a monocular map's translation gets, and whether it is metres.
 
-Translation is observable only up to one global scale (see ``epi_vo.core.pipeline``). Today the only
-source is the VO's own units: the first map's keyframe baseline has length 1 and a map rebuilt after
-tracking was lost continues the old units by assuming the last keyframe speed. External sources
-(ground plane with a known camera height, wheel odometry) plug in here: they decide the baseline of a
-new map and, later, correct the scale of a running one.
+Translation is observable only up to one global scale (see ``epi_vo.core.pipeline``). ``scale_source``
+chooses where the length comes from:
+
+``none`` (:class:`VoUnitsScale`)
+    VO units: the first map's keyframe baseline has length 1; a map rebuilt after tracking was lost
+    continues the old units by assuming the last keyframe speed. Nothing is metric.
+``ground_plane`` (:class:`GroundPlaneScale`)
+    The floor among each keyframe's map points (robust plane fit restricted to plausible floor
+    normals, :func:`fit_ground_plane`) gives the camera's height in map units; ``camera_height_m`` over
+    it is a measurement of the map's scale error. The camera's pitch and roll to the floor come with it.
+``wheel_odometry`` (:class:`WheelOdometryScale`)
+    The distance the wheels travelled between two keyframes (positions interpolated at the image
+    stamps) over the VO's own step length. Only distances are used: the VO keeps its rotation and never
+    takes the wheels' heading (or its drift).
+
+Both metric sources feed the same filter (:class:`ScaleFilter`): a 1-D Kalman filter on the log of
+the map's scale error, with the VO's scale drift per keyframe as process noise and an innovation gate
+against outliers. At a keyframe the pipeline asks :meth:`ScaleSource.correction` for the factor that
+takes the step from the last keyframe, and the new keyframe's map, into metres; without a measurement
+the factor is 1 and the uncertainty grows. The first accepted measurement establishes metric scale:
+until then the pipeline's position is in VO units and its covariance says the scale is unknown.
 """
 
 from __future__ import annotations
 
+import bisect
+import math
+from collections import deque
+from dataclasses import dataclass
 
-class VoUnitsScale:
-    """Scale in VO units: baseline 1 for the first map, then the last keyframe speed carries it on."""
+import numpy as np
+from numpy.typing import NDArray
 
-    metric = False
+F64 = NDArray[np.float64]
 
-    def __init__(self) -> None:
+SCALE_SOURCES = ("none", "ground_plane", "wheel_odometry")
+
+
+
+@dataclass(frozen=True)
+class ScaleStatus:
+    """What a frame's record and diagnostics say about scale.
+
+    ``scale`` is metres per VO unit of the first map (1.0 for ``none``: VO units); ``rel_std`` the
+    relative standard deviation of the current map's scale (NaN for ``none``: unknown, not measured);
+    ``metric`` whether positions are metres; pitch/roll of the camera to the floor in degrees (ground
+    plane only, NaN otherwise); ``reason`` why the source gave no measurement at the last keyframe.
+    """
+
+    source: str = "none"
+    metric: bool = False
+    scale: float = 1.0
+    rel_std: float = math.nan
+    floor_pitch_deg: float = math.nan
+    floor_roll_deg: float = math.nan
+    reason: str = ""
+
+    @property
+    def units(self) -> str:
+        """'m' when positions are metres, 'vo' for VO units."""
+        return "m" if self.metric else "vo"
+
+
+@dataclass(frozen=True)
+class KeyframeStep:
+    """A keyframe step as the scale stage sees it: map points of the new keyframe (its camera frame),
+    the step's camera-centre chord in map units, and the two stamps."""
+
+    X_cur: F64  # (N, 3) map points in the new keyframe's camera frame, NaN rows: no depth
+    step_length: float  # |c_cur - c_kf| in the current map units
+    kf_stamp_ns: int
+    stamp_ns: int
+
+
+@dataclass(frozen=True)
+class GroundPlane:
+    """The floor in a camera frame: points X on it satisfy ``normal_up . X = -height``."""
+
+    normal_up: F64  # unit normal pointing from the floor towards the camera (camera frame)
+    height: float  # camera centre above the floor, map units
+    n_inliers: int
+    rel_std: float  # relative standard deviation of ``height``
+
+    @property
+    def pitch_deg(self) -> float:
+        """Angle of the optical axis below the floor's horizon (positive: looking down)."""
+        n = self.normal_up
+        return math.degrees(math.atan2(-n[2], math.hypot(n[0], n[1])))
+
+    @property
+    def roll_deg(self) -> float:
+        """Rotation about the optical axis relative to the floor (positive: image x axis tilted up)."""
+        n = self.normal_up
+        return math.degrees(math.atan2(n[0], -n[1]))
+
+
+def fit_ground_plane(X: F64, *, max_tilt_deg: float, inlier_ratio: float, min_points: int,
+                     up: F64 | None = None, iterations: int = 200) -> GroundPlane | None:
+    """The floor among map points ``X`` (camera frame, x right, y down, z forward), or None.
+
+    Deterministic RANSAC over 3-point planes whose upward normal is within ``max_tilt_deg`` of the
+    camera's up axis (-y) and that lie below the camera; inliers are within ``inlier_ratio`` of the
+    candidate's height; ``up`` (a unit vector, default -y) is the expected floor normal. A candidate with
+    points clearly below it is no floor (a plane through objects). The best plane is refit by least
+    squares on its inliers; its height is the median inlier height and its relative spread that of a
+    median (1.25 MAD / sqrt(n)).
+    """
+    X = X[np.all(np.isfinite(X), axis=1)]
+    n_pts = X.shape[0]
+    if n_pts < max(min_points, 3):
+        return None
+    up = np.array([0.0, -1.0, 0.0]) if up is None else up
+    cos_tilt = math.cos(math.radians(max_tilt_deg))
+    rng = np.random.default_rng(12345)  # fixed: replay stays deterministic
+    idx = rng.integers(0, n_pts, size=(iterations, 3))
+    A, B, C = X[idx[:, 0]], X[idx[:, 1]], X[idx[:, 2]]
+    N = np.cross(B - A, C - A)
+    norm = np.linalg.norm(N, axis=1)
+    ok = norm > 1e-12
+    N = N[ok] / norm[ok, None]
+    A = A[ok]
+    N *= np.where(N @ up < 0, -1.0, 1.0)[:, None]
+    h = -np.einsum("ij,ij->i", N, A)
+    ok = (N @ up >= cos_tilt) & (h > 0)
+    if not np.any(ok):
+        return None
+    N, h = N[ok], h[ok]
+    D = X @ N.T + h  # signed distance of every point to every candidate, positive towards the camera
+    band = inlier_ratio * h
+    inliers = np.abs(D) < band
+    # The floor supports the scene from below: a candidate with points clearly below it is a plane
+    # through objects (walls, cars, trees), not the floor.
+    below = D < -0.2 * h  # well below: a fifth of the camera height (noise on the floor stays within)
+    score = inliers.sum(axis=0) - 2 * below.sum(axis=0)
+    best = int(np.argmax(score))
+    best_count = int(inliers[:, best].sum())
+    if best_count < min_points:
+        return None
+    best_mask = inliers[:, best]
+    P = X[best_mask]
+    centroid = P.mean(axis=0)
+    _, _, vt = np.linalg.svd(P - centroid)
+    n = vt[2]
+    if n @ up < 0:
+        n = -n
+    if n @ up < cos_tilt:
+        return None
+    heights = -(P @ n)
+    h = float(np.median(heights))
+    if not h > 0:
+        return None
+    mad = float(np.median(np.abs(heights - h)))
+    rel_std = 1.253 * 1.4826 * mad / h / math.sqrt(P.shape[0])
+    return GroundPlane(n, h, int(P.shape[0]), rel_std)
+
+
+class ScaleFilter:
+    """Robust filter of the current map's scale error, in log space.
+
+    Each keyframe's measurement z = log(true / map) goes into a window of the last ``window`` ones (kept
+    relative to the map as it is now: a correction applied shifts them all). The window's median, with
+    the spread of a median from its MAD, is folded into a 1-D Kalman filter whose process noise is the
+    VO's scale drift per keyframe; outliers (a wall taken for the floor, a wheel slip) move a median
+    little. Metric scale is established once ``min_count`` measurements are in the window: the first
+    correction then takes the median whole.
+    """
+
+    def __init__(self, drift_per_keyframe: float, window: int = 15, min_count: int = 3) -> None:
+        self.q = drift_per_keyframe**2
+        self.window: deque[tuple[float, float]] = deque(maxlen=window)  # (z, its variance)
+        self.min_count = min_count
+        self.var = math.inf
+        self.total = 1.0  # product of every correction: metres per VO unit of the first map
+
+    @property
+    def established(self) -> bool:
+        return math.isfinite(self.var)
+
+    @property
+    def rel_std(self) -> float:
+        return math.sqrt(self.var) if self.established else math.nan
+
+    def predict(self) -> None:
+        if self.established:
+            self.var += self.q
+
+    def inflate(self, rel_std: float) -> None:
+        """The map's scale became uncertain by ``rel_std`` (1 sigma) more: a map rebuilt after a loss."""
+        if self.established:
+            self.var += rel_std**2
+        self.window.clear()
+
+    def update(self, z: float, r: float) -> float:
+        """Fold in one measurement; the correction factor to apply to the map (1.0 while not established)."""
+        self.window.append((z, r))
+        if len(self.window) < self.min_count:
+            return 1.0
+        zs = np.array([w[0] for w in self.window])
+        med = float(np.median(zs))
+        n = zs.size
+        mad_var = (1.4826 * float(np.median(np.abs(zs - med)))) ** 2
+        r_med = 1.57 * max(mad_var, float(np.median([w[1] for w in self.window]))) / n
+        if not self.established:
+            self.var = r_med
+            log_c = med
+        else:
+            gain = self.var / (self.var + r_med)
+            self.var = (1.0 - gain) * self.var
+            log_c = gain * med
+        self.window = deque(((z - log_c, r) for z, r in self.window), maxlen=self.window.maxlen)
+        factor = math.exp(log_c)
+        self.total *= factor
+        return factor
+
+
+class ScaleSource:
+    """Common interface of the scale sources; ``VoUnitsScale`` is the plain one."""
+
+    name = "none"
+    metric_source = False
+
+    def __init__(self, drift_per_keyframe: float = 0.02) -> None:
         self.speed: float | None = None  # map units per second at the last keyframe
+        self.filter = ScaleFilter(drift_per_keyframe)
+        self.reason = ""
+        self.plane: GroundPlane | None = None
+
+    @property
+    def established(self) -> bool:
+        """Positions are metres (a metric measurement has been taken)."""
+        return self.metric_source and self.filter.established
+
+    def status(self) -> ScaleStatus:
+        plane = self.plane
+        return ScaleStatus(self.name, self.established, self.filter.total, self.filter.rel_std,
+                           plane.pitch_deg if plane is not None else math.nan,
+                           plane.roll_deg if plane is not None else math.nan, self.reason)
+
+    def on_new_map(self) -> None:
+        """A map was (re)built: after a loss its baseline came from the last speed, so its scale is
+        uncertain again (30 %, 1 sigma)."""
+        self.filter.inflate(0.3)
 
     def on_keyframe(self, step_length: float, dt_s: float) -> None:
         """A keyframe step of ``step_length`` map units over ``dt_s`` seconds was taken."""
@@ -28,3 +253,146 @@ class VoUnitsScale:
         if self.speed is None or dt_s <= 0.0:
             return 1.0
         return self.speed * dt_s
+
+    def correction(self, step: KeyframeStep) -> float:
+        """The factor taking this keyframe step and its map into metres (1.0: no measurement)."""
+        self.filter.predict()
+        measured = self.measure(step)
+        if measured is None:
+            return 1.0
+        z, r = measured
+        factor = self.filter.update(z, r)
+        if not self.filter.established:
+            self.reason = (f"{len(self.filter.window)} of {self.filter.min_count} scale measurements needed to "
+                           "establish metric scale: VO units")
+        return factor
+
+    def measure(self, step: KeyframeStep) -> tuple[float, float] | None:
+        """(log(true / map) scale, its variance) at this keyframe, or None with ``self.reason`` set."""
+        return None
+
+
+class VoUnitsScale(ScaleSource):
+    """Scale in VO units: baseline 1 for the first map, then the last keyframe speed carries it on."""
+
+
+class GroundPlaneScale(ScaleSource):
+    """Metric scale from the floor: ``camera_height_m`` over the floor's distance in map units."""
+
+    name = "ground_plane"
+    metric_source = True
+
+    def __init__(self, camera_height_m: float, drift_per_keyframe: float, *, max_tilt_deg: float,
+                 inlier_ratio: float, min_points: int) -> None:
+        super().__init__(drift_per_keyframe)
+        self.camera_height_m = camera_height_m
+        self.max_tilt_deg = max_tilt_deg
+        self.inlier_ratio = inlier_ratio
+        self.min_points = min_points
+        self.reason = "ground plane not seen yet: scale unknown (VO units)"
+        self._normals: deque[F64] = deque(maxlen=7)
+
+    def _expected_up(self) -> tuple[F64 | None, float]:
+        """The floor normal seen over the last keyframes (the camera's mounting changes little), and how
+        far a new fit may lie from it; before three fits, the camera's -y axis and ``max_tilt_deg``."""
+        if len(self._normals) < 3:
+            return None, self.max_tilt_deg
+        n = np.median(np.array(self._normals), axis=0)
+        return n / np.linalg.norm(n), min(10.0, self.max_tilt_deg)
+
+    def measure(self, step: KeyframeStep) -> tuple[float, float] | None:
+        up, tilt = self._expected_up()
+        plane = fit_ground_plane(step.X_cur, max_tilt_deg=tilt, inlier_ratio=self.inlier_ratio,
+                                 min_points=self.min_points, up=up)
+        if plane is None:
+            n = int(np.count_nonzero(np.isfinite(step.X_cur[:, 0])))
+            held = "last scale held" if self.filter.established else "scale unknown (VO units)"
+            where = "of level" if up is None else "of the floor seen so far"
+            self.reason = (f"no floor plane among {n} map points (need {self.min_points} within {tilt:g} deg "
+                           f"{where}): {held}")
+            return None
+        self.plane = plane
+        self._normals.append(plane.normal_up)
+        self.reason = ""
+        # A floor fit is only as good as the map's depth: 2 % per keyframe at least.
+        r = plane.rel_std**2 + 0.02**2
+        return math.log(self.camera_height_m / plane.height), r
+
+
+class WheelOdometry:
+    """Wheel odometry positions by stamp (the last ``horizon_s`` seconds), interpolated at image stamps."""
+
+    def __init__(self, horizon_s: float = 60.0) -> None:
+        self.horizon_ns = int(horizon_s * 1e9)
+        self._stamps: deque[int] = deque()
+        self._xyz: deque[F64] = deque()
+        self.ignored = 0  # samples refused (not finite, or older than the newest)
+
+    def __len__(self) -> int:
+        return len(self._stamps)
+
+    def add(self, stamp_ns: int, xyz: F64) -> bool:
+        """Keep one sample; False (ignored, counted) when it is not finite or not newer than the last."""
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(3)
+        if not np.all(np.isfinite(xyz)) or (self._stamps and stamp_ns <= self._stamps[-1]):
+            self.ignored += 1
+            return False
+        self._stamps.append(int(stamp_ns))
+        self._xyz.append(xyz)
+        while self._stamps and self._stamps[-1] - self._stamps[0] > self.horizon_ns:
+            self._stamps.popleft()
+            self._xyz.popleft()
+        return True
+
+    def position_at(self, stamp_ns: int, timeout_ns: int) -> tuple[F64 | None, str]:
+        """The position at ``stamp_ns``: interpolated between the samples around it, extrapolated from the
+        last two when the newest is at most ``timeout_ns`` older; (None, reason) otherwise."""
+        stamps = self._stamps
+        if len(stamps) < 2:
+            return None, f"wheel odometry: {len(stamps)} message(s) received, need 2"
+        i = bisect.bisect_left(stamps, stamp_ns)
+        if i == 0:
+            if stamps[0] - stamp_ns > timeout_ns:
+                return None, f"wheel odometry starts {(stamps[0] - stamp_ns) * 1e-9:.2f} s after the image"
+            i = 1
+        elif i == len(stamps):
+            late = stamp_ns - stamps[-1]
+            if late > timeout_ns:
+                return None, f"wheel odometry stale: last message {late * 1e-9:.2f} s before the image"
+            i = len(stamps) - 1
+        elif stamps[i] - stamps[i - 1] > 2 * timeout_ns:
+            return None, f"wheel odometry gap of {(stamps[i] - stamps[i - 1]) * 1e-9:.2f} s around the image"
+        t0, t1 = stamps[i - 1], stamps[i]
+        a = (stamp_ns - t0) / (t1 - t0)
+        return self._xyz[i - 1] + a * (self._xyz[i] - self._xyz[i - 1]), ""
+
+
+class WheelOdometryScale(ScaleSource):
+    """Metric scale from the distance the wheels travelled between two keyframes."""
+
+    name = "wheel_odometry"
+    metric_source = True
+    min_distance_m = 0.05  # shorter steps say little about scale (wheel noise, lever arm in turns)
+
+    def __init__(self, wheel: WheelOdometry, drift_per_keyframe: float, *, rel_sigma: float,
+                 timeout_s: float) -> None:
+        super().__init__(drift_per_keyframe)
+        self.wheel = wheel
+        self.rel_sigma = rel_sigma
+        self.timeout_ns = int(timeout_s * 1e9)
+        self.reason = "no keyframe step measured by the wheels yet: scale unknown (VO units)"
+
+    def measure(self, step: KeyframeStep) -> tuple[float, float] | None:
+        held = "last scale held" if self.filter.established else "scale unknown (VO units)"
+        p0, why0 = self.wheel.position_at(step.kf_stamp_ns, self.timeout_ns)
+        p1, why1 = self.wheel.position_at(step.stamp_ns, self.timeout_ns)
+        if p0 is None or p1 is None:
+            self.reason = f"{why0 or why1}: {held}"
+            return None
+        d = float(np.linalg.norm(p1 - p0))
+        if d < self.min_distance_m or not step.step_length > 0:
+            self.reason = f"wheels moved {d:.3f} m between keyframes (< {self.min_distance_m} m): {held}"
+            return None
+        self.reason = ""
+        r = self.rel_sigma**2 + (0.01 / d) ** 2
+        return math.log(d / step.step_length), r

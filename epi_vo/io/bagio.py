@@ -150,6 +150,9 @@ _GT_KIND = _TopicKind(
 )
 
 
+_WHEEL_KIND = _TopicKind("nav_msgs/Odometry", frozenset({ODOMETRY_TYPE}), "wheel_odometry_topic")
+
+
 def _describe_topics(topic_types: dict[str, str | None]) -> str:
     if not topic_types:
         return "(none)"
@@ -257,17 +260,19 @@ class CameraBag:
         image_topic: str,
         camera_info_topic: str,
         gt_topic: str | None,
+        wheel_topic: str | None = None,
     ) -> None:
         """Wrap an open ``reader``; reads all camera_info messages (they are small) right away."""
         self.path = path
         self.image_topic = image_topic
         self.camera_info_topic = camera_info_topic
         self.gt_topic = gt_topic
+        self.wheel_topic = wheel_topic
         self._reader: AnyReader | None = reader
         topics = reader.topics
         self._connections: dict[str, list[Connection]] = {
             name: list(topics[name].connections)
-            for name in (image_topic, camera_info_topic, gt_topic)
+            for name in (image_topic, camera_info_topic, gt_topic, wheel_topic)
             if name is not None
         }
         self.image_is_compressed = topics[image_topic].msgtype == COMPRESSED_IMAGE_TYPE
@@ -377,6 +382,30 @@ class CameraBag:
                 index, stamp_ns, image_msg, self.camera_info_for(stamp_ns), problem, log_time_ns
             )
 
+    def read_wheel_odometry(self) -> WheelOdometrySamples | None:
+        """Positions of the wheel odometry topic (base in its odom frame) sorted by header stamp, or None
+        when no wheel topic was chosen. Undecodable messages are skipped and listed in ``problems``."""
+        if self.wheel_topic is None:
+            return None
+        stamps_ns: list[int] = []
+        positions: list[tuple[float, float, float]] = []
+        for log_time_ns, msg, problem in self._read(self.wheel_topic):
+            if msg is None:
+                self._skipped(f"wheel odometry message on {self.wheel_topic} at log time {log_time_ns} ns skipped: "
+                              f"it {problem}")
+                continue
+            try:
+                stamps_ns.append(stamp_to_ns(msg.header.stamp))
+            except EpiVoError as err:
+                self._skipped(f"wheel odometry message on {self.wheel_topic} at log time {log_time_ns} ns "
+                              f"skipped: {err}")
+                continue
+            p = msg.pose.pose.position
+            positions.append((p.x, p.y, p.z))
+        order = np.argsort(np.asarray(stamps_ns, dtype=np.int64), kind="stable")
+        return WheelOdometrySamples(self.wheel_topic, np.asarray(stamps_ns, dtype=np.int64)[order],
+                                    np.asarray(positions, dtype=np.float64).reshape(-1, 3)[order])
+
     def read_ground_truth(self) -> GroundTruth | None:
         """Poses of the ground-truth topic sorted by header stamp, or None when the bag has none."""
         if self.gt_topic is None:
@@ -415,6 +444,7 @@ def open_camera_bag(
     image_topic: str | None = None,
     camera_info_topic: str | None = None,
     gt_topic: str | None = None,
+    wheel_topic: str | None = None,
 ) -> CameraBag:
     """Open a camera bag and choose its topics.
 
@@ -423,7 +453,10 @@ def open_camera_bag(
     CompressedImage, calibration sensor_msgs/CameraInfo, ground truth geometry_msgs/PoseStamped or
     nav_msgs/Odometry (optional). A kind with exactly one topic is taken; with several, a
     camera_info in the image topic's namespace is taken, anything else is a BagError naming the
-    candidates and the flag that chooses. A given topic must exist with a matching type.
+    candidates and the flag that chooses. A given topic must exist with a matching type. Ground
+    truth: the wheel odometry topic is never taken for it, and among several candidates the single one
+    named ``ground_truth`` / ``groundtruth`` is. ``wheel_topic`` (nav_msgs/Odometry, for the wheel
+    odometry scale source) must exist when given: a BagError names it and the Odometry topics there are.
 
     Raises BagError for a missing path, a non-bag, an unreadable or truncated file, an empty bag, a
     missing image or camera_info topic, an image topic without messages and ambiguous topics.
@@ -468,8 +501,15 @@ def open_camera_bag(
         chosen_info = _required_topic(
             topic_types, _CAMERA_INFO_KIND, camera_info_topic, sibling_of=chosen_image
         )
-        chosen_gt = _choose_topic(topic_types, _GT_KIND, gt_topic)
-        bag = CameraBag(path, reader, chosen_image, chosen_info, chosen_gt)
+        if wheel_topic is not None:
+            _choose_topic(topic_types, _WHEEL_KIND, wheel_topic)
+        gt_types = {k: v for k, v in topic_types.items() if k != wheel_topic or k == gt_topic}
+        named_gt = [k for k, v in gt_types.items() if v in _GT_KIND.msgtypes
+                    and ("ground_truth" in k.lower() or "groundtruth" in k.lower())]
+        if gt_topic is None and len(named_gt) == 1:
+            gt_topic = named_gt[0]
+        chosen_gt = _choose_topic(gt_types, _GT_KIND, gt_topic)
+        bag = CameraBag(path, reader, chosen_image, chosen_info, chosen_gt, wheel_topic)
     except BaseException:
         reader.close()
         raise
@@ -482,6 +522,14 @@ def open_camera_bag(
         bag.gt_topic or "(none)",
     )
     return bag
+
+
+class WheelOdometrySamples(NamedTuple):
+    """Wheel odometry positions by header stamp (sorted)."""
+
+    topic: str
+    stamps_ns: NDArray[np.int64]
+    positions: NDArray[np.float64]
 
 
 class BagMessage(NamedTuple):

@@ -128,6 +128,7 @@ class VoNode(Node):
         self._last_latency_ms = math.nan
         self._cameras = CameraModelCache()
         self._warned: set[str] = set()
+        self._wheel_pending: list[tuple[int, np.ndarray]] = []  # handed to the pipeline by the worker
 
         in_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=self.opts.qos_depth,
                             reliability=ReliabilityPolicy.RELIABLE if self.opts.qos_reliability == "reliable"
@@ -137,6 +138,10 @@ class VoNode(Node):
             else (Image, "camera/image_raw")
         self.create_subscription(image_type, image_topic, self._on_image, in_qos)
         self.create_subscription(CameraInfo, "camera/camera_info", self._on_camera_info, in_qos)
+        if self.cfg.scale_source == "wheel_odometry":
+            self.create_subscription(Odometry, self.cfg.wheel_odometry_topic, self._on_wheel_odometry,
+                                     QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100))
+            self.get_logger().info(f"metric scale from wheel odometry on {self.cfg.wheel_odometry_topic}")
         self._pub_odom = self.create_publisher(Odometry, "vo/odometry", 10)
         self._pub_points = self.create_publisher(PointCloud2, "vo/points", 10)
         self._pub_path = self.create_publisher(Path, "vo/path", 10)
@@ -242,6 +247,17 @@ class VoNode(Node):
         with self._cv:
             self._enqueue(self._assoc.add_info(msgconv.stamp_to_ns(msg.header.stamp), msg))
 
+    def _on_wheel_odometry(self, msg: Odometry) -> None:
+        problem = msgconv.stamp_problem(msg.header.stamp)
+        if problem is not None:
+            self.get_logger().warning(f"wheel odometry message ignored: {problem}", throttle_duration_sec=5.0)
+            return
+        p = msg.pose.pose.position
+        with self._cv:
+            self._wheel_pending.append((msgconv.stamp_to_ns(msg.header.stamp), np.array([p.x, p.y, p.z])))
+            if len(self._wheel_pending) > 10000:  # the worker is stalled: keep the newest
+                del self._wheel_pending[:5000]
+
     def _enqueue(self, ready: list[Ready]) -> None:
         """Called with the lock held. Live mode keeps only the newest ``queue_size`` frames."""
         for r in ready:
@@ -270,6 +286,9 @@ class VoNode(Node):
                     return
                 item = self._queue.popleft()
                 reset, self._reset_requested = self._reset_requested, False
+                wheel, self._wheel_pending = self._wheel_pending, []
+            for stamp_ns, xyz in wheel:  # the pipeline is only touched by this thread
+                self._pipeline.add_wheel_odometry(stamp_ns, xyz)
             if reset:
                 self._pipeline.reset("reset service called: tracking restarted from the last pose")
             try:

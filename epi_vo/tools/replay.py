@@ -130,14 +130,17 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
 
     try:
         with _interrupts_at_frame_boundaries() as stop, \
-                bagio.open_camera_bag(bag_path, image_topic, camera_info_topic) as bag, \
+                bagio.open_camera_bag(bag_path, image_topic, camera_info_topic,
+                                      wheel_topic=_wheel_topic(cfg)) as bag, \
                 _open_output(out / "frames.jsonl") as frames_f, _open_output(out / "trajectory.tum") as tum_f, \
                 outbag.OutputBag(out / "output.mcap", overwrite=True) as obag, \
                 _Progress(progress, bag.frame_count) as bar:
             gt = _ground_truth(bag, gt_tum)
             if gt is not None:  # kept beside the estimate so that reports can be made from DIR alone
                 tum.write_tum(out / "groundtruth.tum", *gt[1])
+            wheel = _WheelFeed(bag.read_wheel_odometry(), pipeline, cfg.wheel_odometry_timeout_s)
             for frame in bag.iter_frames():
+                wheel.up_to(frame.stamp_ns)
                 if stop.requested:  # a signal arrived during the previous frame: all its outputs are written
                     raise Interrupted(stop.signum)
                 processed = process_frame(pipeline, cameras, bag, frame)
@@ -205,6 +208,29 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     except OSError as exc:
         raise OutputError(f"cannot write {out / 'stats.json'}: {_os_reason(exc)}") from exc
     return summary
+
+
+def _wheel_topic(cfg: VoConfig) -> str | None:
+    return cfg.wheel_odometry_topic if cfg.scale_source == "wheel_odometry" else None
+
+
+class _WheelFeed:
+    """Gives the pipeline the wheel odometry recorded up to each image (plus the stale timeout, as a live
+    subscriber would have received it by the time it is needed), in stamp order."""
+
+    def __init__(self, samples: bagio.WheelOdometrySamples | None, pipeline: VoPipeline, timeout_s: float) -> None:
+        self._samples = samples
+        self._pipeline = pipeline
+        self._lookahead_ns = int(timeout_s * 1e9)
+        self._next = 0
+
+    def up_to(self, stamp_ns: int) -> None:
+        s = self._samples
+        if s is None:
+            return
+        while self._next < len(s.stamps_ns) and s.stamps_ns[self._next] <= stamp_ns + self._lookahead_ns:
+            self._pipeline.add_wheel_odometry(int(s.stamps_ns[self._next]), s.positions[self._next])
+            self._next += 1
 
 
 def _os_reason(exc: OSError) -> str:

@@ -9,7 +9,8 @@ from epi_vo.core.scale import VoUnitsScale
 
 def test_first_map_has_baseline_one_whatever_the_time() -> None:
     scale = VoUnitsScale()
-    assert scale.metric is False
+    assert scale.metric_source is False and scale.established is False
+    assert scale.status().units == "vo" and scale.status().source == "none"
     assert scale.speed is None
     for dt in (0.0, 0.05, 1.0, 100.0, -3.0):
         assert scale.initial_baseline(dt) == 1.0
