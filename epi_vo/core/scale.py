@@ -91,9 +91,10 @@ class GroundPlane:
 
     @property
     def roll_deg(self) -> float:
-        """Rotation about the optical axis relative to the floor (positive: image x axis tilted up)."""
+        """Rotation about the optical axis relative to the floor, right-handed about z (x towards y):
+        positive when the image's right side is lower than its left."""
         n = self.normal_up
-        return math.degrees(math.atan2(n[0], -n[1]))
+        return math.degrees(math.atan2(-n[0], -n[1]))
 
 
 def fit_ground_plane(X: F64, *, max_tilt_deg: float, inlier_ratio: float, min_points: int,

@@ -85,6 +85,10 @@ class TrajectoryMetrics:
         float  # mean angle between estimated and GT step directions, deg
     )
     trans_direction_pairs: int  # consecutive pairs used for trans_direction_err_deg
+    # Metric figures (meaningful when the estimate claims metres): ATE after an SE(3) alignment only (no
+    # scale), % of the ground-truth path; median over consecutive pairs of |estimated step| / |GT step|.
+    ate_se3_percent_of_path: float = float("nan")
+    step_scale_median: float = float("nan")
 
 
 def evaluate_trajectory(
@@ -145,6 +149,21 @@ def evaluate_trajectory(
     )
 
     gt_path_length = float(traj_gt.path_length)
+    ate_se3_percent = float("nan")
+    traj_se3 = copy.deepcopy(traj_est)
+    try:
+        traj_se3.align(traj_gt, correct_scale=False)
+    except geometry.GeometryException as exc:
+        logger.warning("SE(3) alignment is degenerate, the SE(3) ATE is NaN: %s", exc)
+    else:
+        ape_se3 = APE(PoseRelation.translation_part)
+        ape_se3.process_data((traj_gt, traj_se3))
+        if gt_path_length > 0.0:
+            ate_se3_percent = 100.0 * float(ape_se3.get_statistic(StatisticsType.rmse)) / gt_path_length
+    step_est = np.linalg.norm(np.diff(np.asarray(traj_est.positions_xyz), axis=0), axis=1)
+    step_gt = np.linalg.norm(np.diff(np.asarray(traj_gt.positions_xyz), axis=0), axis=1)
+    moving = step_gt > 1e-3 * max(float(np.median(step_gt)) if step_gt.size else 0.0, 1e-9)
+    step_scale = float(np.median(step_est[moving] / step_gt[moving])) if np.any(moving) else float("nan")
     ate_rmse = ate_percent = sim3_scale = rpe_trans = float("nan")
     traj_est_aligned = copy.deepcopy(traj_est)
     try:
@@ -179,6 +198,8 @@ def evaluate_trajectory(
         rpe_trans_rmse=float(rpe_trans),
         trans_direction_err_deg=direction_err_deg,
         trans_direction_pairs=direction_pairs,
+        ate_se3_percent_of_path=float(ate_se3_percent),
+        step_scale_median=step_scale,
     )
 
 

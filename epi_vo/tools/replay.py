@@ -73,6 +73,9 @@ class ReplaySummary:
     parameters: dict[str, Any] = field(default_factory=dict)  # the pipeline config of the run
     rejected: list[str] = field(default_factory=list)  # one line per distinct problem of rejected frames
     rejected_frames: int = 0  # frames (image messages read) that were rejected
+    scale_source: str = "none"
+    units: str = "vo"  # of the trajectory at the end of the run: 'm' once a metric scale source is established
+    metric_from_frame: int | None = None  # first frame whose position was metric
     skipped_messages: list[str] = field(default_factory=list)  # camera_info / ground truth not decodable,
     # image messages announced by the bag but not read
 
@@ -127,6 +130,8 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     n_frames = n_pose = n_kf = 0
     path_length = 0.0
     last_pos: np.ndarray | None = None
+    metric_from: int | None = None
+    units = "vo"
 
     try:
         with _interrupts_at_frame_boundaries() as stop, \
@@ -149,6 +154,9 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                     rejected[problem] += 1
                     first_rejected.setdefault(problem, frame.index)
                 n_frames += 1
+                if result.scale.metric and metric_from is None:
+                    metric_from = frame.index
+                units = result.scale.units
                 states[result.state.value] += 1
                 models[result.model.value] += 1
                 n_kf += int(result.is_keyframe)
@@ -202,7 +210,8 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
         stage_ms={k: float(np.median(v)) for k, v in stage_times.items()}, path_length=path_length,
         metrics=metrics, gt_source=gt_source, output_dir=str(out), notes=notes, parameters=asdict(cfg),
         rejected=[f"{n} frame(s) from frame {first_rejected[r]}: {r}" for r, n in rejected.items()],
-        rejected_frames=sum(rejected.values()), skipped_messages=skipped)
+        rejected_frames=sum(rejected.values()), skipped_messages=skipped, scale_source=cfg.scale_source,
+        units=units, metric_from_frame=metric_from)
     try:
         (out / "stats.json").write_text(json.dumps(summary.to_json(), indent=2) + "\n")
     except OSError as exc:
@@ -425,13 +434,18 @@ def format_summary(s: ReplaySummary) -> str:
         "  models        " + ", ".join(f"{k} {v}" for k, v in sorted(s.models.items())),
         f"  time          {s.ms_per_frame:.2f} ms/frame median (" +
         ", ".join(f"{k} {v:.2f}" for k, v in s.stage_ms.items() if k != "total") + ")",
-        f"  path length   {s.path_length:.3f} (VO units)",
+        f"  path length   {s.path_length:.3f} {'m' if s.units == 'm' else '(VO units)'}",
+        f"  scale         {s.scale_source}: " + (f"metric from frame {s.metric_from_frame}"
+                                                  if s.metric_from_frame is not None else "VO units"),
     ]
     if s.metrics is not None:
         m = s.metrics
         lines.append(f"  vs GT ({s.gt_source}): ATE {_f(m['ate_rmse'])} ({_f(m['ate_percent_of_path'])} % of path, "
                      f"Sim3)  RPE rot {_f(m['rpe_rot_deg_per_frame'])} deg/frame  trans-dir "
                      f"{_f(m['trans_direction_err_deg'])} deg  ({m['matched_poses']} poses)")
+        if s.units == "m":
+            lines.append(f"  metric        step scale {_f(m['step_scale_median'])} (estimate / GT, median)  ATE "
+                         f"{_f(m['ate_se3_percent_of_path'])} % of path with SE(3) alignment only")
     lines.extend(f"  note: {n}" for n in s.notes)
     lines.extend(f"  rejected: {r}" for r in s.rejected)
     lines.extend(f"  skipped: {m}" for m in s.skipped_messages)

@@ -47,3 +47,125 @@ def test_a_baseline_without_elapsed_time_falls_back_to_one(dt: float) -> None:
     scale = VoUnitsScale()
     scale.on_keyframe(0.4, 0.2)
     assert scale.initial_baseline(dt) == 1.0
+
+
+# --- metric sources ---------------------------------------------------------------------------------
+import math  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from epi_vo.core import scale as sc  # noqa: E402
+from epi_vo.core.config import VoConfig, validate  # noqa: E402
+from epi_vo.core.errors import ConfigError  # noqa: E402
+
+
+def _rot_x(deg: float) -> np.ndarray:
+    a = math.radians(deg)
+    return np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
+
+
+def _rot_z(deg: float) -> np.ndarray:
+    a = math.radians(deg)
+    return np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+
+
+def _scene(height: float, pitch_deg: float, roll_deg: float, n_floor: int, n_clutter: int, noise: float,
+           seed: int = 0) -> np.ndarray:
+    """Points in a camera frame pitched down by pitch_deg and rolled by roll_deg, at height above a floor
+    (level frame: x right, y down, z forward; floor y = height), plus a wall and boxes above the floor."""
+    rng = np.random.default_rng(seed)
+    floor = np.column_stack([rng.uniform(-3, 3, n_floor), np.full(n_floor, height), rng.uniform(1.0, 8.0, n_floor)])
+    wall = np.column_stack([rng.uniform(-3, 3, n_clutter), rng.uniform(-2, height - 0.3, n_clutter),
+                            np.full(n_clutter, 9.0)])
+    box = np.column_stack([np.full(n_clutter, 1.5), rng.uniform(0.2 * height, 0.7 * height, n_clutter),
+                           rng.uniform(2, 6, n_clutter)])
+    X_level = np.vstack([floor, wall, box])
+    X_level += rng.normal(0, noise, X_level.shape)
+    # The camera is pitched down: a level point X is seen at R X with R the inverse camera rotation.
+    R_cam = _rot_x(-pitch_deg) @ _rot_z(roll_deg)  # camera axes in the level frame
+    return X_level @ R_cam  # = (R_cam^T X^T)^T
+
+
+@pytest.mark.parametrize(("height", "pitch", "roll"), [(0.45, 15.0, 0.0), (1.65, 0.5, -1.0), (0.3, 20.0, 3.0)])
+def test_floor_fit_recovers_height_pitch_and_roll(height: float, pitch: float, roll: float) -> None:
+    X = _scene(height, pitch, roll, n_floor=80, n_clutter=60, noise=0.003 * height)
+    plane = sc.fit_ground_plane(X, max_tilt_deg=35.0, inlier_ratio=0.04, min_points=10)
+    assert plane is not None
+    assert plane.height == pytest.approx(height, rel=0.01)
+    assert plane.pitch_deg == pytest.approx(pitch, abs=0.5)
+    assert plane.roll_deg == pytest.approx(roll, abs=0.5)
+    assert plane.n_inliers >= 70 and 0 < plane.rel_std < 0.01
+
+
+def test_floor_fit_refuses_a_scene_without_floor() -> None:
+    X = _scene(1.0, 0.0, 0.0, n_floor=0, n_clutter=80, noise=0.001)
+    X = X[X[:, 2] > 8.5]  # the wall only: vertical, no floor normal
+    assert sc.fit_ground_plane(X, max_tilt_deg=35.0, inlier_ratio=0.04, min_points=10) is None
+    assert sc.fit_ground_plane(np.full((30, 3), np.nan), max_tilt_deg=35.0, inlier_ratio=0.04, min_points=10) is None
+
+
+def test_floor_fit_is_not_fooled_by_box_tops_above_the_floor() -> None:
+    # A level table top with more points than the floor: the floor supports the scene from below.
+    rng = np.random.default_rng(3)
+    floor = np.column_stack([rng.uniform(-3, 3, 40), np.full(40, 1.0), rng.uniform(2, 8, 40)])
+    table = np.column_stack([rng.uniform(-1, 1, 60), np.full(60, 0.4), rng.uniform(3, 5, 60)])
+    plane = sc.fit_ground_plane(np.vstack([floor, table]), max_tilt_deg=35.0, inlier_ratio=0.04, min_points=10)
+    assert plane is not None and plane.height == pytest.approx(1.0, rel=0.01)
+
+
+def test_scale_filter_needs_three_measurements_then_takes_the_median() -> None:
+    f = sc.ScaleFilter(0.02)
+    assert f.update(math.log(2.0), 0.01) == 1.0 and not f.established
+    assert f.update(math.log(2.2), 0.01) == 1.0 and not f.established
+    factor = f.update(math.log(1.9), 0.01)
+    assert f.established and factor == pytest.approx(2.0) and f.total == pytest.approx(2.0)
+    # The window is relative to the corrected map now: a consistent measurement changes little.
+    f.predict()
+    assert f.update(0.0, 0.01) == pytest.approx(1.0, abs=0.02)
+
+
+def test_scale_filter_shrugs_off_an_outlier() -> None:
+    f = sc.ScaleFilter(0.02)
+    for z in (0.01, -0.01, 0.0, 0.02, -0.02):
+        f.predict()
+        f.update(z, 0.0004)
+    f.predict()
+    factor = f.update(math.log(3.0), 0.0004)  # a wall taken for the floor
+    assert factor == pytest.approx(1.0, abs=0.03)
+
+
+def test_wheel_odometry_interpolates_and_says_when_it_is_stale() -> None:
+    w = sc.WheelOdometry()
+    for i in range(11):  # 10 Hz, 1 m/s along x
+        assert w.add(i * 100_000_000, np.array([i * 0.1, 0.0, 0.0]))
+    assert not w.add(500_000_000, np.zeros(3))  # not newer: ignored
+    assert not w.add(2_000_000_000, np.array([np.nan, 0, 0]))
+    assert w.ignored == 2
+    p, why = w.position_at(250_000_000, 500_000_000)
+    assert why == "" and p is not None and p[0] == pytest.approx(0.25)
+    p, why = w.position_at(1_200_000_000, 500_000_000)  # 0.2 s after the last: extrapolated
+    assert p is not None and p[0] == pytest.approx(1.2)
+    p, why = w.position_at(2_000_000_000, 500_000_000)
+    assert p is None and "stale" in why and "1.00 s" in why
+
+
+def test_wheel_scale_measures_distance_over_vo_step() -> None:
+    w = sc.WheelOdometry()
+    for i in range(30):
+        w.add(i * 50_000_000, np.array([i * 0.05, 0.0, 0.0]))  # 1 m/s
+    src = sc.WheelOdometryScale(w, 0.02, rel_sigma=0.03, timeout_s=0.5)
+    step = sc.KeyframeStep(np.zeros((0, 3)), 0.25, 0, 500_000_000)  # wheels: 0.5 m, VO: 0.25 units
+    z, r = src.measure(step)
+    assert math.exp(z) == pytest.approx(2.0) and r > 0.03**2
+    still = sc.KeyframeStep(np.zeros((0, 3)), 0.25, 0, 20_000_000)
+    assert src.measure(still) is None and "moved 0.020 m" in src.reason
+
+
+def test_metric_sources_need_their_inputs() -> None:
+    with pytest.raises(ConfigError, match="camera_height_m > 0"):
+        validate(VoConfig(scale_source="ground_plane"))
+    with pytest.raises(ConfigError, match="needs wheel_odometry_topic"):
+        validate(VoConfig(scale_source="wheel_odometry", wheel_odometry_topic=" "))
+    with pytest.raises(ConfigError, match="choose one of none, ground_plane, wheel_odometry"):
+        validate(VoConfig(scale_source="stereo"))
+    validate(VoConfig(scale_source="ground_plane", camera_height_m=0.45))
