@@ -312,8 +312,17 @@ class GroundPlaneScale(ScaleSource):
             self.reason = (f"no floor plane among {n} map points (need {self.min_points} within {tilt:g} deg "
                            f"{where}): {held}")
             return None
-        self.plane = plane
         self._normals.append(plane.normal_up)
+        if up is not None:
+            # The floor's direction is known better from the last keyframes than from this one's few
+            # points: measure the height of this fit's inliers along it.
+            X = step.X_cur[np.all(np.isfinite(step.X_cur), axis=1)]
+            on = np.abs(X @ plane.normal_up + plane.height) < self.inlier_ratio * plane.height
+            plane = GroundPlane(up, float(np.median(-(X[on] @ up))), plane.n_inliers, plane.rel_std)
+            if not plane.height > 0:
+                self.reason = "floor plane above the camera: ignored"
+                return None
+        self.plane = plane
         self.reason = ""
         # A floor fit is only as good as the map's depth: 2 % per keyframe at least.
         r = plane.rel_std**2 + 0.02**2

@@ -6,10 +6,17 @@ KITTI clip when present, both pipelines see the same decoded frames. Reported pe
 (deg/frame), translation-direction error (deg), median ms/frame (processing only: bag reading and
 image decoding excluded for both), and the number of frames whose position moved (on a pure-rotation
 bag any movement is invented translation).
+
+Metric scale: bags with a known floor height or a wheel odometry topic get one more epi_vo row per
+metric scale source (``METRIC_VARIANTS``: the ground-robot bag with ``ground_plane`` and
+``wheel_odometry``, the KITTI clip with ``ground_plane`` at 1.65 m). Those rows also print the
+step-length scale (estimate / ground truth, median over frames) and the ATE after an SE(3) alignment
+only (no scale), as % of the path: the figures that say whether the output is metres.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import tempfile
@@ -41,6 +48,18 @@ class BenchRow:
     ms_per_frame: float
     moving_frames: int
     gt_path_length: float
+    step_scale: float = math.nan  # median |estimated step| / |GT step| (metric rows)
+    ate_se3_percent: float = math.nan  # ATE after SE(3) alignment only, % of path (metric rows)
+
+
+# Metric scale sources the benchmark runs on top of the default configuration, per dataset name.
+METRIC_VARIANTS: dict[str, tuple[tuple[str, dict[str, object]], ...]] = {
+    "ground_robot": (
+        ("ground_plane", {"scale_source": "ground_plane", "camera_height_m": 0.45}),
+        ("wheel_odometry", {"scale_source": "wheel_odometry", "wheel_odometry_topic": "/wheel/odom"}),
+    ),
+    "kitti06_0-50": (("ground_plane", {"scale_source": "ground_plane", "camera_height_m": 1.65}),),
+}
 
 
 def _repo_root() -> Path:
@@ -71,25 +90,29 @@ def _metrics_row(name: str, pipeline: str, frames: int, n_pose: int, ms: float, 
                  positions: np.ndarray, quats: np.ndarray, gt: tuple[np.ndarray, np.ndarray, np.ndarray]
                  ) -> BenchRow:
     gt_len = float(np.sum(np.linalg.norm(np.diff(gt[1], axis=0), axis=1)))
-    ate = rpe = tdir = math.nan
+    ate = rpe = tdir = step_scale = ate_se3 = math.nan
     try:
         m = evaluate_trajectory((stamps, positions, quats), gt)
         ate, rpe, tdir = m.ate_percent_of_path, m.rpe_rot_deg_per_frame, m.trans_direction_err_deg
+        step_scale, ate_se3 = m.step_scale_median, m.ate_se3_percent_of_path
     except EpiVoError:
         pass
     if gt_len < 1e-6:
         ate = tdir = math.nan  # no path: ATE % and direction are undefined (pure rotation)
     return BenchRow(name, pipeline, frames, 100.0 * n_pose / max(frames, 1), ate, rpe, tdir, ms,
-                    _moving_frames(positions), gt_len)
+                    _moving_frames(positions), gt_len, step_scale, ate_se3)
 
 
-def bench_epi_vo(name: str, bag: Path, gt_path: Path, cfg: VoConfig) -> BenchRow:
+def bench_epi_vo(name: str, bag: Path, gt_path: Path, cfg: VoConfig, label: str = "epi_vo") -> BenchRow:
     gt = tum.read_tum(gt_path)
     with tempfile.TemporaryDirectory() as tmp:
         summary = run_replay(bag, tmp, cfg)
         stamps, positions, quats = tum.read_tum(Path(tmp) / "trajectory.tum")
-    return _metrics_row(name, "epi_vo", summary.frames, summary.frames_with_pose, summary.ms_per_frame,
-                        stamps, positions, quats, gt)
+    row = _metrics_row(name, label, summary.frames, summary.frames_with_pose, summary.ms_per_frame,
+                       stamps, positions, quats, gt)
+    if summary.units != "m":  # VO units: the metric figures say nothing
+        row = dataclasses.replace(row, step_scale=math.nan, ate_se3_percent=math.nan)
+    return row
 
 
 def bench_reference(name: str, bag_path: Path, gt_path: Path) -> BenchRow:
@@ -124,17 +147,17 @@ def bench_reference(name: str, bag_path: Path, gt_path: Path) -> BenchRow:
 
 
 def format_table(rows: list[BenchRow]) -> str:
-    head = (f"{'bag':<16} {'pipeline':<10} {'frames':>6} {'tracked%':>8} {'ATE%path':>9} {'RPErot°/f':>10} "
-            f"{'tdir°':>7} {'ms/frame':>9} {'moving':>7}")
+    head = (f"{'bag':<16} {'pipeline':<22} {'frames':>6} {'tracked%':>8} {'ATE%path':>9} {'RPErot°/f':>10} "
+            f"{'tdir°':>7} {'ms/frame':>9} {'moving':>7} {'scale':>6} {'SE3ATE%':>8}")
     lines = [head, "-" * len(head)]
 
     def f(x: float, nd: int = 3) -> str:
         return "n/a" if not math.isfinite(x) else f"{x:.{nd}f}"
 
     for r in rows:
-        lines.append(f"{r.bag:<16} {r.pipeline:<10} {r.frames:>6} {r.tracked_percent:>8.1f} {f(r.ate_percent):>9} "
+        lines.append(f"{r.bag:<16} {r.pipeline:<22} {r.frames:>6} {r.tracked_percent:>8.1f} {f(r.ate_percent):>9} "
                      f"{f(r.rpe_rot_deg, 4):>10} {f(r.trans_dir_deg, 2):>7} {r.ms_per_frame:>9.2f} "
-                     f"{r.moving_frames:>7}")
+                     f"{r.moving_frames:>7} {f(r.step_scale):>6} {f(r.ate_se3_percent, 2):>8}")
     return "\n".join(lines)
 
 
@@ -159,14 +182,18 @@ def run_benchmark(bags_dir: str | None, kitti_dir: str | None, params: str | Non
         raise EpiVoError("benchmark: no bags found (expected bags/<name>/bag with groundtruth_tum.txt)")
     rows: list[BenchRow] = []
     for name, bag, gt in datasets:
+        start = len(rows)
         rows.append(bench_epi_vo(name, bag, gt, cfg))
+        for label, values in METRIC_VARIANTS.get(name, ()):
+            rows.append(bench_epi_vo(name, bag, gt, dataclasses.replace(cfg, **values), f"epi_vo[{label}]"))
         rows.append(bench_reference(name, bag, gt))
-        print(format_table(rows[-2:]).splitlines()[-2] + "\n" + format_table(rows[-2:]).splitlines()[-1],
-              flush=True)
+        print("\n".join(format_table(rows[start:]).splitlines()[2:]), flush=True)
     print()
     print(format_table(rows))
     print("\nATE after Sim(3) alignment (evo); 'moving' = frames whose position changed (on pure_rotation "
-          "any is invented translation); ms/frame = median processing time, decoding excluded.")
+          "any is invented translation); ms/frame = median processing time, decoding excluded; metric rows "
+          "(epi_vo[source]): scale = median estimated / GT step length, SE3ATE% = ATE with SE(3) alignment only "
+          "(no scale), % of path.")
     if out is not None:
         try:
             table = [{k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in r.__dict__.items()}

@@ -1,9 +1,16 @@
-"""The scale stage (epi_vo.core.scale): VO units, baseline 1 first, then the last keyframe speed."""
+"""The scale stage (epi_vo.core.scale): VO units (baseline 1, then the last keyframe speed) and the metric
+sources' parts: floor fit, scale filter, wheel odometry."""
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import pytest
 
+from epi_vo.core import scale as sc
+from epi_vo.core.config import VoConfig, validate
+from epi_vo.core.errors import ConfigError
 from epi_vo.core.scale import VoUnitsScale
 
 
@@ -50,13 +57,6 @@ def test_a_baseline_without_elapsed_time_falls_back_to_one(dt: float) -> None:
 
 
 # --- metric sources ---------------------------------------------------------------------------------
-import math  # noqa: E402
-
-import numpy as np  # noqa: E402
-
-from epi_vo.core import scale as sc  # noqa: E402
-from epi_vo.core.config import VoConfig, validate  # noqa: E402
-from epi_vo.core.errors import ConfigError  # noqa: E402
 
 
 def _rot_x(deg: float) -> np.ndarray:
