@@ -2,14 +2,15 @@
 """Render synthetic scenes with exact camera motion and write them as small ROS 2 bags (MCAP).
 
 Each bag holds a compressed mono image stream, its camera_info and the ground-truth pose, so the tests
-and the demo have sequences whose answer is known exactly. Everything is deterministic: the scenes, the
-trajectories and the sensor noise (seeded per bag) give the same bytes on every run with the same
-OpenCV and numpy.
+and the demo have sequences whose answer is known exactly; ``ground_robot`` (a wheeled robot's camera over
+a paved floor) also holds simulated 50 Hz wheel odometry with a documented error model (bags/README.md).
+Everything is deterministic: the scenes, the trajectories and the sensor noise (seeded per bag) give the
+same bytes on every run with the same OpenCV and numpy.
 
 Conventions
 -----------
 - World frame of every scene: x right, y down, z forward (a level camera's optical frame). The ground
-  plane is ``y = GROUND_Y_M``.
+  plane is ``y = GROUND_Y_M`` (``y = ROBOT_FLOOR_Y_M`` in the ground-robot arena).
 - ``T_w_c`` (4, 4) maps points from the camera optical frame (x right, y down, z forward) into the world.
 - The written ground truth is ``T_c0_ci = inv(T_w_c0) @ T_w_ci``: the pose of frame i in the optical
   frame of frame 0, so frame 0 is the identity. Quaternions are written ``quat_xyzw``.
@@ -35,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import itertools
 import math
 import shutil
 import sys
@@ -67,14 +69,17 @@ LENS_BLUR_SIGMA_PX = 0.6  # Gaussian point-spread function of the optics, in out
 NOISE_SIGMA = 1.5  # gray levels, Gaussian, added after the optics like a real sensor's read noise
 SUPERSAMPLE = 2  # render at 2x and reduce with INTER_AREA: 2x2 box anti-aliasing
 NEAR_M = 0.1  # near plane in the camera frame: hits closer than this along z are discarded
-MIN_CLEARANCE_M = 1.5  # no quad may come nearer than this to any camera centre
+MIN_CLEARANCE_M = 1.5  # default: no quad may come nearer than this to any camera centre (BagSpec.min_clearance_m)
 ROS_BAG_VERSION = 8  # rosbag2 metadata version, as in shared/data/kitti06_0-50
 
 IMAGE_TOPIC = "/camera/image_raw/compressed"
 CAMERA_INFO_TOPIC = "/camera/camera_info"
 GROUND_TRUTH_TOPIC = "/ground_truth/pose"
+WHEEL_ODOM_TOPIC = "/wheel/odom"  # only in bags with wheel odometry (ground_robot)
 CAMERA_FRAME_ID = "camera_optical_frame"
 WORLD_FRAME_ID = "world"
+ODOM_FRAME_ID = "odom"
+BASE_FRAME_ID = "base_link"
 
 GROUND_Y_M = 1.6  # the camera starts 1.6 m above the ground (y points down)
 
@@ -137,14 +142,39 @@ class Quad:
 
 
 @dataclass(frozen=True)
+class WheelOdometry:
+    """Simulated wheel odometry of a ground robot, one row per ``/wheel/odom`` message.
+
+    ``stamps_ns`` (K,) int64, strictly increasing; ``pose`` (K, 3) x, y (m) and yaw (rad) of base_link in
+    odom; ``twist`` (K, 2) the measured forward speed (m/s) and yaw rate (rad/s) in base_link;
+    ``pose_covariance`` and ``twist_covariance`` (K, 36) row-major 6x6 over (x, y, z, rot x, rot y, rot z).
+    """
+
+    stamps_ns: NDArray[np.int64]
+    pose: NDArray[np.float64]
+    twist: NDArray[np.float64]
+    pose_covariance: NDArray[np.float64]
+    twist_covariance: NDArray[np.float64]
+
+
+@dataclass(frozen=True)
 class BagSpec:
-    """Everything one bag is made from: scene, camera, trajectory ``T_w_c`` (N, 4, 4) and noise seed."""
+    """Everything one bag is made from: scene, camera, trajectory ``T_w_c`` (N, 4, 4) and noise seed.
+
+    Optional, for bags that need them: the smallest allowed camera-to-quad distance ``min_clearance_m``,
+    the JPEG quality, wheel odometry to write on ``/wheel/odom``, and the height ``floor_y_m`` (world y)
+    of a floor whose image share and image motion ``make_bag`` measures (and bounds, ``MAX_FLOOR_FLOW_PX``).
+    """
 
     name: str
     quads: tuple[Quad, ...]
     camera: CameraModel
     T_w_c: NDArray[np.float64]
     noise_seed: int
+    min_clearance_m: float = MIN_CLEARANCE_M
+    jpeg_quality: int = JPEG_QUALITY
+    wheel_odom: WheelOdometry | None = None
+    floor_y_m: float | None = None
 
 
 # --- small geometry helpers -----------------------------------------------------------------------------
@@ -240,6 +270,12 @@ MOSAIC_TEXTURE = "poster_mosaic"
 MOSAIC_GRID = (6, 9)  # rows, columns of photographs on the poster wall
 MOSAIC_TILE_PX = 256
 MOSAIC_SEED = 7
+PAVING_TEXTURE = "paving"
+PAVING_GRID = 12  # slabs per side of the paving texture
+PAVING_SLAB_PX = 256  # slab pitch in texels, joint included
+PAVING_JOINT_PX = 4  # joint (grout) on each side of a slab: 8 texels between two slabs, and at a mirrored seam
+PAVING_SOURCES = ("gravel", "brick", "grass")  # photographs with detail everywhere
+PAVING_SEED = 11
 
 
 def _poster_mosaic() -> NDArray[np.uint8]:
@@ -263,13 +299,44 @@ def _poster_mosaic() -> NDArray[np.uint8]:
     return np.vstack([np.hstack(tiles[r * cols : (r + 1) * cols]) for r in range(rows)])
 
 
+def _paving() -> NDArray[np.uint8]:
+    """A square of ``PAVING_GRID`` x ``PAVING_GRID`` paving slabs separated by dark joints, seeded.
+
+    Every slab is a different crop (35-75 % of the short side, random position, turned by a random
+    multiple of 90 deg and maybe mirrored) of a photograph with detail everywhere (``PAVING_SOURCES``:
+    gravel, bricks, grass), at its own brightness and contrast. The joints give strong corners where
+    the floor is seen from afar and foreshortened; the photographs give corners close by.
+    """
+    rng = np.random.default_rng(PAVING_SEED)
+    inner = PAVING_SLAB_PX - 2 * PAVING_JOINT_PX
+    side_px = PAVING_GRID * PAVING_SLAB_PX
+    paving = np.full((side_px, side_px), 38.0, np.float32)  # grout
+    for index in range(PAVING_GRID * PAVING_GRID):
+        photo = load_texture(PAVING_SOURCES[int(rng.integers(len(PAVING_SOURCES)))])
+        h, w = photo.shape
+        side = int(min(h, w) * rng.uniform(0.35, 0.75))
+        top, left = int(rng.integers(0, h - side + 1)), int(rng.integers(0, w - side + 1))
+        crop = np.rot90(photo[top : top + side, left : left + side], int(rng.integers(4)))
+        if rng.uniform() < 0.5:
+            crop = crop[:, ::-1]
+        slab = cv2.resize(np.ascontiguousarray(crop), (inner, inner), interpolation=cv2.INTER_AREA).astype(np.float32)
+        gain, offset = rng.uniform(0.55, 1.1), rng.uniform(-10.0, 45.0)
+        row, col = divmod(index, PAVING_GRID)
+        y0, x0 = row * PAVING_SLAB_PX + PAVING_JOINT_PX, col * PAVING_SLAB_PX + PAVING_JOINT_PX
+        paving[y0 : y0 + inner, x0 : x0 + inner] = gain * slab + offset
+    return np.clip(np.rint(paving), 0, 255).astype(np.uint8)
+
+
 @functools.cache
 def load_texture(name: str) -> NDArray[np.uint8]:
-    """Grayscale uint8 texture by name: a scikit-image photograph or the poster mosaic built from them."""
+    """Grayscale uint8 texture by name: a scikit-image photograph, or the poster mosaic or the paving built
+    from them."""
     if name == MOSAIC_TEXTURE:
         return _poster_mosaic()
+    if name == PAVING_TEXTURE:
+        return _paving()
     if name not in PHOTO_TEXTURES:
-        msg = f"unknown texture {name!r}; expected one of {(*PHOTO_TEXTURES, MOSAIC_TEXTURE)}"
+        msg = f"unknown texture {name!r}; expected one of {(*PHOTO_TEXTURES, MOSAIC_TEXTURE, PAVING_TEXTURE)}"
         raise SceneError(msg)
     image = np.asarray(getattr(skimage.data, name)())
     if image.ndim == 3:
@@ -361,12 +428,14 @@ def box_quads(
     texture: str,
     gain: float = 1.0,
     offset: float = 0.0,
+    ground_y_m: float = GROUND_Y_M,
 ) -> list[Quad]:
-    """An axis-aligned box standing on the ground: four sides facing outwards and a tiled top.
+    """An axis-aligned box standing on the ground (``y = ground_y_m``): four sides facing outwards and a
+    tiled top.
 
     The side faces (normals along x) are shaded 15 % darker and the top 10 % brighter, as under sky light.
     """
-    cy = GROUND_Y_M - 0.5 * height
+    cy = ground_y_m - 0.5 * height
     hx, hz = 0.5 * size_x, 0.5 * size_z
     sides = [
         wall_quad((center_x, cy, center_z - hz), (0, 0, -1), size_x, height, texture, gain=gain, offset=offset),
@@ -375,7 +444,7 @@ def box_quads(
         wall_quad((center_x + hx, cy, center_z), (1, 0, 0), size_z, height, texture, gain=0.85 * gain, offset=offset),
     ]
     top = horizontal_quad(
-        GROUND_Y_M - height,
+        ground_y_m - height,
         (center_x - hx, center_x + hx),
         (center_z - hz, center_z + hz),
         texture,
@@ -503,10 +572,233 @@ def planar_spec(n_frames: int = 60) -> BagSpec:
     return BagSpec("planar", planar_scene(), make_camera(), smooth_trajectory(n_frames, position, angles), noise_seed=3)
 
 
+# --- ground robot: a wheeled robot's camera over a paved floor, with wheel odometry ----------------------
+#
+# The robot's frames follow ROS (REP 103/105): base_link x forward, y left, z up, origin on the floor under
+# the axle centre; odom is base_link at the first wheel message. The planar robot trajectory is given in a
+# floor frame "plane" (x forward, y left, z up, origin on the floor) that coincides with base_link at the
+# first image stamp; the scene world is the usual x right, y down, z forward frame with the floor at
+# y = ROBOT_FLOOR_Y_M, so every camera centre is at world y = 0.
+
+ROBOT_FRAMES = 300  # 20 s at 15 Hz
+CAMERA_XYZ_IN_BASE_M = (0.20, 0.0, 0.45)  # optical centre 0.20 m ahead of the base origin, 0.45 m above the floor
+CAMERA_RPY_IN_BASE_RAD = (0.0, math.radians(15.0), 0.0)  # pitched 15 deg down, no roll, no yaw
+ROBOT_FLOOR_Y_M = CAMERA_XYZ_IN_BASE_M[2]  # world y of the floor
+ROBOT_MIN_CLEARANCE_M = 0.3  # the floor is 0.45 m below the camera; structures stay >= 2 m from the path
+ROBOT_JPEG_QUALITY = 75  # 300 rich floor frames at quality 90 would make a 22 MB bag; at 75 it stays under 15 MB
+MAX_FLOOR_FLOW_PX = 40.0  # largest image motion of a visible floor point between frames (KLT, 15 px, 3 levels)
+# (centre s, duration s, peak yaw rate deg/s) of the raised-cosine turns (they must not overlap: the speed
+# follows |yaw rate|); positive turns left
+ROBOT_TURNS = ((3.0, 3.2, 20.0), (8.3, 4.0, -20.0), (13.2, 3.0, 20.0), (17.3, 3.0, -16.0))
+ROBOT_MAX_YAW_RATE_DEG_S = 20.0  # at this yaw rate the robot is down to ROBOT_TURN_SPEED_M_S
+ROBOT_TURN_SPEED_M_S = 0.4
+# optical frame (x right, y down, z forward) in a body frame (x forward, y left, z up)
+R_BODY_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+# the floor frame in the scene world: plane x -> world z, plane y -> world -x, plane z -> world -y
+T_WORLD_PLANE = se3(R_BODY_OPTICAL.T, (0.0, ROBOT_FLOOR_Y_M, 0.0))
+
+WHEEL_RATE_HZ = 50
+WHEEL_PERIOD_NS = NS_PER_S // WHEEL_RATE_HZ
+WHEEL_FIRST_NS = START_NS - 500_000_000 + 7_000_000  # 0.493 s before the first image, 7 ms off the image grid
+WHEEL_TAIL_NS = 100_000_000  # wheel messages continue up to 0.1 s after the last image
+WHEEL_SCALE_ERROR = 0.025  # measured distance = 1.025 x true (wheel radius 2.5 % too large)
+WHEEL_YAW_RATE_BIAS_RAD_S = math.radians(0.5)  # added to the yaw rate (positive: drifts to the left)
+WHEEL_SPEED_NOISE = 0.01  # Gaussian, relative to the speed, independent per 20 ms step
+WHEEL_YAW_RATE_NOISE_RAD_S = math.radians(0.5)  # Gaussian, independent per 20 ms step
+WHEEL_NOISE_SEED = 5
+_GAUSS_NODES, _GAUSS_WEIGHTS = np.polynomial.legendre.leggauss(8)
+
+
+def rpy_rotation(roll: float, pitch: float, yaw: float) -> NDArray[np.float64]:
+    """ROS fixed-axis roll, pitch, yaw: ``Rz(yaw) @ Ry(pitch) @ Rx(roll)``."""
+    return rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
+
+
+def base_camera_transform() -> Matrix4:
+    """``T_base_camera``: the camera optical frame in base_link (the mounting documented in bags/README.md)."""
+    roll, pitch, yaw = CAMERA_RPY_IN_BASE_RAD
+    return se3(rpy_rotation(roll, pitch, yaw) @ R_BODY_OPTICAL, CAMERA_XYZ_IN_BASE_M)
+
+
+def planar_pose(x: float, y: float, yaw: float) -> Matrix4:
+    """SE(3) of a planar pose: position (x, y, 0), rotation ``yaw`` about z."""
+    return se3(rot_z(yaw), (x, y, 0.0))
+
+
+def robot_speed(t: NDArray[np.float64]) -> NDArray[np.float64]:
+    """True forward speed (m/s) at ``t`` seconds after the first image: a cruise speed of 0.55-0.68 m/s
+    (a rolling start that speeds up, with a gentle 7 s oscillation) that drops towards 0.4 m/s in the turns,
+    as a robot slows down to turn: ``0.4 + (cruise - 0.4) (1 - |yaw rate| / ROBOT_MAX_YAW_RATE)``."""
+    t = np.asarray(t, dtype=np.float64)
+    cruise = 0.6 + 0.05 * np.tanh((t - 1.5) / 1.5) + 0.03 * np.sin(2.0 * math.pi * t / 7.0)
+    turning = np.abs(robot_yaw_rate(t)) / math.radians(ROBOT_MAX_YAW_RATE_DEG_S)
+    return ROBOT_TURN_SPEED_M_S + (cruise - ROBOT_TURN_SPEED_M_S) * (1.0 - turning)
+
+
+def robot_yaw_rate(t: NDArray[np.float64]) -> NDArray[np.float64]:
+    """True yaw rate (rad/s): raised-cosine turns ``ROBOT_TURNS``, zero in between."""
+    t = np.asarray(t, dtype=np.float64)
+    rate = np.zeros_like(t)
+    for centre, duration, peak_deg in ROBOT_TURNS:
+        tau = t - centre
+        bump = 0.5 * math.radians(peak_deg) * (1.0 + np.cos(2.0 * math.pi * tau / duration))
+        rate = rate + np.where(np.abs(tau) < 0.5 * duration, bump, 0.0)
+    return rate
+
+
+def robot_yaw(t: NDArray[np.float64]) -> NDArray[np.float64]:
+    """True heading (rad) in the plane frame: the exact integral of ``robot_yaw_rate`` from 0 to ``t``."""
+
+    def turned(tt: NDArray[np.float64]) -> NDArray[np.float64]:
+        total = np.zeros_like(tt)
+        for centre, duration, peak_deg in ROBOT_TURNS:
+            tau = np.clip(tt - centre, -0.5 * duration, 0.5 * duration)
+            total = total + 0.5 * math.radians(peak_deg) * (
+                tau + 0.5 * duration + duration / (2.0 * math.pi) * np.sin(2.0 * math.pi * tau / duration)
+            )
+        return total
+
+    t = np.asarray(t, dtype=np.float64)
+    return turned(t) - turned(np.zeros_like(t))
+
+
+def _integrate(f: Callable[[NDArray[np.float64]], NDArray[np.float64]], a: float, b: float) -> float:
+    """Integral of a smooth ``f`` over [a, b]: 8-point Gauss-Legendre on pieces of at most 20 ms."""
+    pieces = max(1, math.ceil(abs(b - a) / 0.02))
+    edges = np.linspace(a, b, pieces + 1)
+    half, mid = 0.5 * np.diff(edges), 0.5 * (edges[1:] + edges[:-1])
+    nodes = mid[:, None] + half[:, None] * _GAUSS_NODES[None, :]
+    return float((f(nodes) * _GAUSS_WEIGHTS[None, :] * half[:, None]).sum())
+
+
+def robot_base_poses(times_s: Sequence[float] | NDArray[np.float64]) -> NDArray[np.float64]:
+    """True base_link poses (N, 3): x, y (m) and yaw (rad) in the plane frame at ``times_s`` (seconds after
+    the first image), integrated from the unicycle model ``x' = v cos(yaw)``, ``y' = v sin(yaw)``."""
+    times = np.asarray(times_s, dtype=np.float64)
+    grid = np.unique(np.concatenate([times, [0.0]]))
+    start = int(np.searchsorted(grid, 0.0))
+    vx = lambda t: robot_speed(t) * np.cos(robot_yaw(t))  # noqa: E731
+    vy = lambda t: robot_speed(t) * np.sin(robot_yaw(t))  # noqa: E731
+    xy = np.zeros((len(grid), 2))
+    for i in range(start + 1, len(grid)):
+        xy[i] = xy[i - 1] + (_integrate(vx, grid[i - 1], grid[i]), _integrate(vy, grid[i - 1], grid[i]))
+    for i in range(start - 1, -1, -1):
+        xy[i] = xy[i + 1] - (_integrate(vx, grid[i], grid[i + 1]), _integrate(vy, grid[i], grid[i + 1]))
+    index = np.searchsorted(grid, times)
+    return np.column_stack([xy[index], robot_yaw(times)])
+
+
+def robot_camera_poses(base_poses: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``T_w_c`` (N, 4, 4) of the camera for base poses (N, 3) x, y, yaw in the plane frame."""
+    T_base_camera = base_camera_transform()
+    return np.stack([T_WORLD_PLANE @ planar_pose(x, y, yaw) @ T_base_camera for x, y, yaw in base_poses])
+
+
+def wheel_stamps_ns(n_frames: int) -> NDArray[np.int64]:
+    """``/wheel/odom`` stamps: every 20 ms from ``WHEEL_FIRST_NS`` to at most 0.1 s after the last image."""
+    last = stamp_ns(n_frames - 1) + WHEEL_TAIL_NS
+    return np.arange(WHEEL_FIRST_NS, last + 1, WHEEL_PERIOD_NS, dtype=np.int64)
+
+
+def simulate_wheel_odometry(stamps: NDArray[np.int64], seed: int = WHEEL_NOISE_SEED) -> WheelOdometry:
+    """Dead-reckoned wheel odometry at ``stamps`` (K,) from the true robot motion, with the error model of
+    bags/README.md: for each step the true distance and heading change of the base are turned into a
+    measured speed ``v = (1 + WHEEL_SCALE_ERROR) v_true (1 + n_v)`` and yaw rate ``w = w_true + bias + n_w``
+    (``v_true``, ``w_true`` the step's mean true values, ``n_v``, ``n_w`` Gaussian), and the pose is
+    integrated with the unicycle model at the step's mid heading. The first message is the odom origin;
+    every message carries the speed and yaw rate measured over the 20 ms before its stamp."""
+    rng = np.random.default_rng(seed)
+    times = (stamps - START_NS).astype(np.float64) / NS_PER_S
+    edges = np.concatenate([[times[0] - (times[1] - times[0])], times])  # step k ends at stamp k
+    dt = np.diff(edges)
+    distance = np.array([_integrate(robot_speed, a, b) for a, b in itertools.pairwise(edges)])
+    turn = np.diff(robot_yaw(edges))
+    v_true, w_true = distance / dt, turn / dt
+    n_v = rng.normal(0.0, WHEEL_SPEED_NOISE, len(dt))
+    n_w = rng.normal(0.0, WHEEL_YAW_RATE_NOISE_RAD_S, len(dt))
+    v = (1.0 + WHEEL_SCALE_ERROR) * v_true * (1.0 + n_v)
+    w = w_true + WHEEL_YAW_RATE_BIAS_RAD_S + n_w
+    pose = np.zeros((len(stamps), 3))
+    for k in range(1, len(stamps)):
+        x, y, yaw = pose[k - 1]
+        mid = yaw + 0.5 * w[k] * dt[k]
+        pose[k] = (x + v[k] * dt[k] * math.cos(mid), y + v[k] * dt[k] * math.sin(mid), yaw + w[k] * dt[k])
+    travelled = np.concatenate([[0.0], np.cumsum(np.abs(v[1:]) * dt[1:])])
+    elapsed = times - times[0]
+    pose_var = np.zeros((len(stamps), 6))
+    pose_var[:, 0] = pose_var[:, 1] = 0.01**2 + (0.03 * travelled) ** 2  # 1 cm + 3 % of the distance
+    pose_var[:, 2:5] = 1e-6  # z, roll, pitch: the robot stays on the flat floor
+    pose_var[:, 5] = 0.01**2 + (0.01 * elapsed) ** 2  # 0.6 deg + 0.6 deg/s of unknown yaw-rate bias
+    twist_var = np.zeros((len(stamps), 6))
+    twist_var[:, 0] = (0.005 + WHEEL_SPEED_NOISE * np.abs(v)) ** 2
+    twist_var[:, 1:5] = 1e-6  # no sideways, vertical or tilting motion (non-holonomic, planar)
+    twist_var[:, 5] = WHEEL_YAW_RATE_NOISE_RAD_S**2 + WHEEL_YAW_RATE_BIAS_RAD_S**2
+    diagonal = np.arange(6) * 7  # indices of the diagonal in a row-major 6x6
+    pose_cov, twist_cov = np.zeros((len(stamps), 36)), np.zeros((len(stamps), 36))
+    pose_cov[:, diagonal], twist_cov[:, diagonal] = pose_var, twist_var
+    return WheelOdometry(stamps.copy(), pose, np.column_stack([v, w]), pose_cov, twist_cov)
+
+
+def ground_robot_scene() -> tuple[Quad, ...]:
+    """A walled yard 15 m x 24 m paved with photographic slabs (0.5 m, ``paving``), brick and grass walls
+    6 m high with posters, and boxes and pillars 2-4 m beside the path and ahead of it."""
+    floor_y = ROBOT_FLOOR_Y_M
+    x_left, x_right, z_back, z_front = -8.5, 6.5, -4.0, 20.0  # world x is right (-plane y), z is forward
+    wall_h = 6.0
+    wall_cy = floor_y - 0.5 * wall_h
+    x_mid, x_len = 0.5 * (x_left + x_right), x_right - x_left
+    z_mid, z_len = 0.5 * (z_back + z_front), z_front - z_back
+    quads: list[Quad] = [
+        # the floor reaches 0.1 m under the walls, so no ray can pass between them
+        horizontal_quad(floor_y, (x_left - 0.1, x_right + 0.1), (z_back - 0.1, z_front + 0.1), PAVING_TEXTURE, 6.0),
+        wall_quad((x_mid, wall_cy, z_front), (0, 0, -1), x_len + 0.2, wall_h, "brick", tile_m=2, gain=0.7, offset=30.0),
+        wall_quad((x_mid, wall_cy, z_back), (0, 0, 1), x_len + 0.2, wall_h, "brick", tile_m=2.0, gain=0.8),
+        wall_quad((x_left, wall_cy, z_mid), (1, 0, 0), z_len + 0.2, wall_h, "brick", tile_m=2.5, gain=0.7, offset=20.0),
+        wall_quad((x_right, wall_cy, z_mid), (-1, 0, 0), z_len + 0.2, wall_h, "grass", tile_m=3.0, gain=1.1),
+        # posters 5 cm in front of the walls
+        wall_quad((-3.0, floor_y - 2.2, z_front - 0.05), (0, 0, -1), 3.0, None, "rocket"),
+        wall_quad((2.5, floor_y - 1.8, z_front - 0.05), (0, 0, -1), 3.0, None, "astronaut"),
+        wall_quad((x_left + 0.05, floor_y - 1.6, 5.0), (1, 0, 0), 2.5, None, "chelsea"),
+        wall_quad((x_left + 0.05, floor_y - 2.0, 12.0), (1, 0, 0), 3.0, None, "camera"),
+        wall_quad((x_right - 0.05, floor_y - 1.7, 9.0), (-1, 0, 0), 2.5, None, "coffee"),
+    ]
+    boxes = (  # world x, world z, size x, size z, height, texture, gain
+        (2.4, 3.5, 0.8, 0.8, 0.7, "coffee", 1.0),
+        (-4.2, 6.0, 0.3, 0.3, 2.5, "brick", 0.9),
+        (2.3, 7.5, 1.0, 0.8, 1.0, "coins", 1.2),
+        (1.0, 11.0, 0.3, 0.3, 2.5, "gravel", 1.1),
+        (-4.8, 13.0, 1.2, 1.2, 1.2, "chelsea", 1.0),
+        (1.0, 13.2, 0.6, 0.6, 0.8, "hubble_deep_field", 1.3),
+        (-3.6, 15.5, 0.4, 0.4, 3.0, "grass", 1.0),
+    )
+    for x, z, sx, sz, height, texture, gain in boxes:
+        quads += box_quads(x, z, sx, sz, height, texture, gain, ground_y_m=floor_y)
+    return tuple(quads)
+
+
+def ground_robot_spec(n_frames: int = ROBOT_FRAMES) -> BagSpec:
+    """A differential-drive robot's forward camera (0.45 m high, pitched 15 deg down) crossing a paved yard
+    at 0.42-0.65 m/s with smooth left and right turns (up to 25 deg/s), with 50 Hz wheel odometry."""
+    times = np.array([(stamp_ns(i) - START_NS) / NS_PER_S for i in range(n_frames)])
+    T_w_c = robot_camera_poses(robot_base_poses(times))
+    return BagSpec(
+        "ground_robot",
+        ground_robot_scene(),
+        make_camera(),
+        T_w_c,
+        noise_seed=4,
+        min_clearance_m=ROBOT_MIN_CLEARANCE_M,
+        jpeg_quality=ROBOT_JPEG_QUALITY,
+        wheel_odom=simulate_wheel_odometry(wheel_stamps_ns(n_frames)),
+        floor_y_m=ROBOT_FLOOR_Y_M,
+    )
+
+
 SPECS: dict[str, Callable[[], BagSpec]] = {
     "general_motion": general_motion_spec,
     "pure_rotation": pure_rotation_spec,
     "planar": planar_spec,
+    "ground_robot": ground_robot_spec,
 }
 
 
@@ -749,6 +1041,7 @@ TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 IMAGE_MSGTYPE = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO_MSGTYPE = "sensor_msgs/msg/CameraInfo"
 POSE_MSGTYPE = "geometry_msgs/msg/PoseStamped"
+ODOMETRY_MSGTYPE = "nav_msgs/msg/Odometry"
 
 
 def _header(stamp: int, frame_id: str) -> object:
@@ -777,9 +1070,9 @@ def camera_info_msg(camera: CameraModel, stamp: int) -> object:
     )
 
 
-def compressed_image_msg(image: NDArray[np.uint8], stamp: int) -> object:
-    """sensor_msgs/CompressedImage with a mono JPEG (quality ``JPEG_QUALITY``)."""
-    ok, encoded = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+def compressed_image_msg(image: NDArray[np.uint8], stamp: int, quality: int = JPEG_QUALITY) -> object:
+    """sensor_msgs/CompressedImage with a mono JPEG of the given quality."""
+    ok, encoded = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, quality])
     if not ok:
         msg = "cv2.imencode failed to encode a JPEG frame"
         raise SceneError(msg)
@@ -798,6 +1091,81 @@ def pose_msg(T_c0_ci: Matrix4, stamp: int) -> object:
         orientation=types["geometry_msgs/msg/Quaternion"](x=float(qx), y=float(qy), z=float(qz), w=float(qw)),
     )
     return types[POSE_MSGTYPE](header=_header(stamp, WORLD_FRAME_ID), pose=pose)
+
+
+def odometry_msg(wheel: WheelOdometry, k: int) -> object:
+    """nav_msgs/Odometry of wheel message ``k``: base_link in odom, twist in base_link, with covariances."""
+    types = TYPESTORE.types
+    x, y, yaw = (float(v) for v in wheel.pose[k])
+    qx, qy, qz, qw = quat_xyzw_from_rotation(rot_z(yaw))
+    v, w = (float(value) for value in wheel.twist[k])
+    Vector3 = types["geometry_msgs/msg/Vector3"]
+    pose = types["geometry_msgs/msg/Pose"](
+        position=types["geometry_msgs/msg/Point"](x=x, y=y, z=0.0),
+        orientation=types["geometry_msgs/msg/Quaternion"](x=float(qx), y=float(qy), z=float(qz), w=float(qw)),
+    )
+    twist = types["geometry_msgs/msg/Twist"](linear=Vector3(x=v, y=0.0, z=0.0), angular=Vector3(x=0.0, y=0.0, z=w))
+    return types[ODOMETRY_MSGTYPE](
+        header=_header(int(wheel.stamps_ns[k]), ODOM_FRAME_ID),
+        child_frame_id=BASE_FRAME_ID,
+        pose=types["geometry_msgs/msg/PoseWithCovariance"](
+            pose=pose, covariance=wheel.pose_covariance[k].astype(np.float64).copy()
+        ),
+        twist=types["geometry_msgs/msg/TwistWithCovariance"](
+            twist=twist, covariance=wheel.twist_covariance[k].astype(np.float64).copy()
+        ),
+    )
+
+
+def wheel_tum_lines(wheel: WheelOdometry) -> list[str]:
+    """TUM lines of the wheel odometry: base_link in odom at every ``/wheel/odom`` stamp."""
+    lines = [
+        "# timestamp tx ty tz qx qy qz qw: wheel odometry, base_link (x forward, y left, z up) pose in odom, "
+        "metres; odom is base_link at the first message; stamps equal the /wheel/odom header stamps"
+    ]
+    for stamp, (x, y, yaw) in zip(wheel.stamps_ns, wheel.pose, strict=True):
+        q = quat_xyzw_from_rotation(rot_z(float(yaw)))
+        values = " ".join(f"{v:.9f}" for v in (x, y, 0.0, *q))
+        lines.append(f"{format_stamp(int(stamp))} {values}")
+    return lines
+
+
+def floor_depth(camera: CameraModel, T_w_c: Matrix4, floor_y_m: float) -> NDArray[np.float64]:
+    """Per pixel (H, W), the camera-frame z at which the pixel's ray meets the floor ``y = floor_y_m``
+    (world, y down); inf where the ray does not reach it in front of the camera."""
+    xn, yn = pixel_rays(camera, 1)
+    R, c = T_w_c[:3, :3], T_w_c[:3, 3]
+    down = R[1, 0] * xn + R[1, 1] * yn + R[1, 2]  # world y component of the ray (x, y, 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = (floor_y_m - c[1]) / down
+    return np.where((down > 0.0) & (z > NEAR_M), z, np.inf)
+
+
+def floor_fraction(result: RenderResult, camera: CameraModel, T_w_c: Matrix4, floor_y_m: float) -> float:
+    """Share of the pixels of a rendering whose depth is that of the floor (within 1 %)."""
+    z_floor = floor_depth(camera, T_w_c, floor_y_m)
+    on_floor = np.isfinite(z_floor) & (np.abs(result.depth - z_floor) <= 0.01 * z_floor)
+    return float(on_floor.mean())
+
+
+def max_floor_flow_px(camera: CameraModel, T_w_c: NDArray[np.float64], floor_y_m: float, step_px: int = 4) -> float:
+    """Largest image motion (px) from one frame to the next of the floor points under a grid of pixels
+    (every ``step_px``, and the last row and column), occlusion ignored. Pinhole cameras only."""
+    rows = np.unique(np.append(np.arange(0, camera.height, step_px), camera.height - 1))
+    cols = np.unique(np.append(np.arange(0, camera.width, step_px), camera.width - 1))
+    largest = 0.0
+    for T_a, T_b in itertools.pairwise(T_w_c):
+        z = floor_depth(camera, T_a, floor_y_m)[np.ix_(rows, cols)]
+        u, v = np.meshgrid(cols.astype(np.float64), rows.astype(np.float64))
+        keep = np.isfinite(z)
+        K = camera.K
+        X_a = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=-1)[keep]
+        T_b_a = invert_se3(T_b) @ T_a
+        X_b = X_a @ T_b_a[:3, :3].T + T_b_a[:3, 3]
+        u_b = K[0, 0] * X_b[:, 0] / X_b[:, 2] + K[0, 2]
+        v_b = K[1, 1] * X_b[:, 1] / X_b[:, 2] + K[1, 2]
+        largest = max(largest, float(np.hypot(u_b - u[keep], v_b - v[keep]).max()))
+    return largest
 
 
 def format_stamp(stamp: int) -> str:
@@ -829,19 +1197,33 @@ class BagSummary:
     bag_bytes: int
     min_clearance_m: float
     seconds: float
+    floor_fraction_min: float | None = None  # bags with a floor: share of floor pixels, smallest over the frames
+    floor_fraction_median: float | None = None
+    max_floor_flow_px: float | None = None
+    wheel_messages: int = 0
 
 
 def make_bag(spec: BagSpec, out_dir: Path) -> BagSummary:
-    """Render ``spec`` and write ``out_dir/<name>/bag/`` (MCAP) and ``out_dir/<name>/groundtruth_tum.txt``.
+    """Render ``spec`` and write ``out_dir/<name>/bag/`` (MCAP) and ``out_dir/<name>/groundtruth_tum.txt``
+    (and ``wheel_odom_tum.txt`` when the spec has wheel odometry).
 
-    Raises SceneError when a camera comes nearer than ``MIN_CLEARANCE_M`` to the scene or a frame has a
-    pixel that sees no quad.
+    Raises SceneError when a camera comes nearer than ``spec.min_clearance_m`` to the scene, a frame has a
+    pixel that sees no quad, or (bags with a floor) a floor point moves more than ``MAX_FLOOR_FLOW_PX``
+    between two frames.
     """
     started = time.monotonic()
     clearance = min_clearance_m(spec.quads, spec.T_w_c)
-    if clearance < MIN_CLEARANCE_M:
-        msg = f"{spec.name}: a camera comes {clearance:.2f} m from the scene (minimum {MIN_CLEARANCE_M} m)"
+    if clearance < spec.min_clearance_m:
+        msg = f"{spec.name}: a camera comes {clearance:.2f} m from the scene (minimum {spec.min_clearance_m} m)"
         raise SceneError(msg)
+    floor_flow = None
+    if spec.floor_y_m is not None:
+        floor_flow = max_floor_flow_px(spec.camera, spec.T_w_c, spec.floor_y_m)
+        if floor_flow > MAX_FLOOR_FLOW_PX:
+            msg = f"{spec.name}: a floor point moves {floor_flow:.1f} px in a frame (at most {MAX_FLOOR_FLOW_PX})"
+            raise SceneError(msg)
+    floor_fractions: list[float] = []
+    wheel = spec.wheel_odom
     renderer = Renderer(spec.quads, spec.camera)
     rng = np.random.default_rng(spec.noise_seed)
     T_c0_ci = poses_relative_to_first(spec.T_w_c)
@@ -855,20 +1237,39 @@ def make_bag(spec: BagSpec, out_dir: Path) -> BagSummary:
         image_conn = writer.add_connection(IMAGE_TOPIC, IMAGE_MSGTYPE, typestore=TYPESTORE)
         info_conn = writer.add_connection(CAMERA_INFO_TOPIC, CAMERA_INFO_MSGTYPE, typestore=TYPESTORE)
         pose_conn = writer.add_connection(GROUND_TRUTH_TOPIC, POSE_MSGTYPE, typestore=TYPESTORE)
+        wheel_conn = None
+        if wheel is not None:
+            wheel_conn = writer.add_connection(WHEEL_ODOM_TOPIC, ODOMETRY_MSGTYPE, typestore=TYPESTORE)
+        next_wheel = 0
+
+        def write_wheel_until(stamp_limit: float) -> None:
+            """Write the wheel messages stamped before ``stamp_limit``, in stamp order."""
+            nonlocal next_wheel
+            while wheel is not None and next_wheel < len(wheel.stamps_ns) and wheel.stamps_ns[next_wheel] < stamp_limit:
+                message = TYPESTORE.serialize_cdr(odometry_msg(wheel, next_wheel), ODOMETRY_MSGTYPE)
+                writer.write(wheel_conn, int(wheel.stamps_ns[next_wheel]), message)
+                next_wheel += 1
+
         for i, T_w_c in enumerate(spec.T_w_c):
             ideal = renderer.render_ideal(T_w_c)
             if float(ideal.coverage.min()) < 1.0:
                 msg = f"{spec.name}: frame {i} has pixels that see no quad"
                 raise SceneError(msg)
+            if spec.floor_y_m is not None:
+                floor_fractions.append(floor_fraction(ideal, spec.camera, T_w_c, spec.floor_y_m))
             image = sensor_image(ideal.image, rng)
             stamp = stamp_ns(i)
+            write_wheel_until(stamp)
             for conn, message, msgtype in (
-                (image_conn, compressed_image_msg(image, stamp), IMAGE_MSGTYPE),
+                (image_conn, compressed_image_msg(image, stamp, spec.jpeg_quality), IMAGE_MSGTYPE),
                 (info_conn, camera_info_msg(spec.camera, stamp), CAMERA_INFO_MSGTYPE),
                 (pose_conn, pose_msg(T_c0_ci[i], stamp), POSE_MSGTYPE),
             ):
                 writer.write(conn, stamp, TYPESTORE.serialize_cdr(message, msgtype))
+        write_wheel_until(math.inf)
     (bag_root / "groundtruth_tum.txt").write_text("\n".join(tum_lines(T_c0_ci)) + "\n")
+    if wheel is not None:
+        (bag_root / "wheel_odom_tum.txt").write_text("\n".join(wheel_tum_lines(wheel)) + "\n")
 
     steps = np.diff(spec.T_w_c[:, :3, 3], axis=0)
     cos_angles = (np.trace(T_c0_ci[:, :3, :3], axis1=1, axis2=2) - 1.0) / 2.0
@@ -882,6 +1283,10 @@ def make_bag(spec: BagSpec, out_dir: Path) -> BagSummary:
         size,
         clearance,
         time.monotonic() - started,
+        min(floor_fractions) if floor_fractions else None,
+        float(np.median(floor_fractions)) if floor_fractions else None,
+        floor_flow,
+        0 if wheel is None else len(wheel.stamps_ns),
     )
 
 
@@ -898,6 +1303,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"max rotation from frame 0 {summary.max_rotation_deg:.1f} deg, clearance {summary.min_clearance_m:.2f} m, "
             f"{summary.bag_bytes / 1e6:.2f} MB, {summary.seconds:.0f} s"
         )
+        if summary.floor_fraction_min is not None:
+            print(
+                f"  floor share of the pixels: min {summary.floor_fraction_min:.1%}, median "
+                f"{summary.floor_fraction_median:.1%}; largest floor motion {summary.max_floor_flow_px:.1f} px/frame"
+            )
+        if summary.wheel_messages:
+            print(f"  {summary.wheel_messages} wheel odometry messages on {WHEEL_ODOM_TOPIC}")
     return 0
 
 
