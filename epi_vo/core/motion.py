@@ -74,7 +74,7 @@ class MotionStage:
             if sel.model is Model.HOMOGRAPHY:
                 assert sel.H is not None and sel.inliers_h is not None
                 st.model = Model.HOMOGRAPHY
-                return self._from_homography(ctx, sel.H, sel.inliers_h, st)
+                return self._from_homography(ctx, sel, st)
             if sel.model is Model.ESSENTIAL:
                 assert sel.E is not None and sel.inliers_e is not None
                 st.model = Model.ESSENTIAL
@@ -101,8 +101,9 @@ class MotionStage:
             return self._initialize(ctx, R, t_dir, inl, st, "essential matrix")
         return self._track_with_map(ctx, R, t_dir, inl, st, rot_cov)
 
-    def _from_homography(self, ctx: MotionContext, H: F64, in_h: NDArray[np.bool_], st: FrameStats
-                         ) -> Motion | None:
+    def _from_homography(self, ctx: MotionContext, sel: ModelSelection, st: FrameStats) -> Motion | None:
+        assert sel.H is not None and sel.inliers_h is not None
+        H, in_h = sel.H, sel.inliers_h
         cfg = self.cfg
         kf = ctx.kf
         xn_kf, xn_cur = kf.xn[ctx.rows], ctx.xn_cur
@@ -126,8 +127,14 @@ class MotionStage:
                                   "position held")
                 return Motion(TrackingState.INITIALIZING, R_h, zero, covm.block(1e-6, rot_cov), in_h)
         if not self.has_map(kf):
+            R_e = None
+            if sel.E is not None and sel.inliers_e is not None:
+                # E on the same correspondences says which of H's decompositions has the true rotation.
+                R_e, _, inl_e = geo.recover_pose(sel.E, kf.uv[ctx.rows], ctx.uv_cur, K, sel.inliers_e)
+                if np.count_nonzero(inl_e) < cfg.min_inliers:
+                    R_e = None
             planar = geo.pose_from_homography(H, K, xn_kf, xn_cur, in_h, cfg.max_reprojection_error_px,
-                                              cfg.min_triangulation_angle_deg)
+                                              cfg.min_triangulation_angle_deg, prefer_R=R_e)
             if planar is None:
                 st.reasons.append("planar scene: homography decomposition ambiguous, waiting for parallax")
                 return Motion(TrackingState.INITIALIZING, R_h, zero, covm.block(1e-6, rot_cov), in_h)

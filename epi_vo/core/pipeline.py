@@ -346,6 +346,7 @@ class VoPipeline:
             cov[:3, :3] += np.eye(3) * self.cfg.lost_position_variance
         self._set_keyframe(gray, camera, stamp_ns, cov, np.zeros((0, 2), np.float32), np.zeros((0, 3)),
                            None)
+        self._map_origin_w = self._T_w_c[:3, 3].copy()
         st.timings["frontend"] = _ms(t0)
         self._cov_w_c = cov
         st.reasons.append("first frame: reference keyframe set" if first else "new reference keyframe, no map yet")
@@ -360,6 +361,7 @@ class VoPipeline:
         self._cov_w_c = cov
         self._set_keyframe(gray, camera, stamp_ns, cov, np.zeros((0, 2), np.float32), np.zeros((0, 3)),
                            orb_cur)
+        self._map_origin_w = self._T_w_c[:3, 3].copy()
         self._fail_count = 0
 
     def _on_failure(self, st: FrameStats) -> bool:
@@ -386,8 +388,14 @@ class VoPipeline:
         if not has_pose:
             cov[:3, :3] += np.eye(3) * self.cfg.lost_position_variance
             cov[3:, 3:] += np.eye(3) * self.cfg.lost_rotation_variance
+        T_out = self._T_w_c
         if has_pose and self._scale.metric_source and not self._scale.established:
-            cov[:3, :3] += np.eye(3) * self.cfg.lost_position_variance  # metres asked for, VO units given
+            # Metres were asked for and the scale is not known yet: the position holds where the map
+            # started (nothing in VO units is published as metres) and its covariance says so.
+            T_out = T_out.copy()
+            T_out[:3, 3] = self._map_origin_w
+            cov[:3, :3] += np.eye(3) * self.cfg.lost_position_variance
+            st.reasons.append("metric scale not established yet: position held")
         cov = covm.floored(cov)
         st.timings["total"] = _ms(t_start)
         kf = self._kf
@@ -401,7 +409,7 @@ class VoPipeline:
             inlier_ratio=st.n_inliers / st.n_tracked if st.n_tracked else 0.0,
             median_parallax_deg=st.median_parallax_deg, n_triangulated=st.n_triangulated,
             positive_depth_ratio=st.positive_depth_ratio, median_reproj_err_px=st.median_reproj_err_px,
-            relative_scale=st.relative_scale, n_keyframes=self._n_keyframes, T_w_c=frozen(self._T_w_c),
+            relative_scale=st.relative_scale, n_keyframes=self._n_keyframes, T_w_c=frozen(T_out),
             covariance=frozen(cov), points_w=frozen(st.points_w[np.all(np.isfinite(st.points_w), axis=1)]),
             timings_ms=dict(st.timings),
             reason="; ".join(st.reasons), matches=st.matches, scale=self._scale.status())

@@ -168,7 +168,7 @@ class ScaleFilter:
     correction then takes the median whole.
     """
 
-    def __init__(self, drift_per_keyframe: float, window: int = 15, min_count: int = 3) -> None:
+    def __init__(self, drift_per_keyframe: float, window: int = 7, min_count: int = 2) -> None:
         self.q = drift_per_keyframe**2
         self.window: deque[tuple[float, float]] = deque(maxlen=window)  # (z, its variance)
         self.min_count = min_count

@@ -53,13 +53,20 @@ def rotation_from_homography(H: F64, K: F64) -> F64:
 
 
 def pose_from_homography(H: F64, K: F64, xn_ref: F64, xn_cur: F64, inliers: Mask,
-                         max_reproj_err_px: float, min_angle_deg: float
+                         max_reproj_err_px: float, min_angle_deg: float, prefer_R: F64 | None = None
                          ) -> tuple[F64, F64, Triangulation] | None:
     """Planar decomposition of H (Faugeras / Malis, ``cv2.decomposeHomographyMat``) resolved by cheirality.
 
     Returns ``(R_cur_ref, t_cur_ref, triangulation)`` for the solution with the most points passing the
     gates, with ``t`` in units of the plane's distance from the reference camera; None when no solution
     is clearly best (ORB-SLAM: the runner-up must have < 75 % of the winner's good points).
+
+    ``prefer_R`` (e.g. the essential matrix's rotation on the same correspondences) resolves the planar
+    ambiguity: two decompositions can both put every point in front of both cameras (a floor seen from
+    a camera moving forward), and only one has the rotation the other model agrees with. When the
+    winner's rotation is more than 2 deg from it and a solution with at least half the winner's good
+    points is within 2 deg, that solution is taken. (On a pure plane E is degenerate and agrees with no
+    solution: the rule above decides alone.)
     """
     _, Rs, ts, _ = cv2.decomposeHomographyMat(H, K)
     idx = np.flatnonzero(inliers)
@@ -76,11 +83,20 @@ def pose_from_homography(H: F64, K: F64, xn_ref: F64, xn_cur: F64, inliers: Mask
     results.sort(key=lambda r: -r[0])
     if not results or results[0][0] == 0:
         return None
+    if prefer_R is not None:
+        agree = [r for r in results if _angle_deg(r[1].T @ prefer_R) < 2.0]
+        if agree and agree[0] is not results[0] and agree[0][0] >= 0.5 * results[0][0] \
+                and _angle_deg(results[0][1].T @ prefer_R) > 2.0:
+            results = [agree[0]]  # the other model's rotation decides between physically valid solutions
     if len(results) > 1 and results[1][0] >= 0.75 * results[0][0]:
         return None
     _, R, t, tri_in = results[0]
     # Outliers of H are not triangulated: expand back to all N correspondences.
     return R, t, tri_in.expanded(idx, xn_ref.shape[0])
+
+
+def _angle_deg(R: F64) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def parallax_deg(R_cur_ref: F64, xn_ref: F64, xn_cur: F64) -> F64:
