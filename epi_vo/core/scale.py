@@ -263,6 +263,7 @@ class ScaleSource:
             return 1.0
         z, r = measured
         factor = self.filter.update(z, r)
+        self.on_corrected(factor)
         if not self.filter.established:
             self.reason = (f"{len(self.filter.window)} of {self.filter.min_count} scale measurements needed to "
                            "establish metric scale: VO units")
@@ -271,6 +272,9 @@ class ScaleSource:
     def measure(self, step: KeyframeStep) -> tuple[float, float] | None:
         """(log(true / map) scale, its variance) at this keyframe, or None with ``self.reason`` set."""
         return None
+
+    def on_corrected(self, factor: float) -> None:
+        """The map was just scaled by ``factor`` (1.0: unchanged)."""
 
 
 class VoUnitsScale(ScaleSource):
@@ -378,31 +382,53 @@ class WheelOdometry:
 
 
 class WheelOdometryScale(ScaleSource):
-    """Metric scale from the distance the wheels travelled between two keyframes."""
+    """Metric scale from the distance the wheels travelled over the last keyframe steps.
+
+    Keyframes can be a few centimetres apart (a floor close to the camera makes parallax fast), where
+    wheel noise and the camera's lever arm in turns dominate one step. So each measurement spans the
+    most recent keyframe steps until the wheels covered ``window_m``: the sum of their wheel chords over
+    the sum of their VO step lengths (kept in the current map's units as corrections are applied).
+    """
 
     name = "wheel_odometry"
     metric_source = True
-    min_distance_m = 0.05  # shorter steps say little about scale (wheel noise, lever arm in turns)
 
     def __init__(self, wheel: WheelOdometry, drift_per_keyframe: float, *, rel_sigma: float,
-                 timeout_s: float) -> None:
+                 timeout_s: float, window_m: float = 0.5) -> None:
         super().__init__(drift_per_keyframe)
         self.wheel = wheel
         self.rel_sigma = rel_sigma
         self.timeout_ns = int(timeout_s * 1e9)
+        self.window_m = window_m
+        self._steps: deque[list[float]] = deque(maxlen=500)  # [kf stamp, stamp, VO step length]
         self.reason = "no keyframe step measured by the wheels yet: scale unknown (VO units)"
+
+    def on_corrected(self, factor: float) -> None:
+        for step in self._steps:
+            step[2] *= factor
 
     def measure(self, step: KeyframeStep) -> tuple[float, float] | None:
         held = "last scale held" if self.filter.established else "scale unknown (VO units)"
-        p0, why0 = self.wheel.position_at(step.kf_stamp_ns, self.timeout_ns)
-        p1, why1 = self.wheel.position_at(step.stamp_ns, self.timeout_ns)
-        if p0 is None or p1 is None:
-            self.reason = f"{why0 or why1}: {held}"
-            return None
-        d = float(np.linalg.norm(p1 - p0))
-        if d < self.min_distance_m or not step.step_length > 0:
-            self.reason = f"wheels moved {d:.3f} m between keyframes (< {self.min_distance_m} m): {held}"
+        self._steps.append([step.kf_stamp_ns, step.stamp_ns, step.step_length])
+        d_wheel = d_vo = 0.0
+        n = 0
+        for t0, t1, length in reversed(self._steps):
+            p0, why0 = self.wheel.position_at(int(t0), self.timeout_ns)
+            p1, why1 = self.wheel.position_at(int(t1), self.timeout_ns)
+            if p0 is None or p1 is None:
+                if n == 0:
+                    self.reason = f"{why0 or why1}: {held}"
+                    return None
+                break
+            d_wheel += float(np.linalg.norm(p1 - p0))
+            d_vo += length
+            n += 1
+            if d_wheel >= self.window_m:
+                break
+        if d_wheel < self.window_m or not d_vo > 0:
+            self.reason = (f"wheels moved {d_wheel:.3f} m over the last {n} keyframe step(s) (< {self.window_m} m): "
+                           f"{held}")
             return None
         self.reason = ""
-        r = self.rel_sigma**2 + (0.01 / d) ** 2
-        return math.log(d / step.step_length), r
+        r = self.rel_sigma**2 + (0.01 / d_wheel) ** 2
+        return math.log(d_wheel / d_vo), r

@@ -152,12 +152,18 @@ def test_wheel_scale_measures_distance_over_vo_step() -> None:
     w = sc.WheelOdometry()
     for i in range(30):
         w.add(i * 50_000_000, np.array([i * 0.05, 0.0, 0.0]))  # 1 m/s
-    src = sc.WheelOdometryScale(w, 0.02, rel_sigma=0.03, timeout_s=0.5)
-    step = sc.KeyframeStep(np.zeros((0, 3)), 0.25, 0, 500_000_000)  # wheels: 0.5 m, VO: 0.25 units
-    z, r = src.measure(step)
-    assert math.exp(z) == pytest.approx(2.0) and r > 0.03**2
-    still = sc.KeyframeStep(np.zeros((0, 3)), 0.25, 0, 20_000_000)
-    assert src.measure(still) is None and "moved 0.020 m" in src.reason
+    src = sc.WheelOdometryScale(w, 0.02, rel_sigma=0.03, timeout_s=0.5, window_m=0.5)
+    # Short keyframe steps (5 cm of wheel travel each) are pooled until the wheels covered 0.5 m.
+    for k in range(9):
+        step = sc.KeyframeStep(np.zeros((0, 3)), 0.025, k * 50_000_000, (k + 1) * 50_000_000)
+        assert src.measure(step) is None and f"over the last {k + 1} keyframe step(s)" in src.reason
+    z, r = src.measure(sc.KeyframeStep(np.zeros((0, 3)), 0.025, 450_000_000, 500_000_000))
+    assert math.exp(z) == pytest.approx(2.0) and r > 0.03**2  # wheels 0.5 m over VO 0.25 units
+    src.on_corrected(2.0)  # the map is metres now: the same steps measure 1.0
+    z, _ = src.measure(sc.KeyframeStep(np.zeros((0, 3)), 0.05, 500_000_000, 550_000_000))
+    assert math.exp(z) == pytest.approx(1.0)
+    late = sc.KeyframeStep(np.zeros((0, 3)), 0.05, 1_400_000_000, 2_500_000_000)
+    assert src.measure(late) is None and "stale" in src.reason
 
 
 def test_metric_sources_need_their_inputs() -> None:
