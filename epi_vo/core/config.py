@@ -93,6 +93,12 @@ class VoConfig:
     kf_min_inliers: int = _knob(60, "new keyframe when model inliers fall below this", 8, 10000)
     kf_max_interval_s: float = _knob(2.0, "new keyframe at the latest after this time (s)", 0.01, 3600.0)
 
+    # --- windowed bundle adjustment -------------------------------------------------------------
+    ba_window_keyframes: int = _knob(0, "keyframes adjusted together by the windowed bundle adjustment (GTSAM); "
+                                     "0: off", 0, 50)
+    ba_every_keyframes: int = _knob(3, "run the windowed bundle adjustment every this many tracking keyframes",
+                                    1, 1000)
+
     # --- tracking lost -------------------------------------------------------------------------
     lost_after_frames: int = _knob(3, "consecutive frames without a pose before tracking is declared lost", 1, 1000)
 

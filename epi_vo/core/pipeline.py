@@ -62,6 +62,7 @@ from epi_vo.core.keyframe import Keyframe, make_keyframe
 from epi_vo.core.mapping import keyframe_map
 from epi_vo.core.selection import select_model
 from epi_vo.core.transforms import invert_T, make_T
+from epi_vo.core.window import WindowedMap
 
 _log = logging.getLogger(__name__)
 
@@ -80,6 +81,8 @@ class VoPipeline:
         self._wheel = sc.WheelOdometry()
         self._scale = make_scale_source(self.cfg, self._wheel)
         self._map_origin_w = np.zeros(3)  # where the current map was initialised (odometry frame)
+        self._window = WindowedMap(self.cfg.ba_window_keyframes, self.cfg.ba_every_keyframes, self.cfg.score_sigma_px)
+        self._next_id = 0  # the next feature track id
         self._T_w_c = np.eye(4)
         self._cov_w_c = np.zeros((6, 6))
         self._kf: Keyframe | None = None
@@ -301,8 +304,29 @@ class VoPipeline:
         if motion.state is TrackingState.TRACKING:
             rel = self._scale.filter.rel_std if self._scale.established else self.cfg.scale_drift_per_keyframe
             cov[:3, :3] += np.eye(3) * (rel * float(np.linalg.norm(t))) ** 2
-        self._set_keyframe(gray, camera, stamp_ns, cov, pts_cur, X_cur, orb_cur)
+        ids_tracked = kf.ids[rows] if kf.ids is not None else None
+        self._set_keyframe(gray, camera, stamp_ns, cov, pts_cur, X_cur, orb_cur, ids_tracked)
+        if motion.state is TrackingState.TRACKING:
+            self._adjust_window(st)
+        else:
+            self._window.clear()
         return True
+
+    def _adjust_window(self, st: FrameStats) -> None:
+        """Windowed bundle adjustment (``epi_vo.core.window``) when it is due: the new keyframe, and the
+        current pose with it, take the adjusted pose and map points."""
+        kf = self._kf
+        assert kf is not None
+        self._window.add(kf.T_w_kf, kf.ids, kf.xn, kf.X_kf)
+        if not self._window.due():
+            return
+        t0 = time.perf_counter()
+        update = self._window.adjust(float(kf.camera.K[0, 0]))
+        st.timings["window"] = _ms(t0)
+        if update is None:
+            return
+        self._kf = dataclasses.replace(kf, T_w_kf=update.T_w_kf, X_kf=update.X_kf)
+        self._T_w_c = update.T_w_kf.copy()
 
     def _metric_step(self, motion: mo.Motion, kf: Keyframe, X_cur: F64, stamp_ns: int) -> tuple[F64, F64]:
         """The scale source's correction of this keyframe step: the step from the last keyframe and the
@@ -321,15 +345,22 @@ class VoPipeline:
         if was_metric:
             self._T_w_c = kf.T_w_kf @ invert_T(make_T(motion.R_cur_kf, t))
         else:  # metric from now on: the whole map so far was in VO units
+            self._window.clear()
             self._T_w_c = self._T_w_c.copy()
             self._T_w_c[:3, 3] = self._map_origin_w + factor * (self._T_w_c[:3, 3] - self._map_origin_w)
         return X_cur * factor, t
 
     def _set_keyframe(self, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int, cov_w: F64,
-                      pts_tracked: F32, X_tracked: F64, orb_cur: fe.OrbFeatures | None) -> None:
-        """Make the current frame the reference: keep tracked features (with depth), top up the grid."""
+                      pts_tracked: F32, X_tracked: F64, orb_cur: fe.OrbFeatures | None,
+                      ids_tracked: NDArray[np.int64] | None = None) -> None:
+        """Make the current frame the reference: keep tracked features (with depth and track id), top up
+        the grid. Without ``ids_tracked`` (a new map) the window of adjusted keyframes is dropped."""
+        if ids_tracked is None:
+            self._window.clear()
         self._kf = make_keyframe(self._index, stamp_ns, self._T_w_c, cov_w, gray, camera, pts_tracked, X_tracked,
-                                 self.cfg, self._orb, orb_cur)
+                                 self.cfg, self._orb, orb_cur, ids_tracked, self._next_id)
+        if self._kf.ids is not None and self._kf.ids.size:
+            self._next_id = max(self._next_id, int(self._kf.ids.max()) + 1)
         self._rows = np.arange(self._kf.n_features, dtype=np.int64)
         self._pts_prev = self._kf.pts
         self._gray_prev = gray

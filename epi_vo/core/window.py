@@ -1,0 +1,131 @@
+"""The windowed map stage: the last keyframes, the tracks linking them, and their bundle adjustment.
+
+After ``mapping`` made a keyframe, the pipeline hands it to :class:`WindowedMap`. Every
+``ba_every_keyframes`` tracking keyframes the last ``ba_window_keyframes`` keyframes are adjusted
+together (``epi_vo.core.bundle``, GTSAM): map points observed by at least two of them (tracks that
+survived across keyframes, linked by the keyframes' track ids), a Huber loss, the two oldest keyframes
+fixed (gauge and scale: the scale stage's metric corrections are already in them). The result moves
+the newest keyframe (and the current pose with it) and its map points; older window poses are kept
+for the next adjustment. The window is dropped whenever the map is (restart, metric scale newly
+established), since its poses and points would no longer agree.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from epi_vo.core import bundle
+from epi_vo.core.transforms import invert_T
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+MAX_POINTS = 300  # the most-observed tracks are adjusted; the cost grows with the observations
+
+
+@dataclass
+class _Entry:
+    T_w_kf: F64
+    ids: I64
+    xn: F64
+    X_kf: F64
+
+
+@dataclass(frozen=True)
+class WindowUpdate:
+    """What an adjustment changes: the newest keyframe's pose and the map points of its rows."""
+
+    T_w_kf: F64
+    X_kf: F64  # (N, 3) the newest keyframe's map points in its own frame after the adjustment
+    n_points: int
+    n_keyframes: int
+    ms: float
+
+
+class WindowedMap:
+    """The last ``size`` keyframes with their track ids; ``adjust`` runs the bundle adjustment."""
+
+    def __init__(self, size: int, every: int, sigma_px: float) -> None:
+        self.size = size
+        self.every = max(every, 1)
+        self.sigma_px = sigma_px
+        self._entries: deque[_Entry] = deque(maxlen=max(size, 1))
+        self._since = 0
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def clear(self) -> None:
+        self._entries.clear()
+        self._since = 0
+
+    def add(self, T_w_kf: F64, ids: I64 | None, xn: F64, X_kf: F64) -> None:
+        if self.size <= 0 or ids is None:
+            return
+        self._entries.append(_Entry(T_w_kf.copy(), ids.copy(), xn.copy(), X_kf.copy()))
+        self._since += 1
+
+    def due(self) -> bool:
+        """An adjustment is due: enough keyframes in the window and ``every`` added since the last."""
+        return self.size > 0 and len(self._entries) >= 3 and self._since >= self.every
+
+    def adjust(self, fx: float) -> WindowUpdate | None:
+        """Adjust the window; None when it cannot be (too few shared tracks, the optimiser refused)."""
+        self._since = 0
+        entries = list(self._entries)
+        window, point_ids = _build(entries, self.sigma_px, fx)
+        if window is None:
+            return None
+        result = bundle.adjust(window)
+        if result is None:
+            return None
+        for entry, T in zip(entries, result.T_w_kf, strict=True):
+            entry.T_w_kf = T.copy()
+        newest = entries[-1]
+        X_kf = newest.X_kf.copy()
+        pos = np.searchsorted(point_ids, newest.ids)
+        pos = np.clip(pos, 0, max(point_ids.size - 1, 0))
+        hit = point_ids[pos] == newest.ids if point_ids.size else np.zeros(newest.ids.size, bool)
+        Xw = result.points_w[pos]
+        ok = hit & np.all(np.isfinite(Xw), axis=1)
+        T_kf_w = invert_T(newest.T_w_kf)
+        X_kf[ok] = Xw[ok] @ T_kf_w[:3, :3].T + T_kf_w[:3, 3]
+        newest.X_kf = X_kf
+        return WindowUpdate(newest.T_w_kf.copy(), X_kf, int(np.count_nonzero(np.isfinite(result.points_w[:, 0]))),
+                            len(entries), result.ms)
+
+
+def _build(entries: list[_Entry], sigma_px: float, fx: float) -> tuple[bundle.Window | None, I64]:
+    """The bundle window of these keyframes: tracks seen by two or more of them that have a depth."""
+    all_ids = np.concatenate([e.ids for e in entries])
+    uniq, counts = np.unique(all_ids, return_counts=True)
+    shared = uniq[counts >= 2]
+    # Initial point of each shared track: from the newest keyframe that has a depth for it.
+    points: dict[int, F64] = {}
+    for e in reversed(entries):
+        rows = np.flatnonzero(np.isin(e.ids, shared) & np.all(np.isfinite(e.X_kf), axis=1))
+        Xw = e.X_kf[rows] @ e.T_w_kf[:3, :3].T + e.T_w_kf[:3, 3]
+        for i, x in zip(e.ids[rows], Xw, strict=True):
+            points.setdefault(int(i), x)
+    if len(points) < 10:
+        return None, np.zeros(0, np.int64)
+    ids = np.array(sorted(points), dtype=np.int64)
+    if ids.size > MAX_POINTS:  # keep the tracks seen by most keyframes
+        seen = counts[np.searchsorted(uniq, ids)]
+        ids = np.sort(ids[np.argsort(-seen, kind="stable")[:MAX_POINTS]])
+    pts_w = np.array([points[int(i)] for i in ids])
+    obs_kf, obs_pt, obs_xn = [], [], []
+    for k, e in enumerate(entries):
+        pos = np.clip(np.searchsorted(ids, e.ids), 0, ids.size - 1)
+        rows = np.flatnonzero(ids[pos] == e.ids)
+        obs_kf.append(np.full(rows.size, k, np.int64))
+        obs_pt.append(pos[rows])
+        obs_xn.append(e.xn[rows])
+    window = bundle.Window(np.stack([e.T_w_kf for e in entries]), pts_w, np.concatenate(obs_kf),
+                           np.concatenate(obs_pt), np.concatenate(obs_xn), sigma_px, fx,
+                           n_fixed=min(2, len(entries) - 1))
+    return window, ids
