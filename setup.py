@@ -14,6 +14,7 @@ setup(
         ("share/" + package_name + "/config", glob("config/*.yaml")),
     ],
     install_requires=["setuptools", "numpy", "opencv-python-headless", "PyYAML", "rosbags", "mcap", "evo", "tqdm"],
+    extras_require={"ba": ["gtsam"]},  # the windowed bundle adjustment (ba_window_keyframes > 0)
     zip_safe=True,
     maintainer="epi_vo developers",
     maintainer_email="dev@epi-vo.invalid",

@@ -8,18 +8,28 @@ fixed (gauge and scale: the scale stage's metric corrections are already in them
 the newest keyframe (and the current pose with it) and its map points; older window poses are kept
 for the next adjustment. The window is dropped whenever the map is (restart, metric scale newly
 established), since its poses and points would no longer agree.
+
+GTSAM is imported only when the adjustment is switched on (``ba_window_keyframes > 0``): the rest of
+the pipeline runs without it (a ROS install whose gtsam has no Python wrapper), and switching it on
+without gtsam is a ConfigError saying what to install.
 """
 
 from __future__ import annotations
 
+import importlib
 from collections import deque
 from dataclasses import dataclass
+from types import ModuleType
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
-from epi_vo.core import bundle
+from epi_vo.core.errors import ConfigError
 from epi_vo.core.transforms import invert_T
+
+if TYPE_CHECKING:
+    from epi_vo.core import bundle
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -55,6 +65,13 @@ class WindowedMap:
         self.sigma_px = sigma_px
         self._entries: deque[_Entry] = deque(maxlen=max(size, 1))
         self._since = 0
+        self._bundle: ModuleType | None = None
+        if size > 0:
+            try:
+                self._bundle = importlib.import_module("epi_vo.core.bundle")
+            except ImportError as exc:
+                raise ConfigError(f"ba_window_keyframes={size} needs the gtsam Python package "
+                                  f"(pip install gtsam==4.3.0): {exc}") from None
 
     def __len__(self) -> int:
         return len(self._entries)
@@ -77,10 +94,11 @@ class WindowedMap:
         """Adjust the window; None when it cannot be (too few shared tracks, the optimiser refused)."""
         self._since = 0
         entries = list(self._entries)
-        window, point_ids = _build(entries, self.sigma_px, fx)
+        assert self._bundle is not None
+        window, point_ids = _build(self._bundle, entries, self.sigma_px, fx)
         if window is None:
             return None
-        result = bundle.adjust(window)
+        result = self._bundle.adjust(window)
         if result is None:
             return None
         for entry, T in zip(entries, result.T_w_kf, strict=True):
@@ -99,7 +117,8 @@ class WindowedMap:
                             len(entries), result.ms)
 
 
-def _build(entries: list[_Entry], sigma_px: float, fx: float) -> tuple[bundle.Window | None, I64]:
+def _build(bundle_module: ModuleType, entries: list[_Entry], sigma_px: float, fx: float
+           ) -> tuple[bundle.Window | None, I64]:
     """The bundle window of these keyframes: tracks seen by two or more of them that have a depth."""
     all_ids = np.concatenate([e.ids for e in entries])
     uniq, counts = np.unique(all_ids, return_counts=True)
@@ -125,7 +144,7 @@ def _build(entries: list[_Entry], sigma_px: float, fx: float) -> tuple[bundle.Wi
         obs_kf.append(np.full(rows.size, k, np.int64))
         obs_pt.append(pos[rows])
         obs_xn.append(e.xn[rows])
-    window = bundle.Window(np.stack([e.T_w_kf for e in entries]), pts_w, np.concatenate(obs_kf),
+    window = bundle_module.Window(np.stack([e.T_w_kf for e in entries]), pts_w, np.concatenate(obs_kf),
                            np.concatenate(obs_pt), np.concatenate(obs_xn), sigma_px, fx,
                            n_fixed=min(2, len(entries) - 1))
     return window, ids

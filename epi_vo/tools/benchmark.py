@@ -141,9 +141,9 @@ def bench_reference(name: str, bag_path: Path, gt_path: Path) -> BenchRow:
                 stamps.append(r.stamp_s)
                 positions.append(r.T_w_c[:3, 3])
                 quats.append(quat_xyzw_from_rotation(r.T_w_c[:3, :3]))
-    return _metrics_row(name, "reference", frames, n_ok, float(np.median(times)) if times else math.nan,
-                        np.array(stamps),
-                        np.array(positions).reshape(-1, 3), np.array(quats).reshape(-1, 4), gt)
+    row = _metrics_row(name, "reference", frames, n_ok, float(np.median(times)) if times else math.nan,
+                       np.array(stamps), np.array(positions).reshape(-1, 3), np.array(quats).reshape(-1, 4), gt)
+    return dataclasses.replace(row, step_scale=math.nan, ate_se3_percent=math.nan)  # unit steps: no metres
 
 
 def format_table(rows: list[BenchRow]) -> str:

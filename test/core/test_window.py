@@ -98,3 +98,15 @@ def test_pipeline_with_the_window_stays_accurate_and_deterministic() -> None:
     assert summary.metrics is not None and summary.metrics["ate_percent_of_path"] < 1.0
     np.testing.assert_array_equal(np.array([r.T_w_c for r in results]), np.array([r.T_w_c for r in runs[1][1]]))
     assert pytest.approx(summary.metrics["ate_percent_of_path"]) == runs[1][0].metrics["ate_percent_of_path"]
+
+
+def test_window_without_gtsam_is_a_config_error_naming_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    import sys
+
+    from epi_vo.core.errors import ConfigError
+
+    monkeypatch.setitem(sys.modules, "gtsam", None)
+    monkeypatch.delitem(sys.modules, "epi_vo.core.bundle", raising=False)
+    WindowedMap(size=0, every=1, sigma_px=1.0)  # off: gtsam not needed
+    with pytest.raises(ConfigError, match=r"ba_window_keyframes=4 needs the gtsam Python package"):
+        WindowedMap(size=4, every=1, sigma_px=1.0)
