@@ -16,8 +16,8 @@ chooses where the length comes from:
     takes the wheels' heading (or its drift).
 
 Both metric sources feed the same filter (:class:`ScaleFilter`): a 1-D Kalman filter on the log of
-the map's scale error, with the VO's scale drift per keyframe as process noise and an innovation gate
-against outliers. At a keyframe the pipeline asks :meth:`ScaleSource.correction` for the factor that
+the map's scale error, with the VO's scale drift per keyframe as process noise; the window of recent
+measurements judges outliers and says how noisy the measurements are. At a keyframe the pipeline asks :meth:`ScaleSource.correction` for the factor that
 takes the step from the last keyframe, and the new keyframe's map, into metres; without a measurement
 the factor is 1 and the uncertainty grows. The first accepted measurement establishes metric scale:
 until then the pipeline's position is in VO units and its covariance says the scale is unknown.
@@ -161,11 +161,11 @@ class ScaleFilter:
     """Robust filter of the current map's scale error, in log space.
 
     Each keyframe's measurement z = log(true / map) goes into a window of the last ``window`` ones (kept
-    relative to the map as it is now: a correction applied shifts them all). The window's median, with
-    the spread of a median from its MAD, is folded into a 1-D Kalman filter whose process noise is the
-    VO's scale drift per keyframe; outliers (a wall taken for the floor, a wheel slip) move a median
-    little. Metric scale is established once ``min_count`` measurements are in the window: the first
-    correction then takes the median whole.
+    relative to the map as it is now: a correction applied shifts them all). The window's median and
+    MAD judge the newest (beyond 3 sigma: an outlier, not applied) and give the measurement noise; a
+    1-D Kalman filter whose process noise is the VO's scale drift per keyframe takes each measurement
+    once. Metric scale is established once ``min_count`` measurements are in the window: the first
+    correction is their median.
     """
 
     def __init__(self, drift_per_keyframe: float, window: int = 7, min_count: int = 2) -> None:
@@ -174,6 +174,7 @@ class ScaleFilter:
         self.min_count = min_count
         self.var = math.inf
         self.total = 1.0  # product of every correction: metres per VO unit of the first map
+        self.outlier = False  # the last measurement was judged an outlier by the window
 
     @property
     def established(self) -> bool:
@@ -194,23 +195,32 @@ class ScaleFilter:
         self.window.clear()
 
     def update(self, z: float, r: float) -> float:
-        """Fold in one measurement; the correction factor to apply to the map (1.0 while not established)."""
+        """Fold in one measurement; the correction factor to apply to the map (1.0 while not established).
+
+        The window's median and MAD judge the new measurement (an outlier is dropped) and say how noisy
+        the measurements really are; the filter then takes this one measurement with that noise, so a
+        measurement counts once however long it stays in the window.
+        """
         self.window.append((z, r))
+        self.outlier = False
         if len(self.window) < self.min_count:
             return 1.0
         zs = np.array([w[0] for w in self.window])
         med = float(np.median(zs))
         n = zs.size
         mad_var = (1.4826 * float(np.median(np.abs(zs - med)))) ** 2
-        r_med = 1.57 * max(mad_var, float(np.median([w[1] for w in self.window]))) / n
+        r_eff = max(mad_var, r)
         if not self.established:
-            self.var = r_med
+            self.var = 1.57 * r_eff / n
             log_c = med
         else:
-            gain = self.var / (self.var + r_med)
+            if n >= 3 and (z - med) ** 2 > 9.0 * r_eff:
+                self.outlier = True  # kept in the window (it may be the start of a change), not applied
+                return 1.0
+            gain = self.var / (self.var + r_eff)
             self.var = (1.0 - gain) * self.var
-            log_c = gain * med
-        self.window = deque(((z - log_c, r) for z, r in self.window), maxlen=self.window.maxlen)
+            log_c = gain * z
+        self.window = deque(((x - log_c, v) for x, v in self.window), maxlen=self.window.maxlen)
         factor = math.exp(log_c)
         self.total *= factor
         return factor
