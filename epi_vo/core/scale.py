@@ -17,10 +17,11 @@ chooses where the length comes from:
 
 Both metric sources feed the same filter (:class:`ScaleFilter`): a 1-D Kalman filter on the log of
 the map's scale error, with the VO's scale drift per keyframe as process noise; the window of recent
-measurements judges outliers and says how noisy the measurements are. At a keyframe the pipeline asks :meth:`ScaleSource.correction` for the factor that
-takes the step from the last keyframe, and the new keyframe's map, into metres; without a measurement
-the factor is 1 and the uncertainty grows. The first accepted measurement establishes metric scale:
-until then the pipeline's position is in VO units and its covariance says the scale is unknown.
+measurements judges outliers and says how noisy the measurements are. At a keyframe the pipeline asks
+:meth:`ScaleSource.correction` for the factor that takes the step from the last keyframe, and the new
+keyframe's map, into metres; without a measurement the factor is 1 and the uncertainty grows. Metric
+scale is established once enough measurements agree: until then the pipeline publishes the position
+held where the map started, with a covariance that says the scale is unknown.
 """
 
 from __future__ import annotations
