@@ -13,8 +13,18 @@ Two parts, as the node / pipeline split:
 DDS settings (ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE) come from the user's environment: this is
 a user tool, it does not force loopback discovery.
 
-Distance travelled is the sum of the odometry position steps, in VO units (the scale of the map built
-at initialisation: a monocular VO has no metric scale of its own).
+Units and scale. The node's ``scale_source`` (``none``, ``ground_plane``, ``wheel_odometry``) says where
+metric scale comes from; every frame status carries ``units`` (``m`` once a metric source is
+established, ``vo`` otherwise), ``scale_source``, ``metric_scale``, ``scale`` (metres per VO unit of the
+first map), ``scale_rel_std``, the camera's pitch and roll to the floor (ground plane only) and
+``scale_reason`` (why the source gave no measurement). The monitor shows them on its ``scale`` line and
+labels lengths with the units of the latest status that has them (a watchdog status does not: the
+last frame's count then). A status without these keys (an older node) is in VO units, source none.
+
+Distance travelled is the sum of the odometry position steps. With ``scale_source: none`` it is in VO
+units (the scale of the map built at initialisation: a monocular VO has no metric scale of its own).
+With a metric source the node holds the published position until metric scale is established (nothing
+in VO units is published as metres), so the distance stays 0 until then and is metres from then on.
 """
 
 from __future__ import annotations
@@ -116,6 +126,11 @@ class MonitorState:
     def has_status(self) -> bool:
         return self.n_statuses > 0
 
+    @property
+    def units(self) -> str:
+        """'m' or 'vo': of the latest status that says (a watchdog status does not), 'vo' when none does."""
+        return _scale_values(self.latest, self.frame).get("units", "vo")
+
     def update_from_status(self, name: str, level: int | bytes | bytearray, message: str,
                            values: Mapping[str, str] | Iterable[tuple[str, str]], now_s: float,
                            hardware_id: str = "") -> MonitorState:
@@ -176,8 +191,9 @@ class MonitorState:
         lines.append(f"  map         keyframes {_int(f, 'n_keyframes')}  triangulated {_int(f, 'n_triangulated')}"
                      f"  reproj {_float(f, 'median_reproj_err_px', 2, ' px')}"
                      f"  depth>0 {_float(f, 'positive_depth_ratio', 2)}")
+        lines.extend(_scale_lines(lt, f))
         pos = " ".join(f"{v:.3f}" for v in self.position) if self.position is not None else "n/a"
-        lines.append(f"  odometry    distance {self.distance:.3f} (VO units)  position {pos}"
+        lines.append(f"  odometry    distance {self.distance:.3f} {units_label(self.units)}  position {pos}"
                      f"  messages {self.n_odometry}")
         lines.append(f"  updated     {_clock(self.status_s)}  ({age:.1f} s ago)  statuses {self.n_statuses}")
         if self.other_sources:
@@ -189,6 +205,42 @@ class MonitorState:
             lines.append(f"  {level_name(h.level):<5}  x{h.count:<5} {h.message}   last {_clock(h.last_s)}"
                          f" ({now_s - h.last_s:.1f} s ago)")
         return "\n".join(lines)
+
+
+def units_label(units: str) -> str:
+    """How lengths are labelled: 'm' for metres, '(VO units)' otherwise."""
+    return "m" if units == "m" else "(VO units)"
+
+
+def _scale_values(latest: Mapping[str, str], frame: Mapping[str, str]) -> Mapping[str, str]:
+    """The scale key/values of the latest status that carries them (per-frame ones do), else the last frame's."""
+    return latest if "units" in latest else frame
+
+
+def _scale_lines(latest: Mapping[str, str], frame: Mapping[str, str]) -> list[str]:
+    """The ``scale`` line (source, metric or not, metres per VO unit and its relative std), the floor's
+    pitch/roll when the source measures them, and why the source gave no measurement when it says."""
+    v = _scale_values(latest, frame)
+    source = v.get("scale_source", "none") or "none"
+    metric = v.get("units") == "m"  # as metric_scale: established, positions are metres
+    rel = _number(v, "scale_rel_std")
+    rel_text = f" ±{100.0 * rel:.1f} %" if rel is not None else ""
+    if metric:
+        scale = _number(v, "scale")
+        text = f"metric, {scale:.4g} m/unit{rel_text}" if scale is not None else "metric"
+    elif source == "none":
+        text = "VO units"
+    else:
+        text = "not established yet: VO units (position held)"
+    lines = [f"  scale       {source}: {text}"]
+    pitch, roll = _number(v, "floor_pitch_deg"), _number(v, "floor_roll_deg")
+    if pitch is not None or roll is not None:
+        lines.append(f"  floor       pitch {_float(v, 'floor_pitch_deg', 2, ' deg')}"
+                     f"  roll {_float(v, 'floor_roll_deg', 2, ' deg')}")
+    reason = v.get("scale_reason", "")
+    if reason and reason != "None":
+        lines.append(f"  scale note  {reason}")
+    return lines
 
 
 def _add_history(history: tuple[HistoryEntry, ...], message: str, level: int,

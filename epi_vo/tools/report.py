@@ -1,5 +1,9 @@
-"""The replay report: ``DIR/report/{trajectory,timeline,errors}.png`` and ``DIR/report.html``, one file
-that embeds the PNGs as data URIs and needs nothing else.
+"""The replay report: ``DIR/report/{trajectory,timeline,errors,scale}.png`` and ``DIR/report.html``, one
+file that embeds the PNGs as data URIs and needs nothing else.
+
+Lengths are labelled in the run's units (``stats.json`` ``units``: metres once a metric scale source was
+established, VO units otherwise). ``scale.png`` is drawn only for a run with a metric scale source
+(``scale_source`` other than none); errors.png only with ground truth.
 
 The data come from :mod:`epi_vo.tools.report_data` (what the tests check), the figures from
 :mod:`epi_vo.tools.report_plots`; this module writes them and renders the HTML.
@@ -38,11 +42,14 @@ from epi_vo.tools.report_data import (
     reason_groups,
     run_figures,
     run_parameters,
+    run_scale,
+    scale_series,
     spans,
     timeline,
     trajectory_views,
+    units_name,
 )
-from epi_vo.tools.report_plots import draw_errors, draw_timeline, draw_trajectory
+from epi_vo.tools.report_plots import draw_errors, draw_scale, draw_timeline, draw_trajectory
 
 _log = logging.getLogger(__name__)
 
@@ -71,8 +78,10 @@ def _write_report(run: Run) -> Path:
     tl = timeline(run)
     span_list = spans(run)
     err = error_series(run)
+    units = units_name(run_scale(run).units)
     pngs = [(draw_trajectory(views, png_dir / "trajectory.png"), "Trajectory: top view (x right, z forward) and "
-             "side view (z forward, -y up), estimate in VO units with its keyframes; ground truth in the same frame."),
+             f"side view (z forward, -y up), estimate in {units} with its keyframes; ground truth in the same "
+             "frame."),
             (draw_timeline(tl, span_list, png_dir / "timeline.png"), "Per-frame timeline. Shaded: frames not "
              "tracking, by state; ticks at the top of each panel: keyframes.")]
     errors_png = png_dir / "errors.png"
@@ -82,6 +91,15 @@ def _write_report(run: Run) -> Path:
                      "consecutive frames."))
     else:
         errors_png.unlink(missing_ok=True)  # a stale plot of an earlier report would contradict this one
+    scale = scale_series(run)
+    scale_png = png_dir / "scale.png"
+    if scale is not None:
+        pngs.append((draw_scale(scale, span_list, tl.keyframe_index, scale_png),
+                     f"Metric scale ({scale.source}): metres per VO unit of the first map, shaded ±1 sigma "
+                     "(scale_rel_std), drawn from the frame metric scale was established" +
+                     ("; below, the camera's pitch and roll to the floor." if scale.has_floor else ".")))
+    else:
+        scale_png.unlink(missing_ok=True)
     page = render_html(run, run_figures(run), span_list, views.alignment, pngs)
     out = run.directory / REPORT_HTML
     out.write_text(page, encoding="utf-8")
@@ -147,7 +165,10 @@ def render_html(run: Run, figs: RunFigures, span_list: Sequence[Span], alignment
             ("models", ", ".join(f"{e(m)} {n}" for m, n in sorted(figs.models.items()))),
             ("time per frame (median)", f"{fmt_num(figs.ms_per_frame, '.2f')} ms total; " +
              ", ".join(f"{e(k)} {fmt_num(v, '.2f')}" for k, v in figs.stage_ms.items()) + " ms"),
-            ("path length (estimate)", f"{figs.path_length:.3f} VO units")]
+            ("path length (estimate)", f"{figs.path_length:.3f} {units_name(figs.scale.units)}"),
+            ("scale source", e(figs.scale.source)),
+            ("units", "m (metric scale)" if figs.scale.units == "m" else "VO units (no metric scale)"),
+            ("metric from frame", "-" if figs.scale.metric_from_frame is None else f"{figs.scale.metric_from_frame}")]
     m = figs.metrics
     if m is not None:
         no_sim3 = f"undefined: {NO_SIM3}"
@@ -200,6 +221,9 @@ def render_html(run: Run, figs: RunFigures, span_list: Sequence[Span], alignment
                          f"</td></tr>" for k, v in params.items()) + "</table></details>")
 
     parts.append("<h2>Plots</h2>")
+    if figs.scale.source == "none":
+        parts.append("<p class=\"muted\" id=\"scale-note\">No scale source (<code>scale_source: none</code>): the "
+                     "run is in VO units, no scale plot.</p>")
     for png, caption in pngs:
         data = base64.b64encode(png.read_bytes()).decode("ascii")
         parts.append(f"<figure id=\"{e(png.stem)}\"><img alt=\"{e(png.stem)}\" src=\"data:image/png;base64,{data}\">"

@@ -4,15 +4,19 @@
 - :func:`trajectory_views` gives the estimate and the aligned ground truth in a top and a side view;
 - :func:`timeline` gives the per-frame series of the frame records;
 - :func:`spans` finds the runs of frames that are not ``tracking``, with their reasons;
-- :func:`error_series` gives ATE over time and RPE per frame, computed with evo.
+- :func:`error_series` gives ATE over time and RPE per frame, computed with evo;
+- :func:`run_scale` gives the run's scale source and units, :func:`scale_series` the scale per frame.
 
 Frames. The estimate holds camera poses T_w_c, w = the first camera's optical frame (x right,
-y down, z forward), in VO units. The top view is the x-z plane (x right, z forward, seen from above),
-the side view the z-y plane with -y drawn upwards. The ground truth is drawn in the estimate's frame:
-evo's Umeyama fit p_gt ~= s R p_est + t (the one :mod:`epi_vo.tools.evaluation` uses for ATE) is inverted,
-p = R^T (p_gt - t) / s. When that fit is degenerate (an estimate that never moves, as under pure
-rotation, or moves along one line) the ground truth is only origin-aligned: its first matched pose is
-put on the estimate's, in its own units, since there is no scale to recover.
+y down, z forward), in the run's units: metres when a metric scale source (``scale_source``
+ground_plane or wheel_odometry) was established, VO units otherwise (``stats.json`` ``units``; an
+output directory older than the scale sources has no such key and is in VO units). The top view is
+the x-z plane (x right, z forward, seen from above), the side view the z-y plane with -y drawn
+upwards. The ground truth is drawn in the estimate's frame: evo's Umeyama fit p_gt ~= s R p_est + t
+(the one :mod:`epi_vo.tools.evaluation` uses for ATE) is inverted, p = R^T (p_gt - t) / s. When that
+fit is degenerate (an estimate that never moves, as under pure rotation, or moves along one line) the
+ground truth is only origin-aligned: its first matched pose is put on the estimate's, in its own
+units, since there is no scale to recover.
 """
 
 from __future__ import annotations
@@ -86,7 +90,7 @@ class Run:
 
     directory: Path
     records: tuple[dict[str, Any], ...]  # frames.jsonl, one per input frame, in file order
-    est: StampedPoses  # trajectory.tum: T_w_c of the frames with a pose (VO units)
+    est: StampedPoses  # trajectory.tum: T_w_c of the frames with a pose (the run's units, see run_scale)
     est_frame_index: NDArray[np.int64]  # (N,) record "index" of each trajectory row
     gt: StampedPoses | None  # groundtruth.tum (ground-truth units), None when the run had none
     stats: dict[str, Any] | None  # stats.json, None when absent
@@ -314,9 +318,10 @@ def trajectory_views(run: Run) -> TrajectoryViews:
     forward = _forward_axes(run.est.quats_xyzw)
     alignment = gt_alignment(run)
     gt = gt_in_estimate_frame(run, alignment) if alignment is not None else np.zeros((0, 3))
-    top = View("top view (x-z)", "x (right) [VO units]", "z (forward) [VO units]",
+    u = f"[{units_name(run_scale(run).units)}]"
+    top = View("top view (x-z)", f"x (right) {u}", f"z (forward) {u}",
                top_view(p), top_view(gt), top_view(p[kf_mask]), top_view(forward))
-    side = View("side view (z-y)", "z (forward) [VO units]", "-y (up) [VO units]",
+    side = View("side view (z-y)", f"z (forward) {u}", f"-y (up) {u}",
                 side_view(p), side_view(gt), side_view(p[kf_mask]), side_view(forward))
     return TrajectoryViews(top, side, run.est_frame_index, run.est_frame_index[kf_mask], alignment)
 
@@ -328,6 +333,76 @@ def _forward_axes(quats_xyzw: F64) -> F64:
     q = quats_xyzw / np.linalg.norm(quats_xyzw, axis=1, keepdims=True)
     x, y, z, w = q.T
     return np.column_stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)])
+
+
+# --- scale ------------------------------------------------------------------------------------------
+
+
+def units_name(units: str) -> str:
+    """'m' -> 'm', anything else (VO units, 'vo') -> 'VO units'."""
+    return "m" if units == "m" else "VO units"
+
+
+@dataclass(frozen=True)
+class RunScale:
+    """Where the run's scale came from and the units of its trajectory."""
+
+    source: str  # none / ground_plane / wheel_odometry
+    units: str  # 'm' or 'vo', of the trajectory at the end of the run
+    metric_from_frame: int | None  # first frame whose position was metric; None: never (or source none)
+
+
+def run_scale(run: Run) -> RunScale:
+    """From ``stats.json`` (``scale_source``, ``units``, ``metric_from_frame``), else from the frame records;
+    an output directory from before the scale sources has neither: source none, VO units."""
+    stats, recs = run.stats or {}, run.records
+    source = stats.get("scale_source") or next((str(r["scale_source"]) for r in recs if r.get("scale_source")),
+                                               "none")
+    units = stats.get("units") or str(recs[-1].get("units") or "vo")
+    metric_from = stats.get("metric_from_frame") if "metric_from_frame" in stats else \
+        next((int(r["index"]) for r in recs if r.get("metric_scale")), None)
+    return RunScale(str(source), "m" if units == "m" else "vo",
+                    None if metric_from is None else int(metric_from))
+
+
+@dataclass(frozen=True)
+class ScaleSeries:
+    """Per-frame scale of a run with a metric scale source (one entry per record, None -> NaN).
+
+    ``scale`` is metres per VO unit of the first map where metric scale was established (NaN before:
+    the records' 1.0 there is a placeholder, not a measurement); ``lower`` / ``upper`` the 1-sigma band
+    ``scale * (1 -/+ scale_rel_std)``.
+    """
+
+    source: str
+    frame_index: NDArray[np.int64]
+    metric: NDArray[np.bool_]
+    scale: F64
+    lower: F64
+    upper: F64
+    floor_pitch_deg: F64  # NaN unless ground_plane measured the floor at that frame
+    floor_roll_deg: F64
+
+    @property
+    def has_floor(self) -> bool:
+        return bool(np.isfinite(self.floor_pitch_deg).any() or np.isfinite(self.floor_roll_deg).any())
+
+
+def scale_series(run: Run) -> ScaleSeries | None:
+    """The scale over frames; None for a run in VO units by choice (source none, or records without scale)."""
+    source = run_scale(run).source
+    if source == "none":
+        return None
+    recs = run.records
+
+    def series(key: str) -> F64:
+        return np.array([_num(r.get(key)) for r in recs])
+
+    metric = np.array([bool(r.get("metric_scale")) for r in recs])
+    scale = np.where(metric, series("scale"), math.nan)
+    rel = series("scale_rel_std")
+    return ScaleSeries(source, np.array([int(r["index"]) for r in recs], dtype=np.int64), metric, scale,
+                       scale * (1.0 - rel), scale * (1.0 + rel), series("floor_pitch_deg"), series("floor_roll_deg"))
 
 
 # --- timeline ---------------------------------------------------------------------------------------
@@ -501,9 +576,10 @@ class RunFigures:
     models: dict[str, int]
     ms_per_frame: float  # median of timings_ms.total
     stage_ms: dict[str, float]  # median per stage
-    path_length: float  # of the estimate, VO units
+    path_length: float  # of the estimate, in scale.units
     metrics: TrajectoryMetrics | None
     metrics_note: str
+    scale: RunScale
 
     @property
     def tracked_percent(self) -> float:
@@ -527,7 +603,7 @@ def run_figures(run: Run) -> RunFigures:
         models=dict(collections.Counter(tl.model)), ms_per_frame=_nanmedian(tl.total_ms),
         stage_ms={k: _nanmedian(v) for k, v in tl.stage_ms.items()},
         path_length=float(np.linalg.norm(steps, axis=1).sum()) if steps.size else 0.0,
-        metrics=metrics, metrics_note=note)
+        metrics=metrics, metrics_note=note, scale=run_scale(run))
 
 
 def _nanmedian(a: F64) -> float:

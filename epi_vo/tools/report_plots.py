@@ -26,6 +26,7 @@ from epi_vo.tools.report_data import (
     STATE_COLOURS,
     AlignmentKind,
     ErrorSeries,
+    ScaleSeries,
     Span,
     Timeline,
     TrajectoryViews,
@@ -225,6 +226,50 @@ def draw_errors(err: ErrorSeries, span_list: Sequence[Span], keyframes: NDArray[
     axes[-1].set_xlabel("frame index")
     if err.frame_index.size:
         axes[-1].set_xlim(err.frame_index[0] - 0.5, err.frame_index[-1] + 0.5)
+    _state_legend(fig, span_list)
+    return _save(fig, path)
+
+
+def draw_scale(series: ScaleSeries, span_list: Sequence[Span], keyframes: NDArray[np.int64], path: Path) -> Path:
+    """scale.png: metres per VO unit with its 1-sigma band over frames; the floor's pitch and roll below it
+    when the source measured them (ground_plane)."""
+    rows = 2 if series.has_floor else 1
+    height = 1.3 + 3.2 * rows  # inches: fixed margins for the legend on top and the frame axis below
+    fig = Figure(figsize=(13, height), dpi=100)
+    fig.subplots_adjust(left=0.065, right=0.985, top=1.0 - 0.75 / height, bottom=0.55 / height, hspace=0.32)
+    axes = fig.subplots(rows, 1, sharex=True, squeeze=False)[:, 0]
+    x = series.frame_index
+
+    ax = axes[0]
+    if np.isfinite(series.scale).any():
+        band = np.isfinite(series.lower) & np.isfinite(series.upper)
+        ax.fill_between(x, series.lower, series.upper, where=band, color=EST_COLOUR, alpha=0.25, lw=0,
+                        label="±1 sigma (scale_rel_std)")
+        ax.plot(x, series.scale, "-", color=EST_COLOUR, marker=".", ms=3, lw=1.4, label="scale")
+        first = int(x[np.argmax(series.metric)])
+        ax.axvline(first, ls="--", color="black", lw=1, label=f"metric from frame {first}")
+        ax.legend(loc="lower right", fontsize=8, ncol=3, framealpha=0.9)
+    else:
+        ax.text(0.5, 0.5, "metric scale never established: the run is in VO units", transform=ax.transAxes,
+                ha="center", va="center", fontsize=10, color="#555555")
+        ax.set_yticks([])
+    ax.set_ylabel("m / VO unit")
+    ax.set_title(f"scale ({series.source}): metres per VO unit of the first map")
+
+    if series.has_floor:
+        ax = axes[1]
+        ax.plot(x, series.floor_pitch_deg, "-", color="#8c564b", marker=".", ms=3, lw=1.2, label="pitch")
+        ax.plot(x, series.floor_roll_deg, "-", color="#9467bd", marker=".", ms=3, lw=1.2, label="roll")
+        ax.set_ylabel("deg")
+        ax.legend(loc="lower right", fontsize=8, ncol=2, framealpha=0.9)
+        ax.set_title("camera pitch and roll to the floor (ground plane)")
+
+    for ax in axes:
+        _shade(ax, span_list, keyframes)
+        ax.grid(True, alpha=0.3)
+    axes[-1].set_xlabel("frame index")
+    if x.size:
+        axes[-1].set_xlim(x[0] - 0.5, x[-1] + 0.5)
     _state_legend(fig, span_list)
     return _save(fig, path)
 

@@ -74,6 +74,51 @@ def test_distance_is_the_sum_of_odometry_steps() -> None:
     assert s.update_from_odometry((math.nan, 0.0, 0.0), 110.0) is s  # a broken message is ignored
 
 
+METRIC = {"units": "m", "scale_source": "ground_plane", "metric_scale": "True", "scale": "0.997",
+          "scale_rel_std": "0.0123", "floor_pitch_deg": "15.74", "floor_roll_deg": "-0.386", "scale_reason": ""}
+VO_UNITS = {"units": "vo", "scale_source": "none", "metric_scale": "False", "scale": "1", "scale_rel_std": "None",
+            "floor_pitch_deg": "None", "floor_roll_deg": "None", "scale_reason": ""}
+
+
+def _line(text: str, label: str) -> str:
+    """The snapshot line whose label (the 12-character column after the indent) is ``label``."""
+    (line,) = [ln for ln in text.splitlines() if ln[2:14].strip() == label]
+    return line
+
+
+def test_metric_status_shows_metres_scale_and_floor() -> None:
+    s = _tracking_session().update_from_status(NAME, 0, "tracking", _record(**METRIC), 104.0)
+    assert s.units == "m"
+    text = s.render_text(104.0)
+    assert _line(text, "scale") == "  scale       ground_plane: metric, 0.997 m/unit ±1.2 %"
+    assert _line(text, "floor") == "  floor       pitch 15.74 deg  roll -0.39 deg"
+    assert "distance 15.000 m  position 6.000 4.000 -3.000" in text
+    assert "VO units" not in text and "scale note" not in text
+    # A watchdog status carries no record: the units and scale of the last frame stay.
+    s = s.update_from_status(NAME, 1, "stalled: no image for 1.1 s", {"time_since_last_image_s": "1.1"}, 105.0)
+    assert s.units == "m" and "distance 15.000 m " in s.render_text(105.0)
+    assert "ground_plane: metric, 0.997 m/unit" in s.render_text(105.0)
+
+
+def test_vo_units_status_and_a_source_not_yet_established() -> None:
+    s = _tracking_session().update_from_status(NAME, 0, "tracking", _record(**VO_UNITS), 104.0)
+    text = s.render_text(104.0)
+    assert s.units == "vo"
+    assert _line(text, "scale") == "  scale       none: VO units"
+    assert "distance 15.000 (VO units)" in text and "floor" not in text and "m/unit" not in text
+    # A metric source that has not measured yet: VO units, the position held, and why.
+    why = "ground plane not seen yet: scale unknown (VO units)"
+    s = s.update_from_status(NAME, 0, "tracking", _record(**dict(METRIC, units="vo", metric_scale="False", scale="1",
+                                                                 scale_rel_std="None", floor_pitch_deg="None",
+                                                                 floor_roll_deg="None", scale_reason=why)), 105.0)
+    text = s.render_text(105.0)
+    assert _line(text, "scale") == "  scale       ground_plane: not established yet: VO units (position held)"
+    assert f"  scale note  {why}" in text.splitlines()
+    assert "distance 15.000 (VO units)" in text and "floor" not in text
+    # A status of a node older than the scale sources has no scale keys: VO units, source none.
+    assert _line(_tracking_session().render_text(), "scale") == "  scale       none: VO units"
+
+
 def test_warning_history_groups_reasons_with_counts() -> None:
     s = _tracking_session()
     assert len(s.history) == 1
@@ -165,6 +210,39 @@ def test_real_frame_records_render_their_numbers() -> None:
     assert f"model       {r.model.value}" in text
     assert f"keyframes {r.n_keyframes}" in text
     assert f"features {r.n_features}" in text
+
+
+def test_real_metric_frame_records_render_their_scale() -> None:
+    """The scale keys the monitor reads are the ones the node publishes, with a ground-plane scale source."""
+    import dataclasses
+
+    from epi_vo.core.camera import CameraModel
+    from epi_vo.core.config import VoConfig
+    from epi_vo.core.pipeline import VoPipeline
+    from epi_vo.core.status import frame_status
+    from epi_vo.io import bagio
+    from epi_vo.io.msgconv import decode_frame
+
+    pipe = VoPipeline(dataclasses.replace(VoConfig(), scale_source="ground_plane", camera_height_m=0.45))
+    s = MonitorState()
+    seen_vo = False
+    with bagio.open_camera_bag(REPO / "bags" / "ground_robot" / "bag") as bag:
+        for f in bag.iter_frames():
+            r = pipe.process(decode_frame(f.image_msg, bag.image_is_compressed),
+                             CameraModel.from_camera_info(f.camera_info_msg), f.stamp_ns)
+            st = frame_status(r, "vo_node", "cam")
+            s = s.update_from_status(st.name, int(st.level), st.message, st.values, float(f.index))
+            if not r.scale.metric:
+                assert "ground_plane: not established yet" in s.render_text() and s.units == "vo"
+                seen_vo = True
+            if (r.scale.metric and math.isfinite(r.scale.floor_pitch_deg)) or f.index >= 30:
+                break
+    assert seen_vo and r.scale.metric, "metric scale from the floor within the first frames of ground_robot"
+    text = s.render_text()
+    assert s.units == "m"
+    assert (f"  scale       ground_plane: metric, {r.scale.scale:.4g} m/unit ±{100 * r.scale.rel_std:.1f} %"
+            in text.splitlines())
+    assert f"pitch {r.scale.floor_pitch_deg:.2f} deg  roll {r.scale.floor_roll_deg:.2f} deg" in text
 
 
 # -- the command, against real processes ------------------------------------------------------------------

@@ -4,6 +4,7 @@ real replay, and the report rendered by a real headless browser."""
 from __future__ import annotations
 
 import base64
+import dataclasses
 import json
 import math
 import os
@@ -20,19 +21,25 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from epi_vo.cli import main
+from epi_vo.core.config import VoConfig
 from epi_vo.core.errors import ReportError
 from epi_vo.io import tum
+from epi_vo.io.params import load_config
 from epi_vo.tools.evaluation import evaluate_trajectory
 from epi_vo.tools.replay import run_replay
 from epi_vo.tools.report import write_report
 from epi_vo.tools.report_data import (
     AlignmentKind,
+    RunScale,
     Span,
     error_series,
     gt_alignment,
     gt_in_estimate_frame,
     load_run,
     reason_groups,
+    run_figures,
+    run_scale,
+    scale_series,
     spans,
     timeline,
     trajectory_views,
@@ -302,6 +309,73 @@ def test_unusable_ground_truth_is_a_note(tmp_path: Path) -> None:
     assert "not usable" in write_report(syn.directory).read_text()
 
 
+# --- units and scale ---------------------------------------------------------------------------------
+
+METRIC_FROM = 5  # synthetic metric run: metric scale established at this frame
+
+
+def _metric_record(i: int) -> dict:
+    """A frame record of a ground-plane run: VO units before METRIC_FROM, metres from it; floor from frame 3."""
+    metric = i >= METRIC_FROM
+    floor = i >= 3
+    return dict(_record(i), units="m" if metric else "vo", scale_source="ground_plane", metric_scale=metric,
+                scale=0.5 + 0.001 * i if metric else 1.0, scale_rel_std=0.02 if metric else None,
+                floor_pitch_deg=10.0 + 0.1 * i if floor else None, floor_roll_deg=-1.0 if floor else None,
+                scale_reason="" if metric else "1 of 2 scale measurements needed to establish metric scale: VO units")
+
+
+def _labels(directory: Path) -> set[str]:
+    views = trajectory_views(load_run(directory))
+    return {views.top.xlabel, views.top.ylabel, views.side.xlabel, views.side.ylabel}
+
+
+def _summary_row(page: str, name: str) -> str:
+    m = re.search(rf"<tr><th>{re.escape(name)}</th><td>(.*?)</td></tr>", page)
+    assert m is not None, name
+    return m.group(1)
+
+
+def test_older_output_is_in_vo_units(synthetic: Synthetic) -> None:
+    run = load_run(synthetic.directory)  # records and no stats.json without any scale key
+    assert (run_scale(run).source, run_scale(run).units, run_scale(run).metric_from_frame) == ("none", "vo", None)
+    assert scale_series(run) is None
+    assert _labels(synthetic.directory) == {"x (right) [VO units]", "z (forward) [VO units]", "-y (up) [VO units]"}
+    page = write_report(synthetic.directory).read_text()
+    assert _summary_row(page, "path length (estimate)") == f"{run_figures(run).path_length:.3f} VO units"
+    assert _summary_row(page, "scale source") == "none" and _summary_row(page, "metric from frame") == "-"
+    assert "the run is in VO units, no scale plot" in page and len(_data_pngs(page)) == 3
+
+
+def test_metric_records_give_metres_and_the_scale_panel(synthetic: Synthetic) -> None:
+    path = synthetic.directory / "frames.jsonl"
+    path.write_text("".join(json.dumps(_metric_record(i)) + "\n" for i in range(N_FRAMES)))
+    run = load_run(synthetic.directory)  # no stats.json: units and source from the records
+    assert run_scale(run) == RunScale("ground_plane", "m", METRIC_FROM)
+    sc = scale_series(run)
+    assert sc is not None and sc.source == "ground_plane" and sc.has_floor
+    np.testing.assert_array_equal(sc.frame_index, np.arange(N_FRAMES))
+    i = np.arange(N_FRAMES)
+    expected = np.where(i >= METRIC_FROM, 0.5 + 0.001 * i, np.nan)  # the 1.0 before metric is no measurement
+    np.testing.assert_allclose(sc.scale, expected)
+    np.testing.assert_allclose(sc.lower, expected * 0.98)
+    np.testing.assert_allclose(sc.upper, expected * 1.02)
+    np.testing.assert_allclose(sc.floor_pitch_deg, np.where(i >= 3, 10.0 + 0.1 * i, np.nan))
+    np.testing.assert_allclose(sc.floor_roll_deg, np.where(i >= 3, -1.0, np.nan))
+    assert _labels(synthetic.directory) == {"x (right) [m]", "z (forward) [m]", "-y (up) [m]"}
+    page = write_report(synthetic.directory).read_text()
+    assert _summary_row(page, "path length (estimate)") == f"{run_figures(run).path_length:.3f} m"
+    assert _summary_row(page, "units") == "m (metric scale)"
+    assert _summary_row(page, "metric from frame") == str(METRIC_FROM)
+    assert '<figure id="scale">' in page and "no scale plot" not in page and len(_data_pngs(page)) == 4
+    scale_png = synthetic.directory / "report" / "scale.png"
+    img = cv2.imread(str(scale_png), cv2.IMREAD_COLOR)
+    assert img is not None and img.shape[:2] == (770, 1300)  # two panels: scale and the floor's pitch/roll
+    # Rewritten as a VO-units run: the stale scale plot goes.
+    path.write_text("".join(json.dumps(_record(i)) + "\n" for i in range(N_FRAMES)))
+    page = write_report(synthetic.directory).read_text()
+    assert not scale_png.exists() and '<figure id="scale">' not in page
+
+
 # --- bad input ----------------------------------------------------------------------------------------
 
 
@@ -395,6 +469,63 @@ def test_report_of_a_real_replay(rotation_report: Path) -> None:
     stats = json.loads((out / "stats.json").read_text())
     assert stats["bag"] in page and stats["image_topic"] in page
     assert "from <code>stats.json</code>" in page and "<code>max_features</code>" in page  # the run's parameters
+
+
+def test_vo_units_replay_says_vo_units(rotation_report: Path) -> None:
+    """A default-config replay (scale_source none): VO units on every length, no scale plot."""
+    out = rotation_report.parent
+    stats = json.loads((out / "stats.json").read_text())
+    assert (stats["scale_source"], stats["units"], stats["metric_from_frame"]) == ("none", "vo", None)
+    assert _labels(out) == {"x (right) [VO units]", "z (forward) [VO units]", "-y (up) [VO units]"}
+    page = rotation_report.read_text()
+    assert _summary_row(page, "path length (estimate)") == f"{stats['path_length']:.3f} VO units"
+    assert _summary_row(page, "units") == "VO units (no metric scale)"
+    assert "the run is in VO units, no scale plot" in page
+    assert not (out / "report" / "scale.png").exists() and '<figure id="scale">' not in page
+
+
+@pytest.fixture(scope="module")
+def ground_plane_report(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A replay of ground_robot with the floor as scale source (params as a user's YAML would give them)."""
+    tmp = tmp_path_factory.mktemp("ground_plane")
+    params = tmp / "params.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    scale_source: ground_plane\n    camera_height_m: 0.45\n")
+    out = tmp / "out"
+    cfg = dataclasses.replace(VoConfig(), scale_source="ground_plane", camera_height_m=0.45)
+    assert load_config(params) == cfg
+    run_replay(REPO / "bags" / "ground_robot" / "bag", out, cfg)
+    return write_report(out)
+
+
+def test_metric_replay_report(ground_plane_report: Path) -> None:
+    out = ground_plane_report.parent
+    stats = json.loads((out / "stats.json").read_text())
+    assert (stats["scale_source"], stats["units"]) == ("ground_plane", "m")
+    assert isinstance(stats["metric_from_frame"], int)
+    run = load_run(out)
+    assert _labels(out) == {"x (right) [m]", "z (forward) [m]", "-y (up) [m]"}
+    page = ground_plane_report.read_text()
+    assert _summary_row(page, "path length (estimate)") == f"{stats['path_length']:.3f} m"
+    assert _summary_row(page, "scale source") == "ground_plane"
+    assert _summary_row(page, "units") == "m (metric scale)"
+    assert _summary_row(page, "metric from frame") == str(stats["metric_from_frame"])
+    assert "[VO units]" not in page and "no scale plot" not in page
+    # The scale panel: embedded, and its data are the records' (metres per VO unit, 1-sigma band, floor).
+    assert '<figure id="scale">' in page and len(_data_pngs(page)) == 4  # trajectory, timeline, errors, scale
+    assert (out / "report" / "scale.png").stat().st_size > 10_000
+    sc = scale_series(run)
+    assert sc is not None and sc.has_floor
+    recs = run.records
+    first = stats["metric_from_frame"]
+    assert [bool(r["metric_scale"]) for r in recs] == [r["index"] >= first for r in recs]
+    metric = np.array([r["index"] >= first for r in recs])
+    np.testing.assert_allclose(sc.scale[metric], [r["scale"] for r in recs if r["metric_scale"]])
+    assert np.isnan(sc.scale[~metric]).all()
+    rel = np.array([r["scale_rel_std"] for r in recs if r["metric_scale"]], dtype=float)
+    np.testing.assert_allclose(sc.upper[metric] - sc.lower[metric], 2 * sc.scale[metric] * rel)
+    assert np.all((rel > 0) & (rel < 0.1))
+    np.testing.assert_allclose(np.nan_to_num(sc.floor_pitch_deg, nan=-999.0),
+                               [-999.0 if r["floor_pitch_deg"] is None else r["floor_pitch_deg"] for r in recs])
 
 
 # ==================================================================================================
