@@ -71,6 +71,15 @@ class VoConfig:
     rh_threshold: float = _knob(0.45, "choose H when RH = S_H / (S_H + S_E) exceeds this", 0.0, 1.0)
     min_inliers: int = _knob(25, "fewer model inliers than this: the frame gives no pose", 8, 10000)
 
+    # --- static camera ------------------------------------------------------------------------
+    static_min_fraction: float = _knob(
+        0.5, "before a map exists: the camera is static when at least this fraction of the tracked features did "
+        "not move (chi-square gate at score_sigma_px)", 0.0, 1.0)
+    static_min_spread: float = _knob(
+        0.5, "the still features must also cover at least this fraction of the occupied cells of a 4x4 image grid",
+        0.0,
+        1.0)
+
     # --- degeneracy, parallax and triangulation gates ----------------------------------------
     init_min_parallax_deg: float = _knob(0.5, "median parallax needed to initialise the map (deg)", 0.01, 45.0)
     kf_min_parallax_deg: float = _knob(1.0, "median parallax that makes a new keyframe (deg)", 0.01, 45.0)

@@ -35,12 +35,14 @@ class TrackingState(enum.Enum):
     INITIALIZING = "initializing"  # no map yet: waiting for parallax; rotation is estimated, position holds
     TRACKING = "tracking"  # pose with the map's scale
     ROTATION_ONLY = "rotation_only"  # pure rotation detected: rotation estimated, position holds
+    STATIC = "static"  # the camera did not move (what moved is another object): pose held, zero twist
     LOST = "lost"  # no pose this frame (pose held, covariance large)
 
 
 class Model(enum.Enum):
     ESSENTIAL = "E"
     HOMOGRAPHY = "H"
+    STATIC = "static"  # the "no camera motion" hypothesis explained the frame
     NONE = "none"
 
 
@@ -128,6 +130,10 @@ class FrameResult:
     skipped: bool = False  # not processed (duplicate or invalid stamp, undecodable): no pose is published for it
     problem: str = ""  # why the frame was rejected (bad input); "" when it was not
     scale: ScaleStatus = VO_UNITS  # scale source, metres or VO units, scale and its uncertainty
+    n_moving: int = 0  # tracked features that moved while the camera was judged static
+    moving_fraction: float = 0.0  # of the tracked features
+    moving_region: tuple[int, int, int, int] | None = None  # x0, y0, x1, y1 (px) of the movers, None: none
+    static_score: float = math.nan  # fraction of tracked features the "no camera motion" hypothesis explains
 
     @property
     def rejected(self) -> bool:
@@ -198,6 +204,10 @@ class FrameResult:
             "floor_pitch_deg": num(self.scale.floor_pitch_deg),
             "floor_roll_deg": num(self.scale.floor_roll_deg),
             "scale_reason": self.scale.reason,
+            "static_score": num(self.static_score),
+            "n_moving": self.n_moving,
+            "moving_fraction": num(self.moving_fraction),
+            "moving_region": list(self.moving_region) if self.moving_region is not None else None,
         }
 
 
@@ -219,6 +229,9 @@ class FrameStats:
     positive_depth_ratio: float = math.nan
     median_reproj_err_px: float = math.nan
     relative_scale: float = math.nan
+    static_score: float = math.nan
+    n_moving: int = 0
+    moving_region: tuple[int, int, int, int] | None = None
     points_w: F64 = field(default_factory=lambda: np.zeros((0, 3)))
     matches: Matches = field(default_factory=Matches.empty)
     F: F64 = field(default_factory=lambda: np.zeros((3, 3)))

@@ -58,7 +58,8 @@ def keyframe_map(cfg: VoConfig, motion: Motion, kf: Keyframe, rows: NDArray[np.i
         if not parallax and st.n_triangulated == 0:
             st.reasons.append("keyframe without parallax: no new depth")
     elif (motion.state is TrackingState.ROTATION_ONLY and (weak or too_old)) or (
-            motion.state is TrackingState.INITIALIZING and (too_old or st.n_tracked < 2 * cfg.min_inliers)):
+            motion.state in (TrackingState.INITIALIZING, TrackingState.STATIC)
+            and (too_old or st.n_tracked < 2 * cfg.min_inliers)):
         # While initialising the keyframe is kept as long as enough features survive: re-anchoring
         # on the tracked ratio alone (ORB matches ~half the keyframe) would reset the parallax.
         # Re-anchor without triangulating: under rotation the existing depths stay valid (t = 0).

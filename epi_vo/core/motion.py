@@ -71,6 +71,9 @@ class MotionStage:
         """The pose from the winning model; ``st.model`` says which one it was."""
         t0 = time.perf_counter()
         try:
+            static = self._static(ctx, sel, st)
+            if static is not None:
+                return static
             if sel.model is Model.HOMOGRAPHY:
                 assert sel.H is not None and sel.inliers_h is not None
                 st.model = Model.HOMOGRAPHY
@@ -83,6 +86,46 @@ class MotionStage:
             return None
         finally:
             st.timings["pose"] = (time.perf_counter() - t0) * 1e3
+
+    def _static(self, ctx: MotionContext, sel: ModelSelection, st: FrameStats) -> Motion | None:
+        """The "no camera motion" hypothesis, before a map exists: when most tracked features did not
+        move and those cover the image, the camera is static and whatever moved is another object. The
+        pose holds (no map is built from the mover's motion); the frame says what moved and where.
+
+        With a map, the pose comes from the map points, whose majority (the static background) decides
+        it; E alone cannot tell: with no rotation every still point fits any translation's epipolar
+        geometry, so RANSAC happily explains a mover's motion.
+        """
+        cfg = self.cfg
+        still = sel.inliers_static
+        n = ctx.uv_cur.shape[0]
+        if still is None or n == 0:
+            return None
+        fraction = float(np.count_nonzero(still)) / n
+        st.static_score = fraction
+        if self.has_map(ctx.kf) or fraction < cfg.static_min_fraction:
+            return None
+        K = ctx.kf.camera
+        spread = _grid_spread(ctx.uv_cur, still, K.width, K.height)
+        if spread < cfg.static_min_spread:
+            return None
+        moved = ~still
+        st.n_moving = int(np.count_nonzero(moved))
+        st.n_inliers = int(np.count_nonzero(still))
+        st.median_parallax_deg = 0.0
+        what = "nothing moved"
+        if st.n_moving:
+            lo = np.percentile(ctx.uv_cur[moved], 5, axis=0)
+            hi = np.percentile(ctx.uv_cur[moved], 95, axis=0)
+            st.moving_region = (int(lo[0]), int(lo[1]), int(np.ceil(hi[0])), int(np.ceil(hi[1])))
+            x0, y0, x1, y1 = st.moving_region
+            what = (f"{st.n_moving} features ({1 - fraction:.0%}) moved in x {x0}-{x1}, y {y0}-{y1} px: another "
+                    "object's motion, ignored")
+        st.model = Model.STATIC
+        st.reasons.append(f"camera static: {fraction:.0%} of tracked features did not move, spread over "
+                          f"{spread:.0%} of the image; {what}; pose held")
+        rot_cov = covm.rotation_var(cfg.score_sigma_px, K.K[0, 0], max(st.n_inliers, 1))
+        return Motion(TrackingState.STATIC, np.eye(3), np.zeros(3), covm.block(1e-6, rot_cov), still)
 
     def _from_essential(self, ctx: MotionContext, E: F64, in_e: NDArray[np.bool_], st: FrameStats
                         ) -> Motion | None:
@@ -239,3 +282,14 @@ class MotionStage:
         cov_rel[:3, :3] = cov_t
         cov_rel[3:, 3:] = cov_r + np.eye(3) * rot_cov
         return Motion(TrackingState.TRACKING, R_r, t_r, cov_rel, inl)
+
+
+def _grid_spread(uv: F64, mask: NDArray[np.bool_], width: int, height: int, cells: int = 4) -> float:
+    """Of the cells of a ``cells`` x ``cells`` grid holding any feature, the fraction holding a masked one."""
+    col = np.clip((uv[:, 0] * cells / max(width, 1)).astype(np.int64), 0, cells - 1)
+    row = np.clip((uv[:, 1] * cells / max(height, 1)).astype(np.int64), 0, cells - 1)
+    cell = row * cells + col
+    occupied = np.unique(cell)
+    if occupied.size == 0:
+        return 0.0
+    return float(np.unique(cell[mask]).size) / occupied.size

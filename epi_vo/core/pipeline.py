@@ -443,7 +443,9 @@ class VoPipeline:
             relative_scale=st.relative_scale, n_keyframes=self._n_keyframes, T_w_c=frozen(T_out),
             covariance=frozen(cov), points_w=frozen(st.points_w[np.all(np.isfinite(st.points_w), axis=1)]),
             timings_ms=dict(st.timings),
-            reason="; ".join(st.reasons), matches=st.matches, scale=self._scale.status())
+            reason="; ".join(st.reasons), matches=st.matches, scale=self._scale.status(), n_moving=st.n_moving,
+            moving_fraction=st.n_moving / st.n_tracked if st.n_tracked else 0.0, moving_region=st.moving_region,
+            static_score=st.static_score)
         self._index += 1
         return res
 

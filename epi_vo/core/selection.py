@@ -2,7 +2,9 @@
 
 E comes from the 5-point solver inside a robust estimator, H from ``findHomography``; both are scored
 ORB-SLAM style with chi-square gates at ``score_sigma_px`` and H wins when
-``RH = S_H / (S_H + S_E) > rh_threshold`` (or when E could not be estimated).
+``RH = S_H / (S_H + S_E) > rh_threshold`` (or when E could not be estimated). A third hypothesis,
+"the camera did not move" (H = identity), is scored under the same gate: the motion stage uses it
+before a map exists (a static camera must not build a map from something moving in front of it).
 """
 
 from __future__ import annotations
@@ -31,6 +33,8 @@ class ModelSelection:
     F: F64 | None  # fundamental matrix of E in undistorted pixels
     inliers_e: Mask | None
     inliers_h: Mask | None
+    score_static: float = 0.0  # the "no camera motion" hypothesis (H = identity) under the same gate
+    inliers_static: Mask | None = None  # features that did not move
 
 
 def select_model(uv_kf: F64, uv_cur: F64, K: F64, cfg: VoConfig) -> ModelSelection:
@@ -42,6 +46,7 @@ def select_model(uv_kf: F64, uv_cur: F64, K: F64, cfg: VoConfig) -> ModelSelecti
     F = geo.fundamental_from_essential(E, K) if E is not None else None
     s_e, in_e = geo.score_fundamental(F, uv_kf, uv_cur, cfg.score_sigma_px) if F is not None else (0.0, None)
     s_h, in_h = geo.score_homography(H, uv_kf, uv_cur, cfg.score_sigma_px) if H is not None else (0.0, None)
+    s_0, in_0 = geo.score_homography(np.eye(3), uv_kf, uv_cur, cfg.score_sigma_px)
     rh = geo.rh_ratio(s_h, s_e)
     if H is not None and in_h is not None and (rh > cfg.rh_threshold or E is None):
         model = Model.HOMOGRAPHY
@@ -49,4 +54,4 @@ def select_model(uv_kf: F64, uv_cur: F64, K: F64, cfg: VoConfig) -> ModelSelecti
         model = Model.ESSENTIAL
     else:
         model = Model.NONE
-    return ModelSelection(model, rh, E, H, F, in_e, in_h)
+    return ModelSelection(model, rh, E, H, F, in_e, in_h, s_0, in_0)

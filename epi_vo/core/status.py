@@ -17,6 +17,7 @@ _LEVELS = {
     TrackingState.TRACKING: DiagnosticLevel.OK,
     TrackingState.INITIALIZING: DiagnosticLevel.WARN,
     TrackingState.ROTATION_ONLY: DiagnosticLevel.WARN,
+    TrackingState.STATIC: DiagnosticLevel.OK,
     TrackingState.LOST: DiagnosticLevel.ERROR,
 }
 

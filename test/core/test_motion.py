@@ -319,3 +319,64 @@ def test_essential_pose_covariance_matches_its_errors(two_view_scene) -> None:
     pos, rot = _error_to_sigma(two_view_scene, CFG)
     assert np.all(pos < 2.0), pos
     assert np.all(rot < 2.0), rot
+
+
+# --- static camera ------------------------------------------------------------------------------------
+def _static_with_mover(scene: Any, x_from: float, shift: tuple[float, float], seed: int = 0) -> Any:
+    """The scene's reference view seen again by a camera that did not move, while the features right of
+    ``x_from`` px (an object) moved by ``shift`` px."""
+    rng = np.random.default_rng(seed)
+    cur = scene.uv_ref_obs + rng.normal(0.0, 0.3, scene.uv_ref_obs.shape)
+    mover = scene.uv_ref_obs[:, 0] > x_from
+    cur[mover] += np.asarray(shift)
+    return dataclasses.replace(scene, uv_cur_obs=cur, R_cur_ref=np.eye(3), t_cur_ref=np.zeros(3)), mover
+
+
+def test_static_camera_with_a_mover_holds_its_pose_and_says_what_moved(general_scene) -> None:
+    s, mover = _static_with_mover(general_scene, 430.0, (14.0, 4.0))
+    assert 0.15 < mover.mean() < 0.4
+    m, st, asked = _estimate(s, _no_map(s))
+    assert m is not None and m.state is TrackingState.STATIC and m.new_map is None
+    np.testing.assert_array_equal(m.R_cur_kf, np.eye(3))
+    np.testing.assert_array_equal(m.t_cur_kf, np.zeros(3))
+    assert asked == []  # no map was attempted
+    assert st.model is Model.STATIC
+    assert st.n_moving == pytest.approx(mover.sum(), abs=3)
+    assert st.static_score == pytest.approx(1 - mover.mean(), abs=0.02)
+    x0, _, x1, _ = st.moving_region
+    assert x0 >= 430 and x1 <= 640 + 14
+    assert any(r.startswith("camera static:") and "another object's motion, ignored" in r for r in st.reasons)
+
+
+@pytest.mark.parametrize("scene_name", ["general_scene", "rotation_scene"])
+def test_a_moving_camera_is_not_called_static(scene_name: str, request: pytest.FixtureRequest) -> None:
+    s = request.getfixturevalue(scene_name)
+    m, st, _ = _estimate(s, _no_map(s))
+    assert m is not None and m.state is not TrackingState.STATIC
+    assert st.static_score < 0.2
+
+
+def test_a_mover_covering_most_of_the_view_is_not_taken_for_the_background(general_scene) -> None:
+    s, mover = _static_with_mover(general_scene, 150.0, (14.0, 4.0))
+    assert mover.mean() > 0.6
+    m, st, _ = _estimate(s, _no_map(s))
+    assert m is None or m.state is not TrackingState.STATIC  # the still minority cannot say "static"
+    assert st.static_score < 0.4
+
+
+def test_static_features_clustered_in_one_corner_do_not_make_the_camera_static(general_scene) -> None:
+    cfg = dataclasses.replace(CFG, static_min_fraction=0.2)
+    s, _ = _static_with_mover(general_scene, -1.0, (14.0, 4.0))  # everything moved ...
+    corner = (general_scene.uv_ref_obs[:, 0] < 160) & (general_scene.uv_ref_obs[:, 1] < 120)
+    cur = s.uv_cur_obs.copy()
+    cur[corner] = general_scene.uv_ref_obs[corner]  # ... but a corner patch that stayed
+    s = dataclasses.replace(s, uv_cur_obs=cur)
+    m, st, _ = _estimate(s, _no_map(s), cfg)
+    assert st.static_score >= 0.02 and (m is None or m.state is not TrackingState.STATIC)
+
+
+def test_with_a_map_the_static_hypothesis_leaves_the_pose_to_the_map(general_scene) -> None:
+    s, _ = _static_with_mover(general_scene, 430.0, (14.0, 4.0))
+    m, _, _ = _estimate(s, _true_map(s))
+    assert m is not None and m.state is TrackingState.TRACKING
+    assert np.linalg.norm(m.t_cur_kf) < 0.05 * MAP_SCALE  # the still majority holds the pose
