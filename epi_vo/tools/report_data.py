@@ -73,7 +73,8 @@ NO_SIM3 = "no Sim(3) alignment exists (the estimate does not move, or moves alon
 
 TRACKING = "tracking"
 # Presentation only: one colour per tracking state (span shading in the plots, chips in the table).
-STATE_COLOURS = {"initializing": "#9ecae1", "rotation_only": "#fdae6b", "lost": "#fb8072", TRACKING: "#b8e186"}
+STATE_COLOURS = {"initializing": "#9ecae1", "rotation_only": "#fdae6b", "static": "#bcbddc", "lost": "#fb8072",
+                 TRACKING: "#b8e186"}
 MODEL_COLOURS = {"E": "#1f77b4", "H": "#ff7f0e", "none": "#7f7f7f"}
 EST_COLOUR = "#1f77b4"
 GT_COLOUR = "#d62728"
