@@ -106,7 +106,7 @@ class MotionStage:
         if self.has_map(ctx.kf) or fraction < cfg.static_min_fraction:
             return None
         K = ctx.kf.camera
-        spread = _grid_spread(ctx.uv_cur, still, K.width, K.height)
+        spread = grid_spread(ctx.uv_cur, still, K.width, K.height)
         if spread < cfg.static_min_spread:
             return None
         moved = ~still
@@ -284,7 +284,7 @@ class MotionStage:
         return Motion(TrackingState.TRACKING, R_r, t_r, cov_rel, inl)
 
 
-def _grid_spread(uv: F64, mask: NDArray[np.bool_], width: int, height: int, cells: int = 4) -> float:
+def grid_spread(uv: F64, mask: NDArray[np.bool_], width: int, height: int, cells: int = 4) -> float:
     """Of the cells of a ``cells`` x ``cells`` grid holding any feature, the fraction holding a masked one."""
     col = np.clip((uv[:, 0] * cells / max(width, 1)).astype(np.int64), 0, cells - 1)
     row = np.clip((uv[:, 1] * cells / max(height, 1)).astype(np.int64), 0, cells - 1)

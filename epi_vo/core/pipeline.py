@@ -251,6 +251,11 @@ class VoPipeline:
             if motion is not None and not mo.is_finite(motion):
                 st.reasons.append("the motion estimate is not finite (check the calibration): no pose this frame")
                 motion = None
+            if motion is not None and motion.state is TrackingState.TRACKING:
+                spread = mo.grid_spread(uv_cur, motion.inliers, camera.width, camera.height)
+                if spread < self.cfg.static_min_spread:
+                    st.reasons.append(f"the pose's inliers are clustered: they cover {spread:.0%} of the image cells "
+                                      "holding features (a moving object may dominate)")
 
         inl = motion.inliers if motion is not None else np.zeros(rows.shape[0], bool)
         st.matches = Matches(kf.pts[rows].astype(np.float64), pts_cur.astype(np.float64), kf.uv[rows], uv_cur, inl,

@@ -380,3 +380,17 @@ def test_with_a_map_the_static_hypothesis_leaves_the_pose_to_the_map(general_sce
     m, _, _ = _estimate(s, _true_map(s))
     assert m is not None and m.state is TrackingState.TRACKING
     assert np.linalg.norm(m.t_cur_kf) < 0.05 * MAP_SCALE  # the still majority holds the pose
+
+
+def test_grid_spread_counts_the_occupied_cells_the_mask_reaches() -> None:
+    from epi_vo.core.motion import grid_spread
+
+    # One feature at the centre of each of the 16 cells of a 640x480 image.
+    xs, ys = np.meshgrid(np.arange(4) * 160 + 80, np.arange(4) * 120 + 60)
+    uv = np.column_stack([xs.ravel(), ys.ravel()]).astype(float)
+    mask = np.zeros(16, bool)
+    assert grid_spread(uv, mask, 640, 480) == 0.0
+    mask[:4] = True  # the top row
+    assert grid_spread(uv, mask, 640, 480) == pytest.approx(0.25)
+    assert grid_spread(uv[:8], mask[:8], 640, 480) == pytest.approx(0.5)  # only the top half holds features
+    assert grid_spread(np.zeros((0, 2)), np.zeros(0, bool), 640, 480) == 0.0
