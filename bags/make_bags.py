@@ -4,6 +4,9 @@
 Each bag holds a compressed mono image stream, its camera_info and the ground-truth pose, so the tests
 and the demo have sequences whose answer is known exactly; ``ground_robot`` (a wheeled robot's camera over
 a paved floor) also holds simulated 50 Hz wheel odometry with a documented error model (bags/README.md).
+In ``static_mover`` and ``moving_mover`` an object (``Mover``: a rigid group of quads with its own pose per
+frame) moves independently of the camera; its per-frame image share and bounding box are written to
+``mover_coverage.txt`` and its pose to ``<mover>_pose_tum.txt``, while the ground truth stays the camera's.
 Everything is deterministic: the scenes, the trajectories and the sensor noise (seeded per bag) give the
 same bytes on every run with the same OpenCV and numpy.
 
@@ -19,8 +22,9 @@ Conventions
 Rendering
 ---------
 Scenes are planar textured rectangles ("quads"). For every supersampled pixel the renderer casts the
-pixel's ray, intersects it analytically with each quad's plane, keeps the nearest hit in front of the
-near plane (a per-pixel z-buffer on the depth along the optical axis), and samples the quad's texture at
+pixel's ray, intersects it analytically with each quad's plane (the static scene's, then the movers' placed
+at the frame's pose), keeps the nearest hit in front of the near plane (a per-pixel z-buffer on the depth
+along the optical axis), and samples the quad's texture at
 the hit point with trilinear mipmapping (``cv2.remap`` on a Gaussian pyramid). Ray casting makes
 perspective and occlusion exact and clips quads that reach behind the camera without special cases.
 A lens-distorted camera is rendered the same way: each distorted pixel's ray is its undistorted
@@ -141,6 +145,39 @@ class Quad:
             raise SceneError(msg)
 
 
+def transform_quad(quad: Quad, T: Matrix4) -> Quad:
+    """The quad moved by the rigid transform ``T`` (4, 4): corners ``R X + t``, edges ``R e``."""
+    R, t = T[:3, :3], T[:3, 3]
+    origin = R @ np.asarray(quad.origin_w, dtype=np.float64) + t
+    eu, ev = R @ np.asarray(quad.edge_u_w, dtype=np.float64), R @ np.asarray(quad.edge_v_w, dtype=np.float64)
+    return Quad(
+        tuple(float(v) for v in origin),
+        tuple(float(v) for v in eu),
+        tuple(float(v) for v in ev),
+        quad.texture,
+        quad.repeat_u,
+        quad.repeat_v,
+        quad.gain,
+        quad.offset,
+    )
+
+
+@dataclass(frozen=True)
+class Mover:
+    """A rigid group of quads that moves on its own (a panel, a cart): ``quads`` are given in the mover's
+    own frame, and at frame i they stand in the world at ``T_w_o[i] @ X`` (``T_w_o`` (N, 4, 4), one pose per
+    image). The renderer z-buffers them against the static scene in every frame; the ground truth stays
+    the camera's pose only."""
+
+    name: str
+    quads: tuple[Quad, ...]
+    T_w_o: NDArray[np.float64]
+
+    def quads_at(self, frame_index: int) -> tuple[Quad, ...]:
+        """The mover's quads in the world at frame ``frame_index``."""
+        return tuple(transform_quad(q, self.T_w_o[frame_index]) for q in self.quads)
+
+
 @dataclass(frozen=True)
 class WheelOdometry:
     """Simulated wheel odometry of a ground robot, one row per ``/wheel/odom`` message.
@@ -163,7 +200,9 @@ class BagSpec:
 
     Optional, for bags that need them: the smallest allowed camera-to-quad distance ``min_clearance_m``,
     the JPEG quality, wheel odometry to write on ``/wheel/odom``, and the height ``floor_y_m`` (world y)
-    of a floor whose image share and image motion ``make_bag`` measures (and bounds, ``MAX_FLOOR_FLOW_PX``).
+    of a floor whose image share and image motion ``make_bag`` measures (and bounds, ``MAX_FLOOR_FLOW_PX``),
+    and independently moving objects ``movers`` (their per-frame image share and bounding box go to
+    ``mover_coverage.txt``, their poses to ``mover_pose_tum.txt``).
     """
 
     name: str
@@ -175,6 +214,11 @@ class BagSpec:
     jpeg_quality: int = JPEG_QUALITY
     wheel_odom: WheelOdometry | None = None
     floor_y_m: float | None = None
+    movers: tuple[Mover, ...] = ()
+
+    def moving_quads_at(self, frame_index: int) -> tuple[Quad, ...]:
+        """The quads of every mover, placed in the world at frame ``frame_index``."""
+        return tuple(q for mover in self.movers for q in mover.quads_at(frame_index))
 
 
 # --- small geometry helpers -----------------------------------------------------------------------------
@@ -197,7 +241,7 @@ def rot_z(angle_rad: float) -> NDArray[np.float64]:
 
 def camera_rotation(yaw_rad: float, pitch_rad: float, roll_rad: float) -> NDArray[np.float64]:
     """``R_w_c`` of a camera that pans by yaw (about world y, positive turns right), then tilts by pitch
-    (about its x, positive looks down) and rolls (about its z)."""
+    (about its x, positive looks up: the optical axis turns towards -y) and rolls (about its z)."""
     return rot_y(yaw_rad) @ rot_x(pitch_rad) @ rot_z(roll_rad)
 
 
@@ -266,6 +310,9 @@ PHOTO_TEXTURES = (
     "rocket",
     "text",
 )
+# Photographs used only on the movers, so a mover never looks like the background (not in PHOTO_TEXTURES,
+# which the poster mosaic cycles through).
+MOVER_TEXTURES = ("immunohistochemistry",)
 MOSAIC_TEXTURE = "poster_mosaic"
 MOSAIC_GRID = (6, 9)  # rows, columns of photographs on the poster wall
 MOSAIC_TILE_PX = 256
@@ -335,8 +382,9 @@ def load_texture(name: str) -> NDArray[np.uint8]:
         return _poster_mosaic()
     if name == PAVING_TEXTURE:
         return _paving()
-    if name not in PHOTO_TEXTURES:
-        msg = f"unknown texture {name!r}; expected one of {(*PHOTO_TEXTURES, MOSAIC_TEXTURE, PAVING_TEXTURE)}"
+    if name not in PHOTO_TEXTURES and name not in MOVER_TEXTURES:
+        known = (*PHOTO_TEXTURES, *MOVER_TEXTURES, MOSAIC_TEXTURE, PAVING_TEXTURE)
+        msg = f"unknown texture {name!r}; expected one of {known}"
         raise SceneError(msg)
     image = np.asarray(getattr(skimage.data, name)())
     if image.ndim == 3:
@@ -794,11 +842,134 @@ def ground_robot_spec(n_frames: int = ROBOT_FRAMES) -> BagSpec:
     )
 
 
+# --- independently moving objects: "a moving object never moves the camera" ----------------------------
+
+MOVER_TEXTURE = "immunohistochemistry"  # stained tissue: blobs and corners everywhere, unlike any background
+STATIC_MOVER_FRAMES = 120  # 8 s at 15 Hz
+STATIC_MOVER_CAMERA_XYZ = (0.3, -0.1, -2.0)  # level, looking along +z: the written rotation is exactly identity
+PANEL_SIZE_M = (3.0, 0.12, 2.4)  # width (x), thickness (z), height of the panel (standing on the ground)
+STATIC_MOVER_JPEG_QUALITY = 85  # 120 detailed frames at quality 90 would make a 9.5 MB bag; at 85 it stays under 8 MB
+MOVING_MOVER_FRAMES = 105  # 7 s at 15 Hz
+MOVING_MOVER_JPEG_QUALITY = 85  # at quality 90 the bag would be 8.6 MB; at 85 it is 7.0 MB
+MOVING_MOVER_CAMERA_HEIGHT_M = 1.55  # above the ground: a camera carried at eye height
+MOVING_MOVER_CAMERA_PITCH_DEG = -8.0  # looking a little down, at the ground ahead (rot_x: positive tilts up)
+CART_SIZE_M = (1.3, 2.6, 2.0)  # width (x), length (z, its direction of travel), height
+CART_CROSSING_M = 7.6  # sideways travel of the cart over the sequence (world x, from -3.8 m to +3.8 m)
+CART_SLOWDOWN_M = 0.4  # amplitude of the sine that slows the cart while it is in front of the camera
+CART_DEPTH_M = (4.1, 3.7)  # cart centre ahead of the camera's path (world z) at the first and the last frame
+
+
+def ground_box_mover(name: str, size_m: tuple[float, float, float], T_w_o: NDArray[np.float64], texture: str) -> Mover:
+    """A box standing on the ground that moves rigidly: in its own frame (x right, y down, z forward) the
+    footprint ``size_m[0]`` x ``size_m[1]`` is centred on the origin and the box rises ``size_m[2]`` above
+    y = 0; ``T_w_o`` (N, 4, 4) places it in the world at each frame."""
+    size_x, size_z, height = size_m
+    quads = box_quads(0.0, 0.0, size_x, size_z, height, texture, ground_y_m=0.0)
+    return Mover(name, tuple(quads), T_w_o)
+
+
+def ground_poses(
+    n_frames: int, xz: Callable[[float], tuple[float, float]], yaw: Callable[[float], float]
+) -> NDArray[np.float64]:
+    """Poses (N, 4, 4) of an object on the courtyard ground: position (x, z) and heading ``yaw`` (rad, about
+    the vertical, positive turns right as for the camera), sampled at s = i / (N - 1)."""
+    poses = []
+    for i in range(n_frames):
+        s = i / (n_frames - 1)
+        x, z = xz(s)
+        poses.append(se3(rot_y(yaw(s)), (x, GROUND_Y_M, z)))
+    return np.stack(poses)
+
+
+def static_mover_spec(n_frames: int = STATIC_MOVER_FRAMES) -> BagSpec:
+    """Courtyard seen by a camera that never moves (every pose exactly the same, rotation exactly identity),
+    while a large textured panel (3.0 m x 2.4 m, 12 cm thick, standing on the ground) sweeps across the view
+    from left to right at 0.6 m/s, 3.4-3.9 m in front of the camera, coming a little nearer and turning by
+    14 deg: it covers 21-45 % of the image (at least 25 % on 88 % of the frames), so a pipeline that trusts
+    the majority of its tracks may think the camera moves."""
+    deg = math.pi / 180.0
+    cx, _, cz = STATIC_MOVER_CAMERA_XYZ
+
+    def xz(s: float) -> tuple[float, float]:
+        return cx - 2.4 + 4.8 * s, cz + 3.9 - 0.5 * s + 0.15 * math.sin(math.pi * s)
+
+    def yaw(s: float) -> float:
+        return -8.0 * deg + 14.0 * deg * s
+
+    T_w_c = np.stack([se3(np.eye(3), STATIC_MOVER_CAMERA_XYZ)] * n_frames)
+    panel = ground_box_mover("panel", PANEL_SIZE_M, ground_poses(n_frames, xz, yaw), MOVER_TEXTURE)
+    return BagSpec(
+        "static_mover",
+        courtyard_scene(),
+        make_camera(),
+        T_w_c,
+        noise_seed=6,
+        jpeg_quality=STATIC_MOVER_JPEG_QUALITY,
+        movers=(panel,),
+    )
+
+
+def moving_mover_scene() -> tuple[Quad, ...]:
+    """The courtyard without its nearest box (1 m at x 2.0 m, z 3.1 m), which stands on the cart's path."""
+    lo, hi = np.array([1.5, 2.6]) - 1e-9, np.array([2.5, 3.6]) + 1e-9  # its footprint (world x, z)
+
+    def on_box(quad: Quad) -> bool:
+        origin, eu, ev = (np.asarray(v) for v in (quad.origin_w, quad.edge_u_w, quad.edge_v_w))
+        corners = np.array([origin, origin + eu, origin + ev, origin + eu + ev])[:, [0, 2]]
+        return bool(np.all((corners >= lo) & (corners <= hi)))
+
+    return tuple(q for q in courtyard_scene() if not on_box(q))
+
+
+def moving_mover_spec(n_frames: int = MOVING_MOVER_FRAMES) -> BagSpec:
+    """Courtyard (without the box on the cart's path), a camera carried at eye height (1.55 m, looking 8 deg
+    down) at walking pace (1 m/s, 7.2 m along a gentle S curve, yaw within 5 deg) and a tall cart (1.3 m x
+    2.6 m, 2.0 m high) that drives ahead of the camera, 3.9-4.3 m in front of it, and crosses its path
+    from left to right: 1.5 m/s sideways at the ends, slowing to 0.7 m/s while in front of the camera, and
+    0.95 m/s forward, always heading where it goes. It is in view on every frame and fills 30-36 % of the
+    image while wholly in view."""
+    deg = math.pi / 180.0
+    cam_x, cam_y, cam_z0, cam_dz = 0.4, GROUND_Y_M - MOVING_MOVER_CAMERA_HEIGHT_M, -6.3, 7.0
+
+    def position(s: float) -> tuple[float, float, float]:
+        return cam_x * math.sin(2 * math.pi * s), cam_y - 0.05 * math.sin(math.pi * s), cam_z0 + cam_dz * s
+
+    def angles(s: float) -> tuple[float, float, float]:
+        yaw = -4.0 * deg * math.sin(2 * math.pi * s) + 1.0 * deg * math.sin(math.pi * s)
+        pitch = MOVING_MOVER_CAMERA_PITCH_DEG * deg + 1.0 * deg * math.sin(3 * math.pi * s)
+        roll = 1.0 * deg * math.sin(math.pi * s + 0.3)
+        return yaw, pitch, roll
+
+    # The cart in the world: sideways x(s) = -a/2 + a s - b sin(2 pi (s - 1/2)) (slowest at s = 1/2), and
+    # forward z(s) = z0 + dz s; it heads along its velocity (dx/ds, dz/ds).
+    a, b = CART_CROSSING_M, CART_SLOWDOWN_M
+    z0, dz = cam_z0 + CART_DEPTH_M[0], cam_dz + CART_DEPTH_M[1] - CART_DEPTH_M[0]
+
+    def xz(s: float) -> tuple[float, float]:
+        return -0.5 * a + a * s - b * math.sin(2 * math.pi * (s - 0.5)), z0 + dz * s
+
+    def yaw(s: float) -> float:
+        return math.atan2(a - 2 * math.pi * b * math.cos(2 * math.pi * (s - 0.5)), dz)
+
+    cart = ground_box_mover("cart", CART_SIZE_M, ground_poses(n_frames, xz, yaw), MOVER_TEXTURE)
+    return BagSpec(
+        "moving_mover",
+        moving_mover_scene(),
+        make_camera(),
+        smooth_trajectory(n_frames, position, angles),
+        noise_seed=7,
+        jpeg_quality=MOVING_MOVER_JPEG_QUALITY,
+        movers=(cart,),
+    )
+
+
 SPECS: dict[str, Callable[[], BagSpec]] = {
     "general_motion": general_motion_spec,
     "pure_rotation": pure_rotation_spec,
     "planar": planar_spec,
     "ground_robot": ground_robot_spec,
+    "static_mover": static_mover_spec,
+    "moving_mover": moving_mover_spec,
 }
 
 
@@ -814,6 +985,54 @@ def quad_distance(quad: Quad, point_w: NDArray[np.float64]) -> float:
 def min_clearance_m(quads: Sequence[Quad], T_w_c: NDArray[np.float64]) -> float:
     """Smallest distance between any camera centre of ``T_w_c`` (N, 4, 4) and any quad."""
     return min(quad_distance(q, T[:3, 3]) for T in T_w_c for q in quads)
+
+
+def mover_clearance_m(spec: BagSpec) -> float:
+    """Smallest distance between the camera centre of each frame and the movers' quads at that frame
+    (inf without movers)."""
+    return min(
+        (quad_distance(q, T[:3, 3]) for i, T in enumerate(spec.T_w_c) for q in spec.moving_quads_at(i)),
+        default=math.inf,
+    )
+
+
+def mover_stats(mover_coverage: FloatImage) -> tuple[float, tuple[int, int, int, int]]:
+    """Share of the image's pixels that see a mover (sub-pixel exact) and the inclusive bounding box
+    ``(x0, y0, x1, y1)`` of the pixels at least half on a mover (all -1 when there are none)."""
+    fraction = float(mover_coverage.mean())
+    rows = np.flatnonzero((mover_coverage >= 0.5).any(axis=1))
+    cols = np.flatnonzero((mover_coverage >= 0.5).any(axis=0))
+    if rows.size == 0:
+        return fraction, (-1, -1, -1, -1)
+    return fraction, (int(cols[0]), int(rows[0]), int(cols[-1]), int(rows[-1]))
+
+
+def mover_coverage_lines(stats: Sequence[tuple[float, tuple[int, int, int, int]]]) -> list[str]:
+    """Lines of ``mover_coverage.txt``: a ``#`` header, then ``frame fraction x0 y0 x1 y1`` per frame."""
+    lines = [
+        "# frame fraction x0 y0 x1 y1: share of the image's pixels that see a mover (0-1, supersampled), and the "
+        "inclusive bounding box (pixels, x right, y down) of the pixels at least half on a mover; -1 -1 -1 -1 "
+        "when none"
+    ]
+    for i, (fraction, (x0, y0, x1, y1)) in enumerate(stats):
+        lines.append(f"{i} {fraction:.6f} {x0} {y0} {x1} {y1}")
+    return lines
+
+
+def mover_tum_lines(mover: Mover, T_w_c0: Matrix4) -> list[str]:
+    """TUM lines of a mover's pose in the ground truth's ``world`` (the optical frame of frame 0)."""
+    lines = [
+        f"# timestamp tx ty tz qx qy qz qw: pose of the mover {mover.name!r} (its own frame: origin at the "
+        "centre of its footprint on the ground, x right, y down, z forward at rest) in the optical frame of "
+        "camera frame 0 (the ground truth's world), metres; stamps equal the bag image stamps"
+    ]
+    T_c0_w = invert_se3(T_w_c0)
+    for i, T_w_o in enumerate(mover.T_w_o):
+        T = T_c0_w @ T_w_o
+        q = quat_xyzw_from_rotation(T[:3, :3])
+        values = " ".join(f"{v:.9f}" for v in (*T[:3, 3], *q))
+        lines.append(f"{format_stamp(stamp_ns(i))} {values}")
+    return lines
 
 
 # --- renderer -------------------------------------------------------------------------------------------
@@ -912,11 +1131,14 @@ def sensor_image(ideal: FloatImage, noise_rng: np.random.Generator | None) -> ND
 @dataclass(frozen=True)
 class RenderResult:
     """A noise-free rendering: ``image`` (H, W) float32 gray levels after the optics, ``coverage`` (H, W) fraction of
-    sub-pixels that hit a quad, ``depth`` (H, W) mean z in the camera frame of the covered sub-pixels."""
+    sub-pixels that hit a quad, ``depth`` (H, W) mean z in the camera frame of the covered sub-pixels, and
+    (when moving quads were given) ``mover_coverage`` (H, W) fraction of sub-pixels whose visible surface
+    is a moving quad."""
 
     image: FloatImage
     coverage: FloatImage
     depth: FloatImage
+    mover_coverage: FloatImage | None = None
 
 
 class Renderer:
@@ -928,24 +1150,34 @@ class Renderer:
         self.supersample = supersample
         self._xn, self._yn = pixel_rays(camera, supersample)
 
-    def render_ideal(self, T_w_c: Matrix4) -> RenderResult:
-        """Noise-free image of the scene seen from ``T_w_c`` (4, 4), with coverage and depth."""
+    def render_ideal(self, T_w_c: Matrix4, moving_quads: Sequence[Quad] = ()) -> RenderResult:
+        """Noise-free image of the scene seen from ``T_w_c`` (4, 4), with coverage and depth.
+
+        ``moving_quads`` (already placed in the world for this frame, ``BagSpec.moving_quads_at``) are
+        z-buffered against the static scene; the result then also holds their per-pixel coverage.
+        """
         T_c_w = invert_se3(np.asarray(T_w_c, dtype=np.float64))
         R_c_w, t_c_w = T_c_w[:3, :3], T_c_w[:3, 3]
         shape = self._xn.shape
         zbuf = np.full(shape, np.inf)
         image = np.zeros(shape, np.float32)
+        on_mover = np.zeros(shape, bool) if moving_quads else None
         for quad in self.quads:
-            self._draw_quad(quad, R_c_w, t_c_w, zbuf, image)
+            self._draw_quad(quad, R_c_w, t_c_w, zbuf, image, on_mover, False)
+        for quad in moving_quads:
+            self._draw_quad(quad, R_c_w, t_c_w, zbuf, image, on_mover, True)
         covered = np.isfinite(zbuf)
         s = self.supersample
         size = (self.camera.width, self.camera.height)
+        mover_coverage = None
+        if on_mover is not None:
+            mover_coverage = cv2.resize(on_mover.astype(np.float32), size, interpolation=cv2.INTER_AREA)
         coverage = cv2.resize(covered.astype(np.float32), size, interpolation=cv2.INTER_AREA)
         depth_sum = cv2.resize(np.where(covered, zbuf, 0.0).astype(np.float32), size, interpolation=cv2.INTER_AREA)
         depth = np.where(coverage > 0, depth_sum / np.maximum(coverage, 1.0 / (s * s)), np.inf).astype(np.float32)
         small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
         blurred = cv2.GaussianBlur(small, (0, 0), LENS_BLUR_SIGMA_PX, borderType=cv2.BORDER_REFLECT)
-        return RenderResult(blurred, coverage, depth)
+        return RenderResult(blurred, coverage, depth, mover_coverage)
 
     def render(self, T_w_c: Matrix4, noise_rng: np.random.Generator | None = None) -> NDArray[np.uint8]:
         """uint8 image from ``T_w_c`` (4, 4); sensor noise when a generator is given, none otherwise."""
@@ -958,8 +1190,11 @@ class Renderer:
         t_c_w: NDArray[np.float64],
         zbuf: NDArray[np.float64],
         image: FloatImage,
+        on_mover: NDArray[np.bool_] | None = None,
+        is_mover: bool = False,
     ) -> None:
-        """Ray-cast one quad into the supersampled ``image`` where it is nearer than ``zbuf`` (both updated)."""
+        """Ray-cast one quad into the supersampled ``image`` where it is nearer than ``zbuf`` (both updated);
+        where it is drawn, ``on_mover`` (if given) records whether the quad is a moving one."""
         origin_c = R_c_w @ np.asarray(quad.origin_w) + t_c_w
         eu_c = R_c_w @ np.asarray(quad.edge_u_w)
         ev_c = R_c_w @ np.asarray(quad.edge_v_w)
@@ -1009,6 +1244,8 @@ class Renderer:
         image_window = image[window]
         image_window[visible] = shaded[visible]
         zbuf_window[visible] = z[visible]
+        if on_mover is not None:
+            on_mover[window][visible] = is_mover
 
 
 def _gradients(
@@ -1201,6 +1438,8 @@ class BagSummary:
     floor_fraction_median: float | None = None
     max_floor_flow_px: float | None = None
     wheel_messages: int = 0
+    mover_fractions: tuple[float, ...] = ()  # bags with movers: share of mover pixels per frame
+    mover_clearance_m: float | None = None
 
 
 def make_bag(spec: BagSpec, out_dir: Path) -> BagSummary:
@@ -1216,6 +1455,14 @@ def make_bag(spec: BagSpec, out_dir: Path) -> BagSummary:
     if clearance < spec.min_clearance_m:
         msg = f"{spec.name}: a camera comes {clearance:.2f} m from the scene (minimum {spec.min_clearance_m} m)"
         raise SceneError(msg)
+    for mover in spec.movers:
+        if mover.T_w_o.shape != spec.T_w_c.shape:
+            msg = f"{spec.name}: mover {mover.name!r} has {len(mover.T_w_o)} poses for {len(spec.T_w_c)} frames"
+            raise SceneError(msg)
+    mover_clearance = mover_clearance_m(spec)
+    if mover_clearance < spec.min_clearance_m:
+        msg = f"{spec.name}: a mover comes {mover_clearance:.2f} m from the camera (minimum {spec.min_clearance_m} m)"
+        raise SceneError(msg)
     floor_flow = None
     if spec.floor_y_m is not None:
         floor_flow = max_floor_flow_px(spec.camera, spec.T_w_c, spec.floor_y_m)
@@ -1223,6 +1470,7 @@ def make_bag(spec: BagSpec, out_dir: Path) -> BagSummary:
             msg = f"{spec.name}: a floor point moves {floor_flow:.1f} px in a frame (at most {MAX_FLOOR_FLOW_PX})"
             raise SceneError(msg)
     floor_fractions: list[float] = []
+    mover_frames: list[tuple[float, tuple[int, int, int, int]]] = []
     wheel = spec.wheel_odom
     renderer = Renderer(spec.quads, spec.camera)
     rng = np.random.default_rng(spec.noise_seed)
@@ -1251,7 +1499,9 @@ def make_bag(spec: BagSpec, out_dir: Path) -> BagSummary:
                 next_wheel += 1
 
         for i, T_w_c in enumerate(spec.T_w_c):
-            ideal = renderer.render_ideal(T_w_c)
+            ideal = renderer.render_ideal(T_w_c, spec.moving_quads_at(i))
+            if ideal.mover_coverage is not None:
+                mover_frames.append(mover_stats(ideal.mover_coverage))
             if float(ideal.coverage.min()) < 1.0:
                 msg = f"{spec.name}: frame {i} has pixels that see no quad"
                 raise SceneError(msg)
@@ -1270,6 +1520,11 @@ def make_bag(spec: BagSpec, out_dir: Path) -> BagSummary:
     (bag_root / "groundtruth_tum.txt").write_text("\n".join(tum_lines(T_c0_ci)) + "\n")
     if wheel is not None:
         (bag_root / "wheel_odom_tum.txt").write_text("\n".join(wheel_tum_lines(wheel)) + "\n")
+    if spec.movers:
+        (bag_root / "mover_coverage.txt").write_text("\n".join(mover_coverage_lines(mover_frames)) + "\n")
+        for mover in spec.movers:
+            lines = mover_tum_lines(mover, spec.T_w_c[0])
+            (bag_root / f"{mover.name}_pose_tum.txt").write_text("\n".join(lines) + "\n")
 
     steps = np.diff(spec.T_w_c[:, :3, 3], axis=0)
     cos_angles = (np.trace(T_c0_ci[:, :3, :3], axis1=1, axis2=2) - 1.0) / 2.0
@@ -1287,6 +1542,8 @@ def make_bag(spec: BagSpec, out_dir: Path) -> BagSummary:
         float(np.median(floor_fractions)) if floor_fractions else None,
         floor_flow,
         0 if wheel is None else len(wheel.stamps_ns),
+        tuple(fraction for fraction, _ in mover_frames),
+        mover_clearance if spec.movers else None,
     )
 
 
@@ -1310,6 +1567,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
         if summary.wheel_messages:
             print(f"  {summary.wheel_messages} wheel odometry messages on {WHEEL_ODOM_TOPIC}")
+        if summary.mover_fractions:
+            fractions = np.array(summary.mover_fractions)
+            seen = fractions[fractions > 0.0]
+            print(
+                f"  mover: on {seen.size}/{fractions.size} frames, share of the pixels min {fractions.min():.1%}, "
+                f"median {np.median(fractions):.1%}, max {fractions.max():.1%} (median {np.median(seen):.1%} "
+                f"where seen), >= 25 % on {np.mean(fractions >= 0.25):.0%} of the frames; "
+                f"nearest {summary.mover_clearance_m:.2f} m from the camera"
+            )
     return 0
 
 
