@@ -61,11 +61,15 @@ class MotionContext:
     initial_baseline: Callable[[float], float]  # the scale stage: a new map's baseline after dt seconds
 
 
+STATIC_KEEP = 0.6  # a static camera stays static down to this share of static_min_fraction
+
+
 class MotionStage:
     """Turns a model selection into a ``Motion`` (or None with the reason in ``FrameStats``)."""
 
     def __init__(self, cfg: VoConfig) -> None:
         self.cfg = cfg
+        self.static = False  # the last frame was judged static (hysteresis: staying static is easier)
 
     def estimate(self, ctx: MotionContext, sel: ModelSelection, st: FrameStats) -> Motion | None:
         """The pose from the winning model; ``st.model`` says which one it was."""
@@ -97,18 +101,23 @@ class MotionStage:
         geometry, so RANSAC happily explains a mover's motion.
         """
         cfg = self.cfg
+        was_static, self.static = self.static, False
         still = sel.inliers_static
         n = ctx.uv_cur.shape[0]
         if still is None or n == 0:
             return None
         fraction = float(np.count_nonzero(still)) / n
         st.static_score = fraction
-        if self.has_map(ctx.kf) or fraction < cfg.static_min_fraction:
+        # Entering needs the majority; a static camera stays static while a growing mover covers more
+        # of the background (and its occluded tracks), down to STATIC_KEEP of that.
+        needed = cfg.static_min_fraction * (STATIC_KEEP if was_static else 1.0)
+        if self.has_map(ctx.kf) or fraction < needed:
             return None
         K = ctx.kf.camera
         spread = grid_spread(ctx.uv_cur, still, K.width, K.height)
         if spread < cfg.static_min_spread:
             return None
+        self.static = True
         moved = ~still
         st.n_moving = int(np.count_nonzero(moved))
         st.n_inliers = int(np.count_nonzero(still))
