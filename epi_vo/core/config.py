@@ -85,6 +85,9 @@ class VoConfig:
     kf_min_parallax_deg: float = _knob(1.0, "median parallax that makes a new keyframe (deg)", 0.01, 45.0)
     e_pose_min_parallax_deg: float = _knob(
         0.5, "above this median parallax the pose comes from E (scaled by the map), below from the map", 0.0, 45.0)
+    e_map_max_rotation_diff_deg: float = _knob(
+        0.3, "E's rotation further than this from the map points' pose: a mover took E's consensus, the map decides "
+        "(deg)", 0.01, 45.0)
     rotation_only_parallax_deg: float = _knob(
         0.15, "with H chosen, median parallax below this is treated as rotation only (deg)", 0.0, 10.0)
     min_rotation_for_rotation_only_deg: float = _knob(

@@ -61,6 +61,8 @@ class MotionContext:
     initial_baseline: Callable[[float], float]  # the scale stage: a new map's baseline after dt seconds
 
 
+E_MAP_MAX_DIRECTION_DIFF_DEG = 20.0  # E's direction of travel this far from the map's: a mover took E
+MIN_OFF_PLANE_FOR_E_HINT = 5  # E inliers off H's plane needed before E may pick among H's decompositions
 STATIC_KEEP = 0.6  # a static camera stays static down to this share of static_min_fraction
 
 
@@ -180,8 +182,12 @@ class MotionStage:
                 return Motion(TrackingState.INITIALIZING, R_h, zero, covm.block(1e-6, rot_cov), in_h)
         if not self.has_map(kf):
             R_e = None
-            if sel.E is not None and sel.inliers_e is not None:
-                # E on the same correspondences says which of H's decompositions has the true rotation.
+            off_plane = 0 if sel.inliers_e is None else int(np.count_nonzero(sel.inliers_e & ~in_h))
+            if sel.E is not None and sel.inliers_e is not None \
+                    and off_plane >= MIN_OFF_PLANE_FOR_E_HINT:
+                # E on the same correspondences says which of H's decompositions has the true rotation,
+                # when points off the plane constrain it (on a pure plane E is degenerate and just
+                # picks one of H's solutions).
                 R_e, _, inl_e = geo.recover_pose(sel.E, kf.uv[ctx.rows], ctx.uv_cur, K, sel.inliers_e)
                 if np.count_nonzero(inl_e) < cfg.min_inliers:
                     R_e = None
@@ -272,7 +278,13 @@ class MotionStage:
             dir_var = (cfg.score_sigma_px / (K[0, 0] * par_rad)) ** 2 / n
             scale_var = est.rel_spread**2 / max(est.n_used, 1)
             trans_var = est.scale**2 * (dir_var + scale_var)
-            return Motion(TrackingState.TRACKING, R, t0, covm.block(trans_var, rot_cov), inl)
+            disagree = self._map_disagrees(ctx, X, R, t0, st)
+            if disagree is None:
+                return Motion(TrackingState.TRACKING, R, t0, covm.block(trans_var, rot_cov), inl)
+            # E's consensus was taken by something moving: the map's points, from the previous pose, decide.
+            R0, t0 = ctx.T_cur_kf_prev[:3, :3], ctx.T_cur_kf_prev[:3, 3]
+            has_depth = disagree
+            inl = disagree
         refined = geo.refine_pose_pnp(X[has_depth], uv_cur[has_depth], K, R0, t0, cfg.max_reprojection_error_px)
         if refined is None:
             st.reasons.append(f"too few map points to carry the scale ({int(np.count_nonzero(has_depth))})")
@@ -291,6 +303,37 @@ class MotionStage:
         cov_rel[:3, :3] = cov_t
         cov_rel[3:, 3:] = cov_r + np.eye(3) * rot_cov
         return Motion(TrackingState.TRACKING, R_r, t_r, cov_rel, inl)
+
+
+    def _map_disagrees(self, ctx: MotionContext, X: F64, R_e: F64, t_e: F64, st: FrameStats
+                       ) -> NDArray[np.bool_] | None:
+        """None when the map's points agree with E's rotation and direction of travel; else the map points
+        that agree with the pose they give on their own (started from the previous frame's pose), and the
+        reason is noted.
+
+        E alone takes the largest consensus: a mover covering a third of the view can win it. The map's
+        points were triangulated from the static scene before; their pose is the check.
+        """
+        cfg = self.cfg
+        depth = np.isfinite(X[:, 0])
+        if np.count_nonzero(depth) < max(cfg.min_scale_points, 6):
+            return None
+        prev = ctx.T_cur_kf_prev
+        refined = geo.refine_pose_pnp(X[depth], ctx.uv_cur[depth], ctx.kf.camera.K, prev[:3, :3], prev[:3, 3],
+                                      cfg.max_reprojection_error_px)
+        if refined is None or np.count_nonzero(refined[2]) < cfg.min_scale_points:
+            return None
+        angle = rotation_angle_deg(refined[0] @ R_e.T)
+        c_map, c_e = -refined[0].T @ refined[1], -R_e.T @ t_e
+        norms = float(np.linalg.norm(c_map) * np.linalg.norm(c_e))
+        direction = math.degrees(math.acos(np.clip(float(c_map @ c_e) / norms, -1.0, 1.0))) if norms > 0 else 0.0
+        if angle <= cfg.e_map_max_rotation_diff_deg and direction <= E_MAP_MAX_DIRECTION_DIFF_DEG:
+            return None
+        st.reasons.append(f"E disagrees with the map's points by {angle:.2f} deg in rotation, {direction:.0f} deg "
+                          "in direction (a moving object took its consensus?): pose from the map")
+        agree = np.zeros(depth.shape[0], bool)
+        agree[np.flatnonzero(depth)[refined[2]]] = True
+        return agree
 
 
 def grid_spread(uv: F64, mask: NDArray[np.bool_], width: int, height: int, cells: int = 4) -> float:

@@ -64,9 +64,10 @@ def pose_from_homography(H: F64, K: F64, xn_ref: F64, xn_cur: F64, inliers: Mask
     ``prefer_R`` (e.g. the essential matrix's rotation on the same correspondences) resolves the planar
     ambiguity: two decompositions can both put every point in front of both cameras (a floor seen from
     a camera moving forward), and only one has the rotation the other model agrees with. When the
-    winner's rotation is more than 2 deg from it and a solution with at least half the winner's good
-    points is within 2 deg, that solution is taken. (On a pure plane E is degenerate and agrees with no
-    solution: the rule above decides alone.)
+    winner's rotation is more than 1 deg from it and a solution within 0.5 deg has at least a quarter
+    of the winner's good points, that solution is taken (the wrong one of a forward-moving camera sees
+    its points under larger angles, so more pass the triangulation gates). On a pure plane E is
+    degenerate and agrees with no solution: the rule above decides alone.
     """
     _, Rs, ts, _ = cv2.decomposeHomographyMat(H, K)
     idx = np.flatnonzero(inliers)
@@ -84,9 +85,9 @@ def pose_from_homography(H: F64, K: F64, xn_ref: F64, xn_cur: F64, inliers: Mask
     if not results or results[0][0] == 0:
         return None
     if prefer_R is not None:
-        agree = [r for r in results if _angle_deg(r[1].T @ prefer_R) < 2.0]
-        if agree and agree[0] is not results[0] and agree[0][0] >= 0.5 * results[0][0] \
-                and _angle_deg(results[0][1].T @ prefer_R) > 2.0:
+        agree = [r for r in results if _angle_deg(r[1].T @ prefer_R) < 0.5]
+        if agree and agree[0] is not results[0] and agree[0][0] >= 0.25 * results[0][0] \
+                and _angle_deg(results[0][1].T @ prefer_R) > 1.0:
             results = [agree[0]]  # the other model's rotation decides between physically valid solutions
     if len(results) > 1 and results[1][0] >= 0.75 * results[0][0]:
         return None
