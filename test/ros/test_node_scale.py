@@ -9,14 +9,13 @@ from __future__ import annotations
 
 import dataclasses
 import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-from ros_fixtures import RosSession, rclpy_session
+from ros_fixtures import RosSession, rclpy_session, wait_until
 
 from epi_vo.core.config import VoConfig
 from epi_vo.core.frame import FrameResult
@@ -32,15 +31,6 @@ N_FRAMES = 60
 def ros() -> Iterator[RosSession]:
     with rclpy_session() as session:
         yield session
-
-
-def _wait(predicate: Any, timeout_s: float = 120.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.01)
-    return True
 
 
 def _ros_messages() -> tuple[list[tuple[int, Any, Any]], list[Any]]:
@@ -99,7 +89,7 @@ def test_node_takes_metres_from_the_wheel_topic(ros: RosSession, tmp_path: Path)
                 w += 1
             node._on_camera_info(info)
             node._on_image(img)
-            assert _wait(lambda n=i + 1: len(published) >= n), f"frame {i} not published"
+            assert wait_until(lambda n=i + 1: len(published) >= n, 120.0), f"frame {i} not published"
     finally:
         node.destroy_node()
     assert len(published) == N_FRAMES and all(r.has_pose for r in published)
