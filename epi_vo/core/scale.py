@@ -247,6 +247,11 @@ class ScaleSource:
         """Positions are metres (a metric measurement has been taken)."""
         return self.metric_source and self.filter.established
 
+    @property
+    def held(self) -> str:
+        """What happens to the scale while the source gives no measurement (for the reason)."""
+        return "last scale held" if self.filter.established else "scale unknown (VO units)"
+
     def status(self) -> ScaleStatus:
         plane = self.plane
         return ScaleStatus(self.name, self.established, self.filter.total, self.filter.rel_std,
@@ -325,10 +330,9 @@ class GroundPlaneScale(ScaleSource):
                                  min_points=self.min_points, up=up)
         if plane is None:
             n = int(np.count_nonzero(np.isfinite(step.X_cur[:, 0])))
-            held = "last scale held" if self.filter.established else "scale unknown (VO units)"
             where = "of level" if up is None else "of the floor seen so far"
             self.reason = (f"no floor plane among {n} map points (need {self.min_points} within {tilt:g} deg "
-                           f"{where}): {held}")
+                           f"{where}): {self.held}")
             return None
         self._normals.append(plane.normal_up)
         if up is not None:
@@ -422,7 +426,6 @@ class WheelOdometryScale(ScaleSource):
             step[2] *= factor
 
     def measure(self, step: KeyframeStep) -> tuple[float, float] | None:
-        held = "last scale held" if self.filter.established else "scale unknown (VO units)"
         self._steps.append([step.kf_stamp_ns, step.stamp_ns, step.step_length])
         d_wheel = d_vo = 0.0
         n = 0
@@ -431,7 +434,7 @@ class WheelOdometryScale(ScaleSource):
             p1, why1 = self.wheel.position_at(int(t1), self.timeout_ns)
             if p0 is None or p1 is None:
                 if n == 0:
-                    self.reason = f"{why0 or why1}: {held}"
+                    self.reason = f"{why0 or why1}: {self.held}"
                     return None
                 break
             d_wheel += float(np.linalg.norm(p1 - p0))
@@ -441,7 +444,7 @@ class WheelOdometryScale(ScaleSource):
                 break
         if d_wheel < self.window_m or not d_vo > 0:
             self.reason = (f"wheels moved {d_wheel:.3f} m over the last {n} keyframe step(s) (< {self.window_m} m): "
-                           f"{held}")
+                           f"{self.held}")
             return None
         self.reason = ""
         r = self.rel_sigma**2 + (0.01 / d_wheel) ** 2

@@ -149,35 +149,15 @@ def evaluate_trajectory(
     )
 
     gt_path_length = float(traj_gt.path_length)
-    ate_se3_percent = float("nan")
-    traj_se3 = copy.deepcopy(traj_est)
-    try:
-        traj_se3.align(traj_gt, correct_scale=False)
-    except geometry.GeometryException as exc:
-        logger.warning("SE(3) alignment is degenerate, the SE(3) ATE is NaN: %s", exc)
-    else:
-        ape_se3 = APE(PoseRelation.translation_part)
-        ape_se3.process_data((traj_gt, traj_se3))
-        if gt_path_length > 0.0:
-            ate_se3_percent = 100.0 * float(ape_se3.get_statistic(StatisticsType.rmse)) / gt_path_length
+    _, ate_se3, _ = _aligned_ate(traj_est, traj_gt, correct_scale=False)
+    ate_se3_percent = 100.0 * ate_se3 / gt_path_length if gt_path_length > 0.0 else float("nan")
     step_est = np.linalg.norm(np.diff(np.asarray(traj_est.positions_xyz), axis=0), axis=1)
     step_gt = np.linalg.norm(np.diff(np.asarray(traj_gt.positions_xyz), axis=0), axis=1)
     moving = step_gt > 1e-3 * max(float(np.median(step_gt)) if step_gt.size else 0.0, 1e-9)
     step_scale = float(np.median(step_est[moving] / step_gt[moving])) if np.any(moving) else float("nan")
-    ate_rmse = ate_percent = sim3_scale = rpe_trans = float("nan")
-    traj_est_aligned = copy.deepcopy(traj_est)
-    try:
-        # Umeyama on positions: p_gt ~= s * R_gt_est @ p_est + t_gt_est; align() applies it to the copy.
-        _, _, sim3_scale = traj_est_aligned.align(traj_gt, correct_scale=True)
-    except geometry.GeometryException as exc:
-        logger.warning(
-            "Sim(3) alignment is degenerate, ATE and RPE translation are NaN: %s", exc
-        )
-    else:
-        sim3_scale = float(sim3_scale)
-        ape = APE(PoseRelation.translation_part)
-        ape.process_data((traj_gt, traj_est_aligned))
-        ate_rmse = ape.get_statistic(StatisticsType.rmse)
+    ate_percent = rpe_trans = float("nan")
+    traj_est_aligned, ate_rmse, sim3_scale = _aligned_ate(traj_est, traj_gt, correct_scale=True)
+    if traj_est_aligned is not None:
         if gt_path_length > 0.0:
             ate_percent = 100.0 * ate_rmse / gt_path_length
         rpe_t = RPE(
@@ -201,6 +181,22 @@ def evaluate_trajectory(
         ate_se3_percent_of_path=float(ate_se3_percent),
         step_scale_median=step_scale,
     )
+
+
+def _aligned_ate(traj_est: PoseTrajectory3D, traj_gt: PoseTrajectory3D, correct_scale: bool
+                 ) -> tuple[PoseTrajectory3D | None, float, float]:
+    """Umeyama-align a copy of the estimate onto the ground truth (p_gt ~= s * R @ p_est + t; s = 1 for
+    SE(3)) and its APE translation RMSE: (aligned copy, ATE, s), or (None, NaN, NaN) when degenerate."""
+    aligned = copy.deepcopy(traj_est)
+    kind = "Sim(3)" if correct_scale else "SE(3)"
+    try:
+        _, _, scale = aligned.align(traj_gt, correct_scale=correct_scale)
+    except geometry.GeometryException as exc:
+        logger.warning("%s alignment is degenerate, its ATE (and RPE translation) is NaN: %s", kind, exc)
+        return None, float("nan"), float("nan")
+    ape = APE(PoseRelation.translation_part)
+    ape.process_data((traj_gt, aligned))
+    return aligned, float(ape.get_statistic(StatisticsType.rmse)), float(scale)
 
 
 def translation_direction_error(

@@ -10,6 +10,7 @@ import numpy as np
 
 from epi_vo.core.geometry.common import F64, Mask, homogeneous, nearest_rotation, ray_depths
 from epi_vo.core.geometry.triangulation import Triangulation, triangulate
+from epi_vo.core.transforms import rotation_angle_deg
 
 # Distance (in baselines) beyond which recoverPose calls a point 'at infinity'.
 _CHEIRALITY_MAX_DISTANCE = 1.0e7
@@ -85,19 +86,15 @@ def pose_from_homography(H: F64, K: F64, xn_ref: F64, xn_cur: F64, inliers: Mask
     if not results or results[0][0] == 0:
         return None
     if prefer_R is not None:
-        agree = [r for r in results if _angle_deg(r[1].T @ prefer_R) < 0.5]
+        agree = [r for r in results if rotation_angle_deg(r[1].T @ prefer_R) < 0.5]
         if agree and agree[0] is not results[0] and agree[0][0] >= 0.25 * results[0][0] \
-                and _angle_deg(results[0][1].T @ prefer_R) > 1.0:
+                and rotation_angle_deg(results[0][1].T @ prefer_R) > 1.0:
             results = [agree[0]]  # the other model's rotation decides between physically valid solutions
     if len(results) > 1 and results[1][0] >= 0.75 * results[0][0]:
         return None
     _, R, t, tri_in = results[0]
     # Outliers of H are not triangulated: expand back to all N correspondences.
     return R, t, tri_in.expanded(idx, xn_ref.shape[0])
-
-
-def _angle_deg(R: F64) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def parallax_deg(R_cur_ref: F64, xn_ref: F64, xn_cur: F64) -> F64:
