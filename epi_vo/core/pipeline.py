@@ -61,7 +61,7 @@ from epi_vo.core.frame import (
 from epi_vo.core.keyframe import Keyframe, make_keyframe
 from epi_vo.core.mapping import keyframe_map
 from epi_vo.core.selection import select_model
-from epi_vo.core.transforms import invert_T, make_T
+from epi_vo.core.transforms import invert_T, make_T, rotation_angle_deg
 from epi_vo.core.window import WindowedMap
 
 _log = logging.getLogger(__name__)
@@ -85,6 +85,10 @@ class VoPipeline:
         self._next_id = 0  # the next feature track id
         self._T_w_c = np.eye(4)
         self._cov_w_c = np.zeros((6, 6))
+        # The last pose that had a map behind it (tracking): its stamp, pose and covariance, and the
+        # camera's speed there; a restart hands over from it (``_handover_cov``).
+        self._good: tuple[int, F64, F64] | None = None
+        self._good_rates = (0.0, 0.0)  # (map units / s, rad / s) between the last two good poses
         self._kf: Keyframe | None = None
         self._rows = np.zeros(0, np.int64)  # keyframe row of each live track
         self._pts_prev = np.zeros((0, 2), np.float32)
@@ -279,6 +283,8 @@ class VoPipeline:
             self._cov_w_c = covm.compose(kf.cov_w_kf, kf.T_w_kf, motion.cov_rel, motion.t_cur_kf,
                                          motion.R_cur_kf)
             self._T_cur_kf_prev = T_cur_kf
+            if state is TrackingState.TRACKING:
+                self._book_good(stamp_ns)
             if state is TrackingState.INITIALIZING:
                 # Unknown scale: the position is not justified by anything yet.
                 self._cov_w_c = self._cov_w_c.copy()
@@ -377,28 +383,52 @@ class VoPipeline:
         """First frame, or the first frame after a restart: it becomes the keyframe, pose held."""
         first = self._index == 0
         t0 = time.perf_counter()
-        cov = self._cov_w_c.copy()
-        if not first:
-            cov[:3, :3] += np.eye(3) * self.cfg.lost_position_variance
+        cov = self._handover_cov(stamp_ns)
         self._set_keyframe(gray, camera, stamp_ns, cov, np.zeros((0, 2), np.float32), np.zeros((0, 3)),
                            None)
         self._map_origin_w = self._T_w_c[:3, 3].copy()
         st.timings["frontend"] = _ms(t0)
         self._cov_w_c = cov
         st.reasons.append("first frame: reference keyframe set" if first else "new reference keyframe, no map yet")
-        return self._result(stamp_ns, TrackingState.INITIALIZING, True, True, st, t_start)
+        return self._result(stamp_ns, TrackingState.INITIALIZING, True, True, st, t_start, unknown=not first)
 
     def _restart_here(self, gray: NDArray[np.uint8], camera: CameraModel,
                       stamp_ns: int, orb_cur: fe.OrbFeatures | None) -> None:
         """Tracking lost: this frame becomes a keyframe at the held pose, the map is dropped."""
-        cov = self._cov_w_c.copy()
-        cov[:3, :3] += np.eye(3) * self.cfg.lost_position_variance
-        cov[3:, 3:] += np.eye(3) * self.cfg.lost_rotation_variance
+        cov = self._handover_cov(stamp_ns)
         self._cov_w_c = cov
         self._set_keyframe(gray, camera, stamp_ns, cov, np.zeros((0, 2), np.float32), np.zeros((0, 3)),
                            orb_cur)
         self._map_origin_w = self._T_w_c[:3, 3].copy()
         self._fail_count = 0
+
+    def _book_good(self, stamp_ns: int) -> None:
+        """This frame's pose has a map behind it: remember it (and the camera's speed) for a hand-over."""
+        good = self._good
+        if good is not None and stamp_ns > good[0]:
+            dt = (stamp_ns - good[0]) * 1e-9
+            step = float(np.linalg.norm(self._T_w_c[:3, 3] - good[1][:3, 3]))
+            turn = math.radians(rotation_angle_deg(good[1][:3, :3].T @ self._T_w_c[:3, :3]))
+            self._good_rates = (step / dt, turn / dt)
+        self._good = (stamp_ns, self._T_w_c.copy(), self._cov_w_c.copy())
+
+    def _handover_cov(self, stamp_ns: int) -> F64:
+        """Covariance of the held pose a new map starts from (a restart, a reset, a jump back in time).
+
+        It is the covariance of the last pose that had a map behind it, plus the motion the camera may
+        have made since (its last speed and turn rate over the time without a map, 1 sigma), not the
+        'unknown' variance: that one is added to what is published while the new map has no scale
+        (``_result``), so it is never summed over restarts. Before any map: the current covariance.
+        """
+        good = self._good
+        if good is None:
+            return self._cov_w_c.copy()
+        gap_s = max((stamp_ns - good[0]) * 1e-9, 0.0)
+        speed, rate = self._good_rates
+        cov = good[2].copy()
+        cov[:3, :3] += np.eye(3) * (speed * gap_s) ** 2
+        cov[3:, 3:] += np.eye(3) * (rate * gap_s) ** 2
+        return covm.floored(cov)
 
     def _on_failure(self, st: FrameStats) -> bool:
         """Count a frame without a pose; True when tracking must restart from the held pose.
@@ -416,11 +446,13 @@ class VoPipeline:
         return restart
 
     def _result(self, stamp_ns: int, state: TrackingState, has_pose: bool, is_kf: bool, st: FrameStats,
-                t_start: float, *, book: bool = True) -> FrameResult:
+                t_start: float, *, book: bool = True, unknown: bool = False) -> FrameResult:
         if book:
             self._last_stamp_ns = stamp_ns
         self._keep_state_finite(st)
         cov = self._cov_w_c.copy()
+        if unknown:  # a new reference keyframe after a restart: where the camera is, is not known yet
+            cov[:3, :3] += np.eye(3) * self.cfg.lost_position_variance
         if not has_pose:
             cov[:3, :3] += np.eye(3) * self.cfg.lost_position_variance
             cov[3:, 3:] += np.eye(3) * self.cfg.lost_rotation_variance
