@@ -43,6 +43,9 @@ class Motion:
     cov_rel: F64  # 6x6 over (position, rotation) of the current camera in the keyframe frame
     inliers: NDArray[np.bool_]
     new_map: geo.Triangulation | None = None  # set when this frame initialises the map
+    # Correspondences judged to move on their own this frame: they made E's consensus but do not fit
+    # the epipolar geometry of the pose the map's points gave (None: no such check was made).
+    moving: NDArray[np.bool_] | None = None
 
 
 def is_finite(m: Motion) -> bool:
@@ -264,6 +267,7 @@ class MotionStage:
         has_depth = inl & np.isfinite(X[:, 0])
         R0, t0 = ctx.T_cur_kf_prev[:3, :3], ctx.T_cur_kf_prev[:3, 3]
         est: geo.ScaleEstimate | None = None
+        e_inliers: NDArray[np.bool_] | None = None  # set when the map overrules E
         if t_dir is not None:
             R0 = R
             est = geo.scale_from_points(X[has_depth], R, t_dir, xn_cur[has_depth], cfg.min_scale_points)
@@ -284,7 +288,15 @@ class MotionStage:
             # E's consensus was taken by something moving: the map's points, from the previous pose, decide.
             R0, t0 = ctx.T_cur_kf_prev[:3, :3], ctx.T_cur_kf_prev[:3, 3]
             has_depth = disagree
-            inl = disagree
+            e_inliers = inl
+        elif t_dir is not None and np.count_nonzero(has_depth) < cfg.min_scale_points:
+            # E's consensus holds almost none of the map's points: the map's points decide on their own.
+            all_depth = np.isfinite(X[:, 0])
+            if np.count_nonzero(all_depth) >= max(cfg.min_scale_points, 6):
+                has_depth, e_inliers = all_depth, inl
+                R0, t0 = ctx.T_cur_kf_prev[:3, :3], ctx.T_cur_kf_prev[:3, 3]
+                st.reasons.append("E's inliers hold almost none of the map's points (a moving object took its "
+                                  "consensus?): pose from the map")
         refined = geo.refine_pose_pnp(X[has_depth], uv_cur[has_depth], K, R0, t0, cfg.max_reprojection_error_px)
         if refined is None:
             st.reasons.append(f"too few map points to carry the scale ({int(np.count_nonzero(has_depth))})")
@@ -302,7 +314,18 @@ class MotionStage:
         cov_rel = np.zeros((6, 6))
         cov_rel[:3, :3] = cov_t
         cov_rel[3:, 3:] = cov_r + np.eye(3) * rot_cov
-        return Motion(TrackingState.TRACKING, R_r, t_r, cov_rel, inl)
+        moving = None
+        if e_inliers is not None:
+            # The pose is the map's: every correspondence that fits its epipolar geometry is an inlier
+            # (so the static scene without depth yet is triangulated at the next keyframe); those that
+            # made E's consensus and do not fit it move on their own.
+            F = geo.fundamental_from_essential(geo.essential_from_pose(R_r, t_r), K)
+            _, fits = geo.score_fundamental(F, kf.uv[ctx.rows], uv_cur, cfg.score_sigma_px)
+            map_rejected = np.zeros_like(fits)
+            map_rejected[np.flatnonzero(has_depth)[~keep]] = True
+            inl = fits & ~map_rejected
+            moving = e_inliers & ~fits
+        return Motion(TrackingState.TRACKING, R_r, t_r, cov_rel, inl, moving=moving)
 
 
     def _map_disagrees(self, ctx: MotionContext, X: F64, R_e: F64, t_e: F64, st: FrameStats

@@ -66,6 +66,8 @@ from epi_vo.core.window import WindowedMap
 
 _log = logging.getLogger(__name__)
 
+MIN_MOVERS = 8  # features moving together before a group counts as an object moving on its own
+
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
 
@@ -83,6 +85,7 @@ class VoPipeline:
         self._map_origin_w = np.zeros(3)  # where the current map was initialised (odometry frame)
         self._window = WindowedMap(self.cfg.ba_window_keyframes, self.cfg.ba_every_keyframes, self.cfg.score_sigma_px)
         self._next_id = 0  # the next feature track id
+        self._mover_ids = np.zeros(0, np.int64)  # sorted ids of tracks judged to move on their own
         self._T_w_c = np.eye(4)
         self._cov_w_c = np.zeros((6, 6))
         # The last pose that had a map behind it (tracking): its stamp, pose and covariance, and the
@@ -238,28 +241,38 @@ class VoPipeline:
         st.n_tracked = int(rows.shape[0])
 
         motion: mo.Motion | None = None
-        if st.n_tracked < self.cfg.min_inliers:
-            st.reasons.append(f"too few tracked features ({st.n_tracked} < {self.cfg.min_inliers})")
+        # Tracks judged to move on their own stay out of model selection, pose and map while tracked.
+        excluded = self._movers_among(kf, rows)
+        use = ~excluded
+        n_use = int(np.count_nonzero(use))
+        if n_use < self.cfg.min_inliers:
+            st.reasons.append(f"too few tracked features ({n_use} < {self.cfg.min_inliers}"
+                              + (f", {st.n_tracked - n_use} on moving objects)" if n_use < st.n_tracked else ")"))
         else:
             # two-view model selection, then motion (pose and scale)
             t0 = time.perf_counter()
-            sel = select_model(kf.uv[rows], uv_cur, kf.camera.K, self.cfg)
+            rows_u, xn_u, uv_u = (rows, xn_cur, uv_cur) if n_use == rows.shape[0] else \
+                (rows[use], xn_cur[use], uv_cur[use])
+            sel = select_model(kf.uv[rows_u], uv_u, kf.camera.K, self.cfg)
             st.rh = sel.rh
             if sel.F is not None:
                 st.F = sel.F
             if sel.H is not None:
                 st.H = sel.H
             st.timings["models"] = _ms(t0)
-            ctx = mo.MotionContext(kf, rows, xn_cur, uv_cur, self._T_cur_kf_prev, self._scale.initial_baseline)
+            ctx = mo.MotionContext(kf, rows_u, xn_u, uv_u, self._T_cur_kf_prev, self._scale.initial_baseline)
             motion = self._motion.estimate(ctx, sel, st)
             if motion is not None and not mo.is_finite(motion):
                 st.reasons.append("the motion estimate is not finite (check the calibration): no pose this frame")
                 motion = None
-            if motion is not None and motion.state is TrackingState.TRACKING:
-                spread = mo.grid_spread(uv_cur, motion.inliers, camera.width, camera.height)
-                if spread < self.cfg.static_min_spread:
-                    st.reasons.append(f"the pose's inliers are clustered: they cover {spread:.0%} of the image cells "
-                                      "holding features (a moving object may dominate)")
+            if motion is not None and n_use < rows.shape[0]:
+                motion = _expanded(motion, use)
+        self._book_movers(kf, rows, uv_cur, excluded, motion, st)
+        if motion is not None and motion.state is TrackingState.TRACKING:
+            spread = mo.grid_spread(uv_cur, motion.inliers, camera.width, camera.height)
+            if spread < self.cfg.static_min_spread:
+                st.reasons.append(f"the pose's inliers are clustered: they cover {spread:.0%} of the image cells "
+                                  "holding features (a moving object may dominate)")
 
         inl = motion.inliers if motion is not None else np.zeros(rows.shape[0], bool)
         st.matches = Matches(kf.pts[rows].astype(np.float64), pts_cur.astype(np.float64), kf.uv[rows], uv_cur, inl,
@@ -372,6 +385,9 @@ class VoPipeline:
                                  self.cfg, self._orb, orb_cur, ids_tracked, self._next_id)
         if self._kf.ids is not None and self._kf.ids.size:
             self._next_id = max(self._next_id, int(self._kf.ids.max()) + 1)
+        # Movers stay flagged while they are tracked; tracks that ended are forgotten.
+        self._mover_ids = (np.intersect1d(self._mover_ids, self._kf.ids) if self._kf.ids is not None
+                           else np.zeros(0, np.int64))
         self._rows = np.arange(self._kf.n_features, dtype=np.int64)
         self._pts_prev = self._kf.pts
         self._gray_prev = gray
@@ -401,6 +417,32 @@ class VoPipeline:
                            orb_cur)
         self._map_origin_w = self._T_w_c[:3, 3].copy()
         self._fail_count = 0
+
+    def _movers_among(self, kf: Keyframe, rows: NDArray[np.int64]) -> NDArray[np.bool_]:
+        """Which of the tracked rows belong to tracks judged to move on their own."""
+        if kf.ids is None or self._mover_ids.size == 0:
+            return np.zeros(rows.shape[0], bool)
+        return np.isin(kf.ids[rows], self._mover_ids)
+
+    def _book_movers(self, kf: Keyframe, rows: NDArray[np.int64], uv_cur: F64, excluded: NDArray[np.bool_],
+                     motion: mo.Motion | None, st: FrameStats) -> None:
+        """Remember the tracks that moved on their own this frame (a coherent group of at least
+        MIN_MOVERS: E's consensus against the map's pose), and say how many movers are in view and where."""
+        moving = excluded.copy()
+        if motion is not None and motion.moving is not None and np.count_nonzero(motion.moving) >= MIN_MOVERS:
+            moving |= motion.moving
+            if kf.ids is not None:
+                self._mover_ids = np.union1d(self._mover_ids, kf.ids[rows[motion.moving]])
+        n = int(np.count_nonzero(moving))
+        if n == 0:
+            return
+        if st.n_moving == 0:
+            lo, hi = uv_cur[moving].min(axis=0), uv_cur[moving].max(axis=0)
+            st.moving_region = (int(lo[0]), int(lo[1]), int(np.ceil(hi[0])), int(np.ceil(hi[1])))
+            x0, y0, x1, y1 = st.moving_region
+            st.reasons.append(f"{n} tracked features move on their own (x {x0}-{x1}, y {y0}-{y1} px): left out of "
+                              "pose and map")
+        st.n_moving += n
 
     def _book_good(self, stamp_ns: int) -> None:
         """This frame's pose has a map behind it: remember it (and the camera's speed) for a hand-over."""
@@ -523,6 +565,20 @@ def make_scale_source(cfg: VoConfig, wheel: sc.WheelOdometry) -> sc.ScaleSource:
         return sc.WheelOdometryScale(wheel, drift, rel_sigma=cfg.wheel_odometry_rel_sigma,
                                      timeout_s=cfg.wheel_odometry_timeout_s)
     return sc.VoUnitsScale(drift)
+
+
+def _expanded(motion: mo.Motion, use: NDArray[np.bool_]) -> mo.Motion:
+    """A motion estimated on the rows ``use`` spread back over all tracked rows (the others: no
+    inlier, no point, not newly moving)."""
+    n = use.shape[0]
+    inl = np.zeros(n, bool)
+    inl[use] = motion.inliers
+    moving = None
+    if motion.moving is not None:
+        moving = np.zeros(n, bool)
+        moving[use] = motion.moving
+    new_map = motion.new_map.expanded(np.flatnonzero(use), n) if motion.new_map is not None else None
+    return dataclasses.replace(motion, inliers=inl, moving=moving, new_map=new_map)
 
 
 def _ms(t0: float) -> float:
