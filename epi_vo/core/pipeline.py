@@ -86,6 +86,7 @@ class VoPipeline:
         self._window = WindowedMap(self.cfg.ba_window_keyframes, self.cfg.ba_every_keyframes, self.cfg.score_sigma_px)
         self._next_id = 0  # the next feature track id
         self._mover_ids = np.zeros(0, np.int64)  # sorted ids of tracks judged to move on their own
+        self._anchor: sc.WindowAnchor | None = None  # the scale source's anchor of the newest keyframe step
         self._T_w_c = np.eye(4)
         self._cov_w_c = np.zeros((6, 6))
         # The last pose that had a map behind it (tracking): its stamp, pose and covariance, and the
@@ -317,6 +318,7 @@ class VoPipeline:
         X_cur = keyframe_map(self.cfg, motion, kf, rows, xn_cur, stamp_ns, st)
         if X_cur is None:
             return False
+        self._anchor = None
         t = motion.t_cur_kf
         if motion.state is TrackingState.TRACKING:
             X_cur, t = self._metric_step(motion, kf, X_cur, stamp_ns)
@@ -331,17 +333,19 @@ class VoPipeline:
         ids_tracked = kf.ids[rows] if kf.ids is not None else None
         self._set_keyframe(gray, camera, stamp_ns, cov, pts_cur, X_cur, orb_cur, ids_tracked)
         if motion.state is TrackingState.TRACKING:
-            self._adjust_window(st)
+            self._adjust_window(st, ids_tracked)
         else:
             self._window.clear()
         return True
 
-    def _adjust_window(self, st: FrameStats) -> None:
+    def _adjust_window(self, st: FrameStats, ids_tracked: NDArray[np.int64] | None) -> None:
         """Windowed bundle adjustment (``epi_vo.core.window``) when it is due: the new keyframe, and the
-        current pose with it, take the adjusted pose and map points."""
+        current pose with it, take the adjusted pose and map points. The scale source's anchor of this
+        keyframe (floor points and camera height, or the wheel position; about its tracked rows,
+        ``ids_tracked``) becomes a scale prior."""
         kf = self._kf
         assert kf is not None
-        self._window.add(kf.T_w_kf, kf.ids, kf.xn, kf.X_kf)
+        self._window.add(kf.T_w_kf, kf.ids, kf.xn, kf.X_kf, self._anchor, ids_tracked)
         if not self._window.due():
             return
         t0 = time.perf_counter()
@@ -362,7 +366,9 @@ class VoPipeline:
             self._map_origin_w = kf.T_w_kf[:3, 3].copy()
             self._scale.on_new_map()
         was_metric = self._scale.established
-        factor = self._scale.correction(sc.KeyframeStep(X_cur, float(np.linalg.norm(t)), kf.stamp_ns, stamp_ns))
+        step = sc.KeyframeStep(X_cur, float(np.linalg.norm(t)), kf.stamp_ns, stamp_ns)
+        factor = self._scale.correction(step)
+        self._anchor = self._scale.anchor(step)
         if factor == 1.0:
             return X_cur, t
         t = t * factor

@@ -161,6 +161,18 @@ def fit_ground_plane(X: F64, *, max_tilt_deg: float, inlier_ratio: float, min_po
     return GroundPlane(n, h, int(P.shape[0]), rel_std)
 
 
+@dataclass(frozen=True)
+class WindowAnchor:
+    """A keyframe's metric anchor for the windowed bundle adjustment: the rows of its map points that
+    lie on the floor, with the camera height above it (``ground_plane``), or the wheel odometry position
+    at its stamp with the relative sigma of wheel distances (``wheel_odometry``)."""
+
+    floor_rows: NDArray[np.bool_] | None = None
+    camera_height_m: float = math.nan
+    wheel_xyz: F64 | None = None
+    wheel_rel_sigma: float = math.nan
+
+
 class ScaleFilter:
     """Robust filter of the current map's scale error, in log space.
 
@@ -295,6 +307,11 @@ class ScaleSource:
     def on_corrected(self, factor: float) -> None:
         """The map was just scaled by ``factor`` (1.0: unchanged)."""
 
+    def anchor(self, step: KeyframeStep) -> WindowAnchor | None:
+        """What this source knows in metres about the keyframe of ``step`` (after its correction), for
+        the windowed bundle adjustment's scale priors; None: nothing (or no metric scale yet)."""
+        return None
+
 
 class VoUnitsScale(ScaleSource):
     """Scale in VO units: baseline 1 for the first map, then the last keyframe speed carries it on."""
@@ -315,6 +332,13 @@ class GroundPlaneScale(ScaleSource):
         self.min_points = min_points
         self.reason = "ground plane not seen yet: scale unknown (VO units)"
         self._normals: deque[F64] = deque(maxlen=7)
+        self._plane_stamp_ns = -1  # stamp of the keyframe whose floor ``self.plane`` is
+        self._floor_rows: NDArray[np.bool_] | None = None  # its map points on that floor (scale-free)
+
+    def anchor(self, step: KeyframeStep) -> WindowAnchor | None:
+        if not self.established or self._floor_rows is None or self._plane_stamp_ns != step.stamp_ns:
+            return None
+        return WindowAnchor(floor_rows=self._floor_rows, camera_height_m=self.camera_height_m)
 
     def _expected_up(self) -> tuple[F64 | None, float]:
         """The floor normal seen over the last keyframes (the camera's mounting changes little), and how
@@ -345,6 +369,10 @@ class GroundPlaneScale(ScaleSource):
                 self.reason = "floor plane above the camera: ignored"
                 return None
         self.plane = plane
+        self._plane_stamp_ns = step.stamp_ns
+        with np.errstate(invalid="ignore"):
+            dist = np.abs(np.einsum("ij,j->i", step.X_cur, plane.normal_up) + plane.height)
+            self._floor_rows = dist < self.inlier_ratio * plane.height
         self.reason = ""
         # A floor fit is only as good as the map's depth: 2 % per keyframe at least.
         r = plane.rel_std**2 + 0.02**2
@@ -424,6 +452,12 @@ class WheelOdometryScale(ScaleSource):
     def on_corrected(self, factor: float) -> None:
         for step in self._steps:
             step[2] *= factor
+
+    def anchor(self, step: KeyframeStep) -> WindowAnchor | None:
+        if not self.established:
+            return None
+        xyz, _ = self.wheel.position_at(step.stamp_ns, self.timeout_ns)
+        return None if xyz is None else WindowAnchor(wheel_xyz=xyz, wheel_rel_sigma=self.rel_sigma)
 
     def measure(self, step: KeyframeStep) -> tuple[float, float] | None:
         self._steps.append([step.kf_stamp_ns, step.stamp_ns, step.step_length])

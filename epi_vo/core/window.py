@@ -17,6 +17,7 @@ without gtsam is a ConfigError saying what to install.
 from __future__ import annotations
 
 import importlib
+import itertools
 from collections import deque
 from dataclasses import dataclass
 from types import ModuleType
@@ -26,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from epi_vo.core.errors import ConfigError
+from epi_vo.core.scale import WindowAnchor
 from epi_vo.core.transforms import invert_T
 
 if TYPE_CHECKING:
@@ -43,6 +45,8 @@ class _Entry:
     ids: I64
     xn: F64
     X_kf: F64
+    anchor: WindowAnchor | None = None  # what the scale source knows in metres about this keyframe
+    floor_ids: I64 | None = None  # track ids of its map points on the floor (ground_plane anchor)
 
 
 @dataclass(frozen=True)
@@ -80,10 +84,16 @@ class WindowedMap:
         self._entries.clear()
         self._since = 0
 
-    def add(self, T_w_kf: F64, ids: I64 | None, xn: F64, X_kf: F64) -> None:
+    def add(self, T_w_kf: F64, ids: I64 | None, xn: F64, X_kf: F64, anchor: WindowAnchor | None = None,
+            anchor_ids: I64 | None = None) -> None:
+        """A new keyframe; ``anchor`` (with ``anchor_ids``, the track ids of the rows its ``floor_rows``
+        speak of) becomes a scale prior of the adjustments."""
         if self.size <= 0 or ids is None:
             return
-        self._entries.append(_Entry(T_w_kf.copy(), ids.copy(), xn.copy(), X_kf.copy()))
+        floor_ids = None
+        if anchor is not None and anchor.floor_rows is not None and anchor_ids is not None:
+            floor_ids = anchor_ids[anchor.floor_rows[: anchor_ids.shape[0]]]
+        self._entries.append(_Entry(T_w_kf.copy(), ids.copy(), xn.copy(), X_kf.copy(), anchor, floor_ids))
         self._since += 1
 
     def due(self) -> bool:
@@ -144,7 +154,41 @@ def _build(bundle_module: ModuleType, entries: list[_Entry], sigma_px: float, fx
         obs_kf.append(np.full(rows.size, k, np.int64))
         obs_pt.append(pos[rows])
         obs_xn.append(e.xn[rows])
+    distances, plane = _scale_priors(bundle_module, entries, ids)
+    # With a metric prior only the oldest keyframe holds the gauge and the priors carry the scale;
+    # without one the two oldest fix it (the scale stage's corrections are already in them).
+    n_fixed = 1 if distances or plane is not None else min(2, len(entries) - 1)
     window = bundle_module.Window(np.stack([e.T_w_kf for e in entries]), pts_w, np.concatenate(obs_kf),
-                           np.concatenate(obs_pt), np.concatenate(obs_xn), sigma_px, fx,
-                           n_fixed=min(2, len(entries) - 1))
+                                  np.concatenate(obs_pt), np.concatenate(obs_xn), sigma_px, fx, n_fixed=n_fixed,
+                                  distance_priors=distances, plane_prior=plane)
     return window, ids
+
+
+MIN_FLOOR_POINTS = 8  # adjusted floor points needed before the floor becomes a prior
+FLOOR_HEIGHT_REL_SIGMA = 0.02  # the camera height above the floor, relative (mounting, tyres, suspension)
+FLOOR_ROUGHNESS_REL = 0.02  # floor points off the plane, relative to the camera height
+WHEEL_MIN_SIGMA_M = 0.005  # wheel distance noise floor (encoder resolution, stamp jitter)
+
+
+def _scale_priors(bundle_module: ModuleType, entries: list[_Entry], ids: I64
+                  ) -> tuple[tuple[bundle.DistancePrior, ...], bundle.PlanePrior | None]:
+    """The scale source's anchors as priors: wheel distances between consecutive anchored keyframes,
+    and the floor (its points among the adjusted ones, the camera height above it)."""
+    distances = []
+    wheel = [(k, e.anchor) for k, e in enumerate(entries) if e.anchor is not None and e.anchor.wheel_xyz is not None]
+    for (i, a), (j, b) in itertools.pairwise(wheel):
+        assert a.wheel_xyz is not None and b.wheel_xyz is not None
+        d = float(np.linalg.norm(b.wheel_xyz - a.wheel_xyz))
+        if d > WHEEL_MIN_SIGMA_M:
+            distances.append(bundle_module.DistancePrior(i, j, d, max(a.wheel_rel_sigma * d, WHEEL_MIN_SIGMA_M)))
+    plane = None
+    floor = [e for e in entries if e.floor_ids is not None and e.anchor is not None]
+    if floor:
+        floor_ids = np.unique(np.concatenate([e.floor_ids for e in floor if e.floor_ids is not None]))
+        rows = np.flatnonzero(np.isin(ids, floor_ids))
+        if rows.size >= MIN_FLOOR_POINTS:
+            assert floor[-1].anchor is not None
+            h = floor[-1].anchor.camera_height_m
+            plane = bundle_module.PlanePrior(rows.astype(np.int64), h, FLOOR_HEIGHT_REL_SIGMA * h,
+                                             FLOOR_ROUGHNESS_REL * h)
+    return tuple(distances), plane

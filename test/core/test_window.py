@@ -110,3 +110,59 @@ def test_window_without_gtsam_is_a_config_error_naming_it(monkeypatch: pytest.Mo
     WindowedMap(size=0, every=1, sigma_px=1.0)  # off: gtsam not needed
     with pytest.raises(ConfigError, match=r"ba_window_keyframes=4 needs the gtsam Python package"):
         WindowedMap(size=4, every=1, sigma_px=1.0)
+
+
+def _scaled(T: np.ndarray, s: float) -> np.ndarray:
+    out = T.copy()
+    out[:3, 3] *= s
+    return out
+
+
+def test_wheel_distances_set_the_window_scale() -> None:
+    """The map is 20 % too small; the wheel positions at the keyframes (metres) are exact: with them as
+    distance priors only the oldest keyframe holds the gauge and the newest moves to metric scale."""
+    from epi_vo.core.scale import WindowAnchor
+
+    poses, pts = _scene()
+    rng = np.random.default_rng(4)
+    win = WindowedMap(size=5, every=1, sigma_px=1.0)
+    ids_all = np.arange(pts.shape[0])
+    for k, T in enumerate(poses):
+        ids = ids_all[(ids_all + k) % 7 != 0]
+        xn, X = _entry(T, pts, ids, rng, noise=0.0)
+        anchor = WindowAnchor(wheel_xyz=T[:3, 3].copy(), wheel_rel_sigma=0.01)
+        win.add(_scaled(T, 0.8), ids, xn, X * 0.8, anchor, ids)
+    update = win.adjust(500.0)
+    assert update is not None
+    np.testing.assert_allclose(update.T_w_kf[:3, 3], poses[-1][:3, 3], atol=0.03)  # 2.6 m from the first
+    # Without the anchors the two oldest keyframes keep the map's (wrong) scale.
+    plain = WindowedMap(size=5, every=1, sigma_px=1.0)
+    for k, T in enumerate(poses):
+        ids = ids_all[(ids_all + k) % 7 != 0]
+        xn, X = _entry(T, pts, ids, rng, noise=0.0)
+        plain.add(_scaled(T, 0.8), ids, xn, X * 0.8)
+    kept = plain.adjust(500.0)
+    assert kept is not None
+    np.testing.assert_allclose(kept.T_w_kf[:3, 3], 0.8 * poses[-1][:3, 3], atol=0.03)
+
+
+def test_floor_points_and_camera_height_set_the_window_scale() -> None:
+    """A floor 1.5 m below level cameras, the map 25 % too large: the keyframes' floor rows with the
+    camera height as a plane prior bring the newest keyframe to metres."""
+    from epi_vo.core.scale import WindowAnchor
+
+    rng = np.random.default_rng(5)
+    poses = [make_T(_rot_y(1.5 * k), np.array([0.5 * k, 0.0, 0.3 * k])) for k in range(5)]
+    n_floor, n_wall = 60, 80
+    floor = np.column_stack([rng.uniform(-3, 4, n_floor), np.full(n_floor, 1.5), rng.uniform(3, 9, n_floor)])
+    wall = np.column_stack([rng.uniform(-3, 5, n_wall), rng.uniform(-2, 1, n_wall), rng.uniform(5, 9, n_wall)])
+    pts = np.vstack([floor, wall])
+    ids = np.arange(pts.shape[0])
+    win = WindowedMap(size=5, every=1, sigma_px=1.0)
+    for T in poses:
+        xn, X = _entry(T, pts, ids, rng, noise=0.0)
+        anchor = WindowAnchor(floor_rows=ids < n_floor, camera_height_m=1.5)
+        win.add(_scaled(T, 1.25), ids, xn, X * 1.25, anchor, ids)
+    update = win.adjust(500.0)
+    assert update is not None
+    np.testing.assert_allclose(update.T_w_kf[:3, 3], poses[-1][:3, 3], atol=0.04)
