@@ -20,10 +20,12 @@ import contextlib
 import json
 import logging
 import math
+import os
 import signal
 import threading
+import time
 from collections.abc import Callable, Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import MISSING, asdict, dataclass, field, fields
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
@@ -78,6 +80,9 @@ class ReplaySummary:
     metric_from_frame: int | None = None  # first frame whose position was metric
     skipped_messages: list[str] = field(default_factory=list)  # camera_info / ground truth not decodable,
     # image messages announced by the bag but not read
+    wall_s: float = 0.0  # run_replay from start to finish (opening the bag .. evaluation), seconds
+    end_to_end_fps: float = 0.0  # frames / wall_s: reading, decoding, VO, writing, evaluation (process start-up
+    # and imports excluded)
 
     @property
     def has_problems(self) -> bool:
@@ -86,6 +91,32 @@ class ReplaySummary:
 
     def to_json(self) -> dict[str, Any]:
         return _jsonable(asdict(self))
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> ReplaySummary:
+        """The summary a ``stats.json`` holds (keys it does not know are ignored; a field missing from an
+        older file takes its default). Raises OutputError when a required field is missing."""
+        names = {f.name for f in fields(cls)}
+        missing = sorted(f.name for f in fields(cls)
+                         if f.name not in data and f.default is MISSING and f.default_factory is MISSING)
+        if missing:
+            raise OutputError(f"not a stats.json of epi-vo replay: no {', '.join(missing)}")
+        values = {k: v for k, v in data.items() if k in names}
+        for name in ("ms_per_frame", "tracked_percent", "path_length", "wall_s", "end_to_end_fps"):
+            if name in values and values[name] is None:  # written as null when it was not finite
+                values[name] = math.nan
+        return cls(**values)
+
+    def problem_line(self) -> str:
+        """One line: how many of the frames read were rejected and the first problem, then what was skipped
+        (empty when there was no problem)."""
+        parts = []
+        if self.rejected:
+            others = f" (and {len(self.rejected) - 1} other problem(s))" if len(self.rejected) > 1 else ""
+            parts.append(f"{self.rejected_frames} of {self.frames} frames rejected: {self.rejected[0]}{others}")
+        if self.skipped_messages:
+            parts.append(f"{len(self.skipped_messages)} message(s) skipped: {self.skipped_messages[0]}")
+        return " ".join("; ".join(parts).split())
 
 
 def _jsonable(x: Any) -> Any:
@@ -101,7 +132,8 @@ def _jsonable(x: Any) -> Any:
 def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | None = None, *,
                image_topic: str | None = None, camera_info_topic: str | None = None,
                gt_tum: str | Path | None = None, progress: bool = False,
-               on_result: Callable[[FrameResult], None] | None = None) -> ReplaySummary:
+               on_result: Callable[[FrameResult], None] | None = None,
+               on_open: Callable[[int], None] | None = None) -> ReplaySummary:
     """Replay every image of a bag through the pipeline and write the outputs (see module doc).
 
     A frame that cannot be used (undecodable message or image, header stamp that is no ROS time,
@@ -109,19 +141,23 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     (``FrameResult`` of state lost) and replay goes on; ``ReplaySummary.rejected`` lists the problems,
     ``rejected_frames`` counts those frames, ``skipped_messages`` lists camera_info / ground-truth
     messages that could not be decoded and images the bag announces but that could not be read.
+    ``on_result`` is called with each frame's result once its outputs are written (an exception it raises
+    ends the replay with the outputs finalised), ``on_open`` with the bag's announced frame count.
 
     Raises:
         BagError: unreadable or empty bag, missing or ambiguous topics.
         OutputError: the output directory or a file in it cannot be created or written.
         Interrupted: SIGINT, SIGTERM or SIGHUP arrived; raised between two frames, outputs finalised.
     """
+    started = time.perf_counter()
     cfg = cfg or VoConfig()
     out = _output_dir(output_dir)
+    _remove_stats(out)  # stats.json is written last: without it the directory holds no finished replay
     pipeline = VoPipeline(cfg)
     converter = OdometryConverter()
     cameras = CameraModelCache()
     results_pose: list[tuple[float, np.ndarray, np.ndarray]] = []
-    path_poses: collections.deque[tuple[int, np.ndarray, np.ndarray]] = collections.deque(maxlen=PATH_MAX_POSES)
+    path_poses = _PathWindow(PATH_MAX_POSES)
     states: collections.Counter[str] = collections.Counter()
     models: collections.Counter[str] = collections.Counter()
     stage_times: dict[str, list[float]] = collections.defaultdict(list)
@@ -140,6 +176,8 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                 _open_output(out / "frames.jsonl") as frames_f, _open_output(out / "trajectory.tum") as tum_f, \
                 outbag.OutputBag(out / "output.mcap", overwrite=True) as obag, \
                 _Progress(progress, bag.frame_count) as bar:
+            if on_open is not None:
+                on_open(bag.frame_count)
             gt = _ground_truth(bag, gt_tum)
             if gt is not None:  # kept beside the estimate so that reports can be made from DIR alone
                 tum.write_tum(out / "groundtruth.tum", *gt[1])
@@ -203,6 +241,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
         except EpiVoError as exc:
             notes.append(f"evaluation skipped: {exc}")
     totals = stage_times.get("total", [0.0])
+    wall_s = time.perf_counter() - started
     summary = ReplaySummary(
         bag=str(bag_path), image_topic=bag.image_topic, camera_info_topic=bag.camera_info_topic,
         frames=n_frames, frames_with_pose=n_pose, tracked_percent=100.0 * n_pose / n_frames, keyframes=n_kf,
@@ -211,12 +250,31 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
         metrics=metrics, gt_source=gt_source, output_dir=str(out), notes=notes, parameters=asdict(cfg),
         rejected=[f"{n} frame(s) from frame {first_rejected[r]}: {r}" for r, n in rejected.items()],
         rejected_frames=sum(rejected.values()), skipped_messages=skipped, scale_source=cfg.scale_source,
-        units=units, metric_from_frame=metric_from)
-    try:
-        (out / "stats.json").write_text(json.dumps(summary.to_json(), indent=2) + "\n")
-    except OSError as exc:
-        raise OutputError(f"cannot write {out / 'stats.json'}: {_os_reason(exc)}") from exc
+        units=units, metric_from_frame=metric_from, wall_s=wall_s, end_to_end_fps=n_frames / max(wall_s, 1e-9))
+    write_stats(out, summary)
     return summary
+
+
+STATS_FILE = "stats.json"
+
+
+def write_stats(out: Path, summary: ReplaySummary) -> None:
+    """``out/stats.json``, atomically (a temporary file renamed over it): it is written last, so its presence
+    means the replay in ``out`` ran to the end (what fleet replay's resume relies on)."""
+    path = out / STATS_FILE
+    tmp = out / f".{STATS_FILE}.tmp"
+    try:
+        tmp.write_text(json.dumps(summary.to_json(), indent=2) + "\n")
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise OutputError(f"cannot write {path}: {_os_reason(exc)}") from exc
+
+
+def _remove_stats(out: Path) -> None:
+    try:
+        (out / STATS_FILE).unlink(missing_ok=True)
+    except OSError as exc:
+        raise OutputError(f"cannot replace {out / STATS_FILE}: {_os_reason(exc)}") from exc
 
 
 def _wheel_topic(cfg: VoConfig) -> str | None:
@@ -384,8 +442,36 @@ def _interrupts_at_frame_boundaries() -> Iterator[_StopRequest]:
             signal.signal(sig, handler)
 
 
+class _PathWindow:
+    """The last ``size`` poses of /vo/path (stamp, position, quat_xyzw) as contiguous arrays without a copy per
+    frame: rows are appended into a buffer twice the window, shifted back to the start when it is full."""
+
+    def __init__(self, size: int) -> None:
+        self._size = size
+        self._stamps = np.zeros(2 * size, dtype=np.int64)
+        self._poses = np.zeros((2 * size, 7))  # x y z, qx qy qz qw
+        self._end = 0
+
+    def append(self, stamp_ns: int, position: np.ndarray, quat_xyzw: np.ndarray) -> None:
+        if self._end == len(self._stamps):
+            keep = self._size - 1
+            self._stamps[:keep] = self._stamps[self._end - keep:self._end]
+            self._poses[:keep] = self._poses[self._end - keep:self._end]
+            self._end = keep
+        self._stamps[self._end] = stamp_ns
+        self._poses[self._end, :3] = position
+        self._poses[self._end, 3:] = quat_xyzw
+        self._end += 1
+
+    def window(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """stamps_ns (M,), positions (M, 3), quats_xyzw (M, 4) of the last M <= size poses (views)."""
+        start = max(self._end - self._size, 0)
+        poses = self._poses[start:self._end]
+        return self._stamps[start:self._end], poses[:, :3], poses[:, 3:]
+
+
 def _write_outputs(obag: outbag.OutputBag, converter: OdometryConverter, result: FrameResult,
-                   path_poses: collections.deque[tuple[int, np.ndarray, np.ndarray]]) -> None:
+                   path_poses: _PathWindow) -> None:
     sample = converter.convert(result.stamp_ns, result.T_w_c, result.covariance, result.has_pose)
     obag.write_odometry(result.stamp_ns, ODOM_FRAME, BASE_FRAME, sample.position, sample.quat_xyzw,
                         sample.pose_covariance, sample.linear_velocity, sample.angular_velocity,
@@ -396,10 +482,8 @@ def _write_outputs(obag: outbag.OutputBag, converter: OdometryConverter, result:
         pts_odom = result.points_w @ T[:3, :3].T + T[:3, 3]
         obag.write_points(result.stamp_ns, ODOM_FRAME, pts_odom)
     if result.has_pose:
-        path_poses.append((result.stamp_ns, sample.position, sample.quat_xyzw))
-        stamps = [s for s, _, _ in path_poses]
-        obag.write_path(result.stamp_ns, ODOM_FRAME, stamps, np.array([p for _, p, _ in path_poses]),
-                        np.array([q for _, _, q in path_poses]))
+        path_poses.append(result.stamp_ns, sample.position, sample.quat_xyzw)
+        obag.write_path(result.stamp_ns, ODOM_FRAME, *path_poses.window())
     obag.write_diagnostics(result.stamp_ns, [frame_status(result, "epi_vo", "replay")])
 
 
@@ -434,6 +518,7 @@ def format_summary(s: ReplaySummary) -> str:
         "  models        " + ", ".join(f"{k} {v}" for k, v in sorted(s.models.items())),
         f"  time          {s.ms_per_frame:.2f} ms/frame median (" +
         ", ".join(f"{k} {v:.2f}" for k, v in s.stage_ms.items() if k != "total") + ")",
+        f"  end to end    {s.end_to_end_fps:.1f} frames/s ({s.wall_s:.2f} s: reading, decoding, VO, writing)",
         f"  path length   {s.path_length:.3f} {'m' if s.units == 'm' else '(VO units)'}",
         f"  scale         {s.scale_source}: " + (f"metric from frame {s.metric_from_frame}"
                                                   if s.metric_from_frame is not None else "VO units"),

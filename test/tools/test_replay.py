@@ -15,7 +15,7 @@ from rosbags.typesys import Stores, get_typestore
 from epi_vo.cli import main
 from epi_vo.io import bagio
 from epi_vo.io.msgconv import read_points_xyz
-from epi_vo.tools.replay import ReplaySummary, run_replay
+from epi_vo.tools.replay import ReplaySummary, format_summary, run_replay
 
 REPO = Path(__file__).resolve().parents[2]
 BAGS = REPO / "bags"
@@ -215,3 +215,24 @@ def test_raw_and_compressed_replays_agree(tmp_path: Path) -> None:
     run_replay(src, tmp_path / "out_jpeg")
     tb = np.loadtxt(tmp_path / "out_jpeg" / "trajectory.tum")[:15]
     np.testing.assert_allclose(ta, tb, atol=1e-9)
+
+
+def test_end_to_end_rate_is_reported(general: tuple[ReplaySummary, Path]) -> None:
+    s, out = general
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["wall_s"] > 0 and stats["end_to_end_fps"] == pytest.approx(s.frames / stats["wall_s"])
+    assert ReplaySummary.from_json(stats) == s
+    text = format_summary(s)
+    assert "ms/frame median" in text and f"end to end    {s.end_to_end_fps:.1f} frames/s" in text
+
+
+def test_stats_json_only_for_a_finished_replay(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """stats.json is written last: a replay into a directory that holds one from before removes it first, so a
+    replay that stops early leaves none (what fleet replay's resume relies on)."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "stats.json").write_text("{}")
+    assert main(["replay", str(tmp_path / "missing_bag"), "--output", str(out), "--no-progress"]) == 2
+    assert "bag not found" in capsys.readouterr().err
+    assert not (out / "stats.json").exists()
+    assert not list(out.glob(".*.tmp"))

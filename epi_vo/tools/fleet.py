@@ -1,0 +1,523 @@
+"""Fleet replay: many bags, each replayed in its own process, one summary.
+
+``epi-vo replay BAG... --output OUT --jobs N`` (several bags, a directory holding bags, or a glob) replays
+each bag exactly as a single-bag run would, into ``OUT/<name>/``, then writes ``OUT/summary.csv``,
+``OUT/summary.md`` and, with ``--report``, ``OUT/index.html`` (:mod:`epi_vo.tools.fleet_summary`).
+
+* **Processes.** A ``ProcessPoolExecutor`` (forkserver context where there is one, else spawn; never fork:
+  the parent may hold threads and open bags) with one fresh process per bag (``max_tasks_per_child=1``),
+  so a bag that exhausts memory or crashes OpenCV takes only itself down. A worker that dies breaks the
+  pool: the bags that were then running are retried once in a new pool, and a bag whose worker dies twice
+  is failed ("worker process died").
+* **Complete.** A bag's directory is complete when its replay wrote ``stats.json`` (last, atomically) and
+  ``status.json`` says the fleet finished it, for the same bag and the same parameters; a re-run skips it
+  (``--force`` redoes it; with ``--report`` a missing report is made without replaying).
+* **Signals.** SIGINT, SIGTERM or SIGHUP to the fleet (Ctrl-C reaches every process of the group; a
+  signal to the parent alone is passed on through a shared event): bags not started are not run, running
+  ones stop between two frames with their outputs finalised (as a single-bag replay does) and marked
+  ``interrupted`` in ``status.json``; bags finished before keep their valid outputs. Exit status 130 (129
+  for SIGHUP).
+* **Exit status** otherwise: the number of failed bags (:func:`epi_vo.tools.fleet_summary.exit_code`).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import contextlib
+import glob
+import json
+import logging
+import multiprocessing
+import os
+import queue
+import signal
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from epi_vo.core.config import VoConfig
+from epi_vo.core.errors import BagError, EpiVoError, Interrupted, OutputError
+from epi_vo.tools.fleet_summary import (
+    REPORT_HTML,
+    STATUS_FILE,
+    BagRow,
+    BagStatus,
+    read_stats,
+    read_status,
+    status_of,
+    write_json_atomic,
+    write_summary,
+)
+from epi_vo.tools.replay import ReplaySummary, run_replay
+
+_log = logging.getLogger(__name__)
+
+BAG_SUFFIXES = (".mcap", ".db3")
+PROGRESS_EVERY_S = 0.2  # a worker reports its frames at most this often
+
+
+# --------------------------------------------------------------------------------------------------
+# Which bags
+
+
+def is_bag(path: Path) -> bool:
+    """A rosbag2 directory (with metadata.yaml) or a single .mcap / .db3 file."""
+    return (path.is_dir() and (path / "metadata.yaml").is_file()) or (path.is_file() and path.suffix in BAG_SUFFIXES)
+
+
+def _bags_in(directory: Path) -> list[Path]:
+    """The bags directly in ``directory`` (sub-directories that are bags, .mcap / .db3 files)."""
+    try:
+        return sorted(c for c in directory.iterdir() if is_bag(c))
+    except OSError:
+        return []
+
+
+def is_fleet(args: Sequence[str]) -> bool:
+    """Whether the replay arguments ask for a fleet: several of them, a glob, or one directory holding bags
+    (one argument that is a bag, or names nothing usable, is the single-bag replay)."""
+    if len(args) != 1:
+        return True
+    path = Path(args[0])
+    if not path.exists():
+        return glob.has_magic(args[0])
+    return path.is_dir() and not is_bag(path) and bool(_bags_in(path))
+
+
+def find_bags(args: Sequence[str]) -> list[Path]:
+    """The bags the replay arguments name, in order, each once: bags as given, the bags directly in a directory,
+    and what a glob matches (``**`` recurses); a path that does not exist is kept (its replay fails with
+    "bag not found", the others go on). BagError when a glob matches no bag, or a directory holds none."""
+    found: list[Path] = []
+    for arg in args:
+        literal = Path(arg)
+        if literal.exists() or not glob.has_magic(arg):
+            if literal.is_dir() and not is_bag(literal):
+                inside = _bags_in(literal)
+                if not inside:
+                    raise BagError(f"{literal} is neither a bag nor a directory holding bags")
+                found += inside
+            else:
+                found.append(literal)
+            continue
+        matches = [Path(m) for m in sorted(glob.glob(arg, recursive=True))]
+        bags = [m for m in matches if is_bag(m) and not is_bag(m.parent)]  # not the .mcap inside a bag directory
+        bags += [b for m in matches if m.is_dir() and not is_bag(m) for b in _bags_in(m)]
+        if not bags:
+            raise BagError(f"no bag matches {arg!r}")
+        found += bags
+    unique: dict[Path, Path] = {}
+    for path in found:
+        unique.setdefault(path.resolve() if path.exists() else path.absolute(), path)
+    return list(unique.values())
+
+
+def output_names(bags: Sequence[Path]) -> list[str]:
+    """A directory name per bag: its name (a file's without the suffix); where names repeat, as many parent
+    directories as make them differ, joined by '-' (``general_motion-bag``, ``planar-bag``)."""
+    parts = [list((p.resolve() if p.exists() else p.absolute()).parent.parts[1:]) for p in bags]
+    leaves = [p.stem if p.suffix in BAG_SUFFIXES and not p.is_dir() else p.name for p in bags]
+    depth = [0] * len(bags)
+
+    def name(i: int) -> str:
+        return "-".join([*parts[i][len(parts[i]) - depth[i]:], leaves[i]]) if depth[i] else leaves[i]
+
+    while True:
+        names = [name(i) for i in range(len(bags))]
+        clashes = [i for i, n in enumerate(names) if names.count(n) > 1 and depth[i] < len(parts[i])]
+        if not clashes:
+            break
+        for i in clashes:
+            depth[i] += 1
+    seen: dict[str, int] = {}
+    for i, n in enumerate(names):  # still equal (a dir and a .mcap of one name in one place): numbered
+        seen[n] = seen.get(n, 0) + 1
+        if seen[n] > 1:
+            names[i] = f"{n}-{seen[n]}"
+    return names
+
+
+# --------------------------------------------------------------------------------------------------
+# One bag (in a worker process)
+
+
+@dataclass(frozen=True)
+class FleetJob:
+    """What a worker needs to replay one bag into ``output``."""
+
+    index: int
+    name: str
+    bag: str
+    output: str
+    cfg: VoConfig
+    image_topic: str | None = None
+    camera_info_topic: str | None = None
+    report: bool = False
+    force: bool = False
+
+
+_worker_events: Any = None  # the progress queue of this worker process (set by _init_worker)
+_worker_stop: Any = None  # the fleet's stop event
+
+
+def _init_worker(events: Any, stop: Any, log_level: int) -> None:
+    """In each worker: signals are the fleet's to handle (the parent sets ``stop``); a replay in progress
+    still installs its own handlers, so Ctrl-C at a terminal stops it at a frame boundary. Log records go to
+    stderr as the parent's do, at its level."""
+    global _worker_events, _worker_stop
+    _worker_events, _worker_stop = events, stop
+    logging.basicConfig(level=log_level, format="%(levelname)s %(name)s: %(message)s")
+    for sig in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None)):
+        if sig is not None:
+            signal.signal(sig, signal.SIG_IGN)
+
+
+def _send(*event: Any) -> None:
+    if _worker_events is not None:
+        with contextlib.suppress(Exception):  # progress is best effort: never fail a bag for it
+            _worker_events.put_nowait(event)
+
+
+def parameters_json(cfg: VoConfig) -> Any:
+    """The parameters as ``stats.json`` holds them (JSON types), to compare a finished run's with."""
+    return json.loads(json.dumps(ReplaySummary(
+        bag="", image_topic="", camera_info_topic="", frames=0, frames_with_pose=0, tracked_percent=0.0,
+        keyframes=0, states={}, models={}, ms_per_frame=0.0, stage_ms={}, path_length=0.0,
+        parameters=asdict(cfg)).to_json()["parameters"]))
+
+
+def completed(job: FleetJob) -> ReplaySummary | None:
+    """The finished replay in the job's directory when it is complete for this job (see module doc)."""
+    out = Path(job.output)
+    summary = read_stats(out)
+    status = read_status(out)
+    if summary is None or status.get("status") not in (BagStatus.OK.value, BagStatus.PROBLEMS.value,
+                                                          BagStatus.FAILED.value):
+        return None
+    if summary.bag != job.bag or summary.parameters != parameters_json(job.cfg):
+        return None
+    if job.image_topic not in (None, summary.image_topic) or \
+            job.camera_info_topic not in (None, summary.camera_info_topic):
+        return None
+    return summary
+
+
+def replay_one(job: FleetJob) -> BagRow:
+    """Replay one bag into its directory (in a worker process); never raises for a bad bag: the row says."""
+    out = Path(job.output)
+    _send("start", job.index, os.getpid())
+    for handler in logging.getLogger().handlers:  # one bag per worker: its records say which
+        handler.setFormatter(logging.Formatter(f"%(levelname)s [{job.name}] %(name)s: %(message)s"))
+    if _worker_stop is not None and _worker_stop.is_set():
+        return _row(job, BagStatus.NOT_RUN, "the fleet was interrupted before this bag started", "not run")
+    previous = None if job.force else completed(job)
+    if previous is not None:
+        (status, reason), run = status_of(previous), "skipped: complete"
+        _send("frames", job.index, previous.frames, previous.frames)
+        if job.report and not (out / REPORT_HTML).is_file():
+            problem = _report(out)
+            if problem:
+                return _finish(job, BagStatus.FAILED, problem, "report only", previous)
+            return _finish(job, status, reason, "report only", previous)
+        return _row(job, status, reason, run, previous)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(out / STATUS_FILE, {"bag": job.bag, "name": job.name, "status": BagStatus.RUNNING.value,
+                                              "reason": "", "run": "replayed", "pid": os.getpid()})
+    except OSError as exc:
+        return _row(job, BagStatus.FAILED, f"cannot write in {out}: {exc.strerror or exc}", "replayed")
+    progress = _FrameProgress(job.index)
+    try:
+        summary = run_replay(job.bag, out, job.cfg, image_topic=job.image_topic,
+                             camera_info_topic=job.camera_info_topic, on_result=progress.frame,
+                             on_open=progress.total)
+    except Interrupted as exc:
+        by = "the fleet was interrupted" if _worker_stop is not None and _worker_stop.is_set() else \
+            _signal_name(exc.signum)
+        return _finish(job, BagStatus.INTERRUPTED, f"{by} after {progress.done} frame(s): outputs finalised up to "
+                       "there, not complete", "replayed")
+    except EpiVoError as exc:
+        return _finish(job, BagStatus.FAILED, _one_line(str(exc)), "replayed")
+    except (OSError, UnicodeError) as exc:
+        return _finish(job, BagStatus.FAILED, _one_line(f"{type(exc).__name__}: {exc}"), "replayed")
+    except Exception as exc:  # a bug must not take the other bags down: the row says what it was
+        _log.exception("replay of %s failed", job.bag)
+        return _finish(job, BagStatus.FAILED, _one_line(f"internal error: {type(exc).__name__}: {exc}"), "replayed")
+    finally:
+        progress.flush()
+    status, reason = status_of(summary)
+    if job.report:
+        problem = _report(out)
+        if problem:
+            status, reason = BagStatus.FAILED, problem
+    return _finish(job, status, reason, "replayed", summary)
+
+
+def _report(out: Path) -> str:
+    """Write the bag's report; the problem in one line, or '' when it was written."""
+    try:
+        from epi_vo.tools.report import write_report  # matplotlib and evo: only when reports are asked for
+
+        write_report(out)
+    except (EpiVoError, OSError, ValueError) as exc:
+        return _one_line(f"report: {exc}")
+    return ""
+
+
+class _FrameProgress:
+    """on_result / on_open callbacks of a worker's replay: frames reported in batches, the fleet's stop event
+    checked after every frame (a replay stopped this way finalises its outputs as for a signal)."""
+
+    def __init__(self, index: int) -> None:
+        self._index = index
+        self.done = 0
+        self._unsent = 0
+        self._last = time.monotonic()
+
+    def total(self, frames: int) -> None:
+        _send("total", self._index, frames)
+
+    def frame(self, _result: object) -> None:
+        self.done += 1
+        self._unsent += 1
+        if time.monotonic() - self._last > PROGRESS_EVERY_S:
+            self.flush()
+        if _worker_stop is not None and _worker_stop.is_set():
+            raise Interrupted(signal.SIGINT)
+
+    def flush(self) -> None:
+        if self._unsent:
+            _send("frames", self._index, self._unsent, None)
+            self._unsent = 0
+        self._last = time.monotonic()
+
+
+def _finish(job: FleetJob, status: BagStatus, reason: str, run: str, summary: ReplaySummary | None = None) -> BagRow:
+    row = _row(job, status, reason, run, summary)
+    with contextlib.suppress(OSError):  # a directory that cannot be written: the row still says why
+        write_json_atomic(Path(job.output) / STATUS_FILE, {"bag": job.bag, "name": job.name, "status": status.value,
+                                                           "reason": reason, "run": run})
+    return row
+
+
+def _row(job: FleetJob, status: BagStatus, reason: str, run: str, summary: ReplaySummary | None = None) -> BagRow:
+    report = Path(job.output) / REPORT_HTML
+    return BagRow(job.name, job.bag, status, reason, run, job.output, summary,
+                  str(report) if report.is_file() else "")
+
+
+def _one_line(text: str) -> str:
+    return " ".join(text.split())
+
+
+def _signal_name(signum: int) -> str:
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return f"signal {signum}"
+
+
+# --------------------------------------------------------------------------------------------------
+# The fleet (in the parent)
+
+
+@dataclass(frozen=True)
+class FleetResult:
+    rows: list[BagRow]
+    summary_files: list[Path]
+    signum: int | None  # the signal that stopped the fleet, None when it ran to the end
+
+
+def run_fleet(bags: Sequence[Path], output_dir: str | Path, cfg: VoConfig, *, jobs: int | None = None,
+              force: bool = False, report: bool = False, progress: bool = False, image_topic: str | None = None,
+              camera_info_topic: str | None = None, on_row: Callable[[BagRow], None] | None = None) -> FleetResult:
+    """Replay ``bags`` (see :func:`find_bags`) into ``output_dir/<name>/`` with ``jobs`` processes (default: the
+    number of cores) and write the summary. See the module doc for resume, signals and failures.
+
+    Raises:
+        OutputError: the output directory cannot be created or the summary not written.
+    """
+    out = Path(output_dir)
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"output {out} exists and is not a directory")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"cannot create the output directory {out}: {exc.strerror or exc}") from None
+    names = output_names(bags)
+    # Absolute bag paths: stats.json then names the bag whatever the directory a later run starts from.
+    todo = [FleetJob(i, name, str(bag.absolute()), str(out / name), cfg, image_topic, camera_info_topic, report,
+                     force) for i, (bag, name) in enumerate(zip(bags, names, strict=True))]
+    rows: dict[int, BagRow] = {}
+    attempts = dict.fromkeys(range(len(todo)), 0)
+    workers = max(1, min(jobs or os.cpu_count() or 1, len(todo)))
+    with _stop_on_signals() as stop, _Bars(progress, len(todo)) as bars:
+        while todo and not stop.requested:
+            broken = _run_pool(todo, workers, stop, bars, rows, on_row)
+            todo = []
+            for job in broken:
+                attempts[job.index] += job.index in bars.started
+                if stop.requested and job.index in bars.started:
+                    rows[job.index] = _finish(job, BagStatus.INTERRUPTED, "worker process ended by the interruption",
+                                              "replayed")
+                elif attempts[job.index] >= 2:
+                    rows[job.index] = _finish(job, BagStatus.FAILED, "worker process died (crashed or killed) twice",
+                                              "replayed")
+                else:
+                    todo.append(job)
+                    continue
+                bars.bag_done(rows[job.index])
+            workers = 1  # after a worker died, one bag at a time: a second death then names its bag
+    for i, (bag, name) in enumerate(zip(bags, names, strict=True)):
+        if i not in rows:
+            rows[i] = _row(FleetJob(i, name, str(bag.absolute()), str(out / name), cfg), BagStatus.NOT_RUN,
+                           "the fleet was interrupted before this bag started", "not run")
+    ordered = [rows[i] for i in range(len(bags))]
+    files = write_summary(out, ordered, index=report)
+    return FleetResult(ordered, files, stop.signum if stop.requested else None)
+
+
+def _context() -> multiprocessing.context.BaseContext:
+    methods = multiprocessing.get_all_start_methods()
+    ctx = multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
+    if ctx.get_start_method() == "forkserver":
+        # Workers fork from a server that imported the replay (numpy, cv2, rosbags) once.
+        ctx.set_forkserver_preload(["epi_vo.tools.fleet"])
+    return ctx
+
+
+def _run_pool(todo: Sequence[FleetJob], jobs: int, stop: _StopFlag, bars: _Bars, rows: dict[int, BagRow],
+              on_row: Callable[[BagRow], None] | None) -> list[FleetJob]:
+    """Run ``todo`` in one pool; fills ``rows``; returns the jobs whose worker died (the pool broke)."""
+    ctx = _context()
+    events = ctx.Queue()
+    stop_event = ctx.Event()
+    broken: list[FleetJob] = []
+    pool = cf.ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=ctx, initializer=_init_worker,
+                                  initargs=(events, stop_event, logging.getLogger().getEffectiveLevel()),
+                                  max_tasks_per_child=1)
+    try:
+        futures = {pool.submit(replay_one, job): job for job in todo}
+        pending = set(futures)
+        while pending:
+            done, pending = cf.wait(pending, timeout=0.1)
+            _drain(events, bars)
+            if stop.requested and not stop_event.is_set():
+                stop_event.set()  # workers stop between two frames; bags not started are not run
+                for f in pending:
+                    f.cancel()
+            for f in done:
+                job = futures[f]
+                if f.cancelled():
+                    continue
+                try:
+                    row = f.result()
+                except BrokenProcessPool:
+                    broken.append(job)
+                    continue
+                except Exception as exc:  # e.g. the job could not be sent to the worker
+                    row = _finish(job, BagStatus.FAILED, _one_line(f"{type(exc).__name__}: {exc}"), "replayed")
+                rows[job.index] = row
+                bars.bag_done(row)
+                if on_row is not None:
+                    on_row(row)
+        _drain(events, bars)
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+        events.close()
+        events.join_thread()
+    return broken
+
+
+def _drain(events: Any, bars: _Bars) -> None:
+    while True:
+        try:
+            event = events.get_nowait()
+        except (queue.Empty, OSError, ValueError):
+            return
+        bars.event(event)
+
+
+class _StopFlag:
+    requested = False
+    signum = signal.SIGINT
+
+
+@contextlib.contextmanager
+def _stop_on_signals() -> Iterator[_StopFlag]:
+    """SIGINT / SIGTERM / SIGHUP in the parent ask the fleet to stop (see the module doc); outside the main
+    thread nothing is installed."""
+    stop = _StopFlag()
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+
+    def request(signum: int, frame: object) -> None:
+        if not stop.requested:
+            stop.signum = signum
+        stop.requested = True
+
+    signals = [signal.SIGINT, signal.SIGTERM, *([signal.SIGHUP] if hasattr(signal, "SIGHUP") else [])]
+    saved = {sig: signal.signal(sig, request) for sig in signals}
+    try:
+        yield stop
+    finally:
+        for sig, handler in saved.items():
+            signal.signal(sig, handler)
+
+
+class _Bars:
+    """Two tqdm bars, bags and frames (the frame total grows as workers open their bags); a terminal that went
+    away ends the bars, never the fleet."""
+
+    def __init__(self, enabled: bool, n_bags: int) -> None:
+        self._bags: Any = None
+        self._frames: Any = None
+        self._totals: dict[int, int] = {}
+        self.started: set[int] = set()  # bags whose worker began (a "start" event arrived)
+        if enabled:
+            from tqdm import tqdm
+
+            self._bags = tqdm(total=n_bags, unit="bag", desc="bags  ", position=0)
+            self._frames = tqdm(total=0, unit="frame", desc="frames", position=1)
+
+    def __enter__(self) -> _Bars:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for bar in (self._frames, self._bags):
+            if bar is not None:
+                with contextlib.suppress(OSError, ValueError):
+                    bar.close()
+        self._bags = self._frames = None
+
+    def _guard(self, action: Callable[[], object]) -> None:
+        try:
+            action()
+        except (OSError, ValueError):  # stderr closed or gone
+            self._bags = self._frames = None
+
+    def event(self, event: tuple[Any, ...]) -> None:
+        kind, index = event[0], event[1]
+        if kind == "start":
+            self.started.add(index)
+        if self._frames is None:
+            return
+        if kind == "total":
+            self._totals[index] = int(event[2])
+            self._frames.total = sum(self._totals.values())
+            self._guard(self._frames.refresh)
+        elif kind == "frames":
+            if event[3] is not None:  # a skipped bag: its frames count as done
+                self._totals[index] = int(event[3])
+                self._frames.total = sum(self._totals.values())
+            self._guard(lambda: self._frames.update(int(event[2])))
+
+    def bag_done(self, row: BagRow) -> None:
+        if self._bags is not None:
+            bags = self._bags
+            self._guard(lambda: (bags.set_postfix_str(f"{row.name}: {row.status.value}"), bags.update(1)))
