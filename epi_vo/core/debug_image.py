@@ -1,8 +1,8 @@
 """A picture of one frame's two-view geometry (for ``vo/debug_image`` and inspection).
 
 Tracks are drawn from their keyframe position to the current one: green for inliers of the chosen
-model, red for outliers (magenta, with a box around them, for what moved in front of a static camera);
-for a few inliers the epipolar line of F (E chosen) is drawn in cyan. Lines are computed in
+model, red for outliers, magenta for movers (``mover_mask``: what moved on its own, with a box around
+them); for a few inliers the epipolar line of F (E chosen) is drawn in cyan. Lines are computed in
 undistorted pixels and drawn on the raw image: exact for undistorted cameras, a close approximation
 otherwise.
 """
@@ -20,13 +20,38 @@ _GREEN, _RED, _CYAN, _WHITE = (0, 200, 0), (0, 0, 230), (230, 200, 0), (255, 255
 _MAGENTA = (230, 0, 230)
 
 
+def mover_mask(result: FrameResult) -> NDArray[np.bool_]:
+    """(N,) which rows of ``result.matches`` are drawn as movers (features that moved on their own).
+
+    In front of a static camera (model ``static``) the pipeline's inliers are the features that did not
+    move, so every other one moved. While the camera moves, the movers were left out of the model
+    (never inliers) and ``moving_region`` is their bounding box in undistorted pixels: the outliers inside
+    it are drawn as movers. The pipeline's matches say exactly which rows are movers (``Matches.moving``);
+    matches without that mask (older records) fall back to the box: an ordinary outlier inside it is then
+    drawn as a mover too. All False without movers (``n_moving`` 0).
+    """
+    m = result.matches
+    outliers = ~np.asarray(m.inliers, dtype=bool)
+    if result.n_moving == 0 or m.uv_cur.shape[0] == 0:
+        return np.zeros(outliers.shape, dtype=bool)
+    if result.model is Model.STATIC:
+        return outliers
+    if m.moving is not None and m.moving.shape == outliers.shape:
+        return np.asarray(m.moving, dtype=bool).copy()
+    if result.moving_region is None:
+        return np.zeros(outliers.shape, dtype=bool)
+    x0, y0, x1, y1 = result.moving_region
+    u, v = m.uv_cur[:, 0], m.uv_cur[:, 1]
+    return outliers & (u >= x0) & (u <= x1) & (v >= y0) & (v <= y1)
+
+
 def draw_matches(result: FrameResult, gray: NDArray[np.uint8], n_epilines: int = 8) -> NDArray[np.uint8]:
-    """BGR image of ``gray`` with the frame's tracks, inlier/outlier colouring and a few epipolar lines."""
+    """BGR image of ``gray`` with the frame's tracks, inlier/outlier/mover colouring and a few epipolar lines."""
     img = cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
     m = result.matches
-    outlier = _MAGENTA if result.model is Model.STATIC else _RED
-    for (x0, y0), (x1, y1), ok in zip(m.pts_kf, m.pts_cur, m.inliers, strict=True):
-        color = _GREEN if ok else outlier
+    movers = mover_mask(result)
+    for (x0, y0), (x1, y1), ok, moved in zip(m.pts_kf, m.pts_cur, m.inliers, movers, strict=True):
+        color = _GREEN if ok else _MAGENTA if moved else _RED
         cv2.line(img, (int(x0), int(y0)), (int(x1), int(y1)), color, 1, cv2.LINE_AA)
         cv2.circle(img, (int(x1), int(y1)), 2, color, -1, cv2.LINE_AA)
     if result.model is Model.ESSENTIAL and np.any(m.F) and np.any(m.inliers):

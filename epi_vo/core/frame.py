@@ -66,7 +66,8 @@ class Matches:
     """The correspondences of one frame with its keyframe, for drawing and inspection.
 
     ``pts_kf``/``pts_cur`` raw pixels, ``uv_kf``/``uv_cur`` undistorted pixels (N, 2); ``inliers`` of
-    the chosen model; ``F`` (from E) and ``H`` in undistorted pixels, zero matrices when not estimated.
+    the chosen model; ``F`` (from E) and ``H`` in undistorted pixels, zero matrices when not estimated;
+    ``moving`` the features judged to move on their own while the camera moves (None: not judged).
     """
 
     pts_kf: F64
@@ -76,6 +77,7 @@ class Matches:
     inliers: NDArray[np.bool_]
     F: F64
     H: F64
+    moving: NDArray[np.bool_] | None = None
 
     @staticmethod
     def empty() -> Matches:

@@ -268,7 +268,7 @@ class VoPipeline:
                 motion = None
             if motion is not None and n_use < rows.shape[0]:
                 motion = _expanded(motion, use)
-        self._book_movers(kf, rows, uv_cur, excluded, motion, st)
+        moving = self._book_movers(kf, rows, uv_cur, excluded, motion, st)
         if motion is not None and motion.state is TrackingState.TRACKING:
             spread = mo.grid_spread(uv_cur, motion.inliers, camera.width, camera.height)
             if spread < self.cfg.static_min_spread:
@@ -277,7 +277,7 @@ class VoPipeline:
 
         inl = motion.inliers if motion is not None else np.zeros(rows.shape[0], bool)
         st.matches = Matches(kf.pts[rows].astype(np.float64), pts_cur.astype(np.float64), kf.uv[rows], uv_cur, inl,
-                             st.F, st.H)
+                             st.F, st.H, moving)
         t0 = time.perf_counter()
         is_kf = False
         if motion is None:
@@ -431,9 +431,10 @@ class VoPipeline:
         return np.isin(kf.ids[rows], self._mover_ids)
 
     def _book_movers(self, kf: Keyframe, rows: NDArray[np.int64], uv_cur: F64, excluded: NDArray[np.bool_],
-                     motion: mo.Motion | None, st: FrameStats) -> None:
+                     motion: mo.Motion | None, st: FrameStats) -> NDArray[np.bool_]:
         """Remember the tracks that moved on their own this frame (a coherent group of at least
-        MIN_MOVERS: E's consensus against the map's pose), and say how many movers are in view and where."""
+        MIN_MOVERS: E's consensus against the map's pose), and say how many movers are in view and where.
+        Returns which tracked rows are movers."""
         moving = excluded.copy()
         if motion is not None and motion.moving is not None and np.count_nonzero(motion.moving) >= MIN_MOVERS:
             moving |= motion.moving
@@ -441,7 +442,7 @@ class VoPipeline:
                 self._mover_ids = np.union1d(self._mover_ids, kf.ids[rows[motion.moving]])
         n = int(np.count_nonzero(moving))
         if n == 0:
-            return
+            return moving
         if st.n_moving == 0:
             lo, hi = uv_cur[moving].min(axis=0), uv_cur[moving].max(axis=0)
             st.moving_region = (int(lo[0]), int(lo[1]), int(np.ceil(hi[0])), int(np.ceil(hi[1])))
@@ -449,6 +450,7 @@ class VoPipeline:
             st.reasons.append(f"{n} tracked features move on their own (x {x0}-{x1}, y {y0}-{y1} px): left out of "
                               "pose and map")
         st.n_moving += n
+        return moving
 
     def _book_good(self, stamp_ns: int) -> None:
         """This frame's pose has a map behind it: remember it (and the camera's speed) for a hand-over."""

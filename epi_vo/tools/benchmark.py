@@ -12,6 +12,12 @@ metric scale source (``METRIC_VARIANTS``: the ground-robot bag with ``ground_pla
 ``wheel_odometry``, the KITTI clip with ``ground_plane`` at 1.65 m). Those rows also print the
 step-length scale (estimate / ground truth, median over frames) and the ATE after an SE(3) alignment
 only (no scale), as % of the path: the figures that say whether the output is metres.
+
+Covariance consistency (epi_vo rows): the mean NEES of the position and of the rotation (3 dof each, ideal
+3) of the tracking frames against the covariance published in /vo/odometry, and the % of them inside the
+chi-square 3-dof 99 % bound (11.345), after the one global scale (Sim(3) anchored at the odometry origin;
+SE(3) once metric scale is established): :func:`epi_vo.tools.evaluation.replay_nees`. ``e2e fps`` is the
+replay's end-to-end rate (reading, decoding, VO, writing: ``ReplaySummary.end_to_end_fps``).
 """
 
 from __future__ import annotations
@@ -30,8 +36,9 @@ from epi_vo.core.errors import EpiVoError, OutputError
 from epi_vo.core.transforms import quat_xyzw_from_rotation
 from epi_vo.io import bagio, tum
 from epi_vo.io.msgconv import decode_frame
+from epi_vo.io.odometry_bag import read_odometry
 from epi_vo.io.params import load_config
-from epi_vo.tools.evaluation import evaluate_trajectory
+from epi_vo.tools.evaluation import NeesResult, evaluate_trajectory, replay_nees
 from epi_vo.tools.reference import ReferencePipeline
 from epi_vo.tools.replay import run_replay
 
@@ -50,6 +57,12 @@ class BenchRow:
     gt_path_length: float
     step_scale: float = math.nan  # median |estimated step| / |GT step| (metric rows)
     ate_se3_percent: float = math.nan  # ATE after SE(3) alignment only, % of path (metric rows)
+    nees_pos: float = math.nan  # mean position NEES of the tracking frames (3 dof; consistent: 3)
+    nees_pos_inside_percent: float = math.nan  # % of them within CHI2_3DOF_99
+    nees_rot: float = math.nan  # the same for the rotation
+    nees_rot_inside_percent: float = math.nan
+    nees_frames: int = 0  # tracking frames evaluated
+    e2e_fps: float = math.nan  # end-to-end frames/s of the replay (nan: not measured, reference rows)
 
 
 # Metric scale sources the benchmark runs on top of the default configuration, per dataset name.
@@ -108,11 +121,28 @@ def bench_epi_vo(name: str, bag: Path, gt_path: Path, cfg: VoConfig, label: str 
     with tempfile.TemporaryDirectory() as tmp:
         summary = run_replay(bag, tmp, cfg)
         stamps, positions, quats = tum.read_tum(Path(tmp) / "trajectory.tum")
+        nees = _nees(Path(tmp), gt)
     row = _metrics_row(name, label, summary.frames, summary.frames_with_pose, summary.ms_per_frame,
                        stamps, positions, quats, gt)
     if summary.units != "m":  # VO units: the metric figures say nothing
         row = dataclasses.replace(row, step_scale=math.nan, ate_se3_percent=math.nan)
+    # end_to_end_fps: a newer ReplaySummary field; an older summary has none (n/a).
+    row = dataclasses.replace(row, e2e_fps=float(getattr(summary, "end_to_end_fps", math.nan) or math.nan))
+    if nees is not None:
+        row = dataclasses.replace(row, nees_pos=nees.mean_nees_pos, nees_pos_inside_percent=nees.inside_pos_percent,
+                                  nees_rot=nees.mean_nees_rot, nees_rot_inside_percent=nees.inside_rot_percent,
+                                  nees_frames=nees.evaluated)
     return row
+
+
+def _nees(out: Path, gt: tuple[np.ndarray, np.ndarray, np.ndarray]) -> NeesResult | None:
+    """Covariance consistency of the replay in ``out`` against ``gt``; None when it cannot be evaluated."""
+    try:
+        records = [json.loads(line) for line in (out / "frames.jsonl").read_text(encoding="utf-8").splitlines()
+                   if line.strip()]
+        return replay_nees(records, read_odometry(out / "output.mcap"), gt)
+    except (EpiVoError, OSError, ValueError):
+        return None
 
 
 def bench_reference(name: str, bag_path: Path, gt_path: Path) -> BenchRow:
@@ -148,7 +178,8 @@ def bench_reference(name: str, bag_path: Path, gt_path: Path) -> BenchRow:
 
 def format_table(rows: list[BenchRow]) -> str:
     head = (f"{'bag':<16} {'pipeline':<22} {'frames':>6} {'tracked%':>8} {'ATE%path':>9} {'RPErot°/f':>10} "
-            f"{'tdir°':>7} {'ms/frame':>9} {'moving':>7} {'scale':>6} {'SE3ATE%':>8}")
+            f"{'tdir°':>7} {'ms/frame':>9} {'moving':>7} {'scale':>6} {'SE3ATE%':>8} {'NEES pos':>9} "
+            f"{'in 3σ pos %':>11} {'NEES rot':>9} {'in 3σ rot %':>11} {'e2e fps':>8}")
     lines = [head, "-" * len(head)]
 
     def f(x: float, nd: int = 3) -> str:
@@ -157,7 +188,9 @@ def format_table(rows: list[BenchRow]) -> str:
     for r in rows:
         lines.append(f"{r.bag:<16} {r.pipeline:<22} {r.frames:>6} {r.tracked_percent:>8.1f} {f(r.ate_percent):>9} "
                      f"{f(r.rpe_rot_deg, 4):>10} {f(r.trans_dir_deg, 2):>7} {r.ms_per_frame:>9.2f} "
-                     f"{r.moving_frames:>7} {f(r.step_scale):>6} {f(r.ate_se3_percent, 2):>8}")
+                     f"{r.moving_frames:>7} {f(r.step_scale):>6} {f(r.ate_se3_percent, 2):>8} "
+                     f"{f(r.nees_pos, 3):>9} {f(r.nees_pos_inside_percent, 1):>11} {f(r.nees_rot, 3):>9} "
+                     f"{f(r.nees_rot_inside_percent, 1):>11} {f(r.e2e_fps, 1):>8}")
     return "\n".join(lines)
 
 
@@ -193,7 +226,11 @@ def run_benchmark(bags_dir: str | None, kitti_dir: str | None, params: str | Non
     print("\nATE after Sim(3) alignment (evo); 'moving' = frames whose position changed (on pure_rotation "
           "any is invented translation); ms/frame = median processing time, decoding excluded; metric rows "
           "(epi_vo[source]): scale = median estimated / GT step length, SE3ATE% = ATE with SE(3) alignment only "
-          "(no scale), % of path.")
+          "(no scale), % of path.\nNEES pos / rot = mean normalised estimation error squared of the tracking "
+          "frames against the published /vo/odometry covariance (3 dof, consistent: 3), after the global scale "
+          "(Sim(3) anchored at the odometry origin; SE(3) when metric); in 3σ % = share within the chi-square "
+          "3-dof 99 % bound 11.345 (n/a: no tracking frame, e.g. a static or rotating camera); e2e fps = "
+          "end-to-end replay frames/s.")
     if out is not None:
         try:
             table = [{k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in r.__dict__.items()}

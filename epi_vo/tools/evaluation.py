@@ -29,10 +29,16 @@ alignment are NaN, the others are still reported.
 
 from __future__ import annotations
 
+import collections
 import copy
+import enum
+import json
 import logging
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from pathlib import Path
+from typing import Any, NamedTuple
 
 import numpy as np
 from evo.core import geometry, sync
@@ -40,7 +46,11 @@ from evo.core.metrics import APE, RPE, PoseRelation, StatisticsType, Unit
 from evo.core.trajectory import PoseTrajectory3D
 from numpy.typing import NDArray
 
-from epi_vo.core.errors import EvaluationError
+from epi_vo.core.errors import EpiVoError, EvaluationError
+from epi_vo.core.odometry import default_T_base_cam
+from epi_vo.core.transforms import invert_T, make_T, quat_xyzw_from_rotation, rotation_from_quat_xyzw
+from epi_vo.io import tum
+from epi_vo.io.odometry_bag import OdometryTrack, read_odometry
 
 logger = logging.getLogger(__name__)
 
@@ -304,3 +314,305 @@ def to_evo_trajectory(
         timestamps=stamps_s,
         name=name,
     )
+
+
+# ==================================================================================================
+# Covariance consistency (NEES)
+# ==================================================================================================
+
+# Chi-square quantile, 3 degrees of freedom, 99 %: a consistent 3-dof error is within it 99 % of the time.
+CHI2_3DOF_99 = 11.345
+TRACKING_STATE = "tracking"
+
+
+class AlignmentAnchor(enum.Enum):
+    """How the estimate is put into the ground truth's frame before the errors are taken.
+
+    ORIGIN: rotation and translation from the anchor pose (the odometry origin, where the published
+    covariance is ~0 and which defines the odom frame); only the scale is fitted (least squares over
+    the evaluated positions, relative to the anchor). This matches what the covariance describes: the
+    error accumulated since the origin. UMEYAMA: the whole Sim(3) (or SE(3)) fitted to the evaluated
+    positions (evo's Umeyama), as for ATE; it absorbs 7 dof of error and puts an error on the early
+    frames whose covariance is still small.
+    """
+
+    ORIGIN = "origin"
+    UMEYAMA = "umeyama"
+
+
+@dataclass(frozen=True)
+class NeesResult:
+    """Normalised estimation error squared of position and rotation, per evaluated frame and summed up.
+
+    ``frame_index`` (M,) the evaluated frames (tracking, with ground truth); ``nees_pos`` / ``nees_rot``
+    (M,) their NEES (3 dof each); NaN where undefined (no alignment: ``nees_pos`` all NaN).
+    ``skipped`` counts the frames not evaluated, by reason (their state, "no ground truth", "no
+    odometry message", "metric scale not established"). ``alignment`` is "sim3" or "se3" (metric scale
+    established: no scale fitted); ``scale`` the fitted s of p_gt ~= s R p_est + t (1 for se3).
+    """
+
+    frame_index: NDArray[np.int64]
+    nees_pos: NDArray[np.float64]
+    nees_rot: NDArray[np.float64]
+    skipped: dict[str, int]
+    alignment: str
+    anchor: AlignmentAnchor
+    scale: float
+    bound: float = CHI2_3DOF_99
+
+    @property
+    def evaluated(self) -> int:
+        return int(self.frame_index.size)
+
+    @property
+    def skipped_total(self) -> int:
+        return sum(self.skipped.values())
+
+    @property
+    def mean_nees_pos(self) -> float:
+        return _nanmean(self.nees_pos)
+
+    @property
+    def mean_nees_rot(self) -> float:
+        return _nanmean(self.nees_rot)
+
+    @property
+    def inside_pos_percent(self) -> float:
+        return _inside_percent(self.nees_pos, self.bound)
+
+    @property
+    def inside_rot_percent(self) -> float:
+        return _inside_percent(self.nees_rot, self.bound)
+
+
+def _nanmean(a: NDArray[np.float64]) -> float:
+    finite = a[np.isfinite(a)]
+    return float(finite.mean()) if finite.size else float("nan")
+
+
+def _inside_percent(a: NDArray[np.float64], bound: float) -> float:
+    finite = a[np.isfinite(a)]
+    return 100.0 * float(np.count_nonzero(finite <= bound)) / finite.size if finite.size else float("nan")
+
+
+def rotation_vectors(R: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(M, 3, 3) rotation matrices -> (M, 3) rotation vectors (axis * angle, rad), angle in [0, pi]."""
+    out = np.zeros((R.shape[0], 3))
+    for i, Ri in enumerate(R):
+        q = quat_xyzw_from_rotation(Ri)  # w >= 0
+        v, w = q[:3], q[3]
+        n = float(np.linalg.norm(v))
+        out[i] = 2.0 * v if n < 1e-12 else v * (2.0 * math.atan2(n, w) / n)
+    return out
+
+
+def _quadratic_forms(e: NDArray[np.float64], P: NDArray[np.float64]) -> NDArray[np.float64]:
+    """e_i^T P_i^-1 e_i for (M, 3) errors and (M, 3, 3) covariances (pseudo-inverse where singular)."""
+    out = np.full(e.shape[0], np.nan)
+    for i in range(e.shape[0]):
+        try:
+            out[i] = float(e[i] @ np.linalg.solve(P[i], e[i]))
+        except np.linalg.LinAlgError:
+            out[i] = float(e[i] @ np.linalg.pinv(P[i]) @ e[i])
+    return out
+
+
+def covariance_consistency(
+    T_o_b_est: NDArray[np.float64],
+    cov_o: NDArray[np.float64],
+    T_g_b_gt: NDArray[np.float64],
+    evaluate: NDArray[np.bool_],
+    *,
+    metric: bool = False,
+    anchor: AlignmentAnchor = AlignmentAnchor.ORIGIN,
+    anchor_row: int = 0,
+    frame_index: NDArray[np.int64] | None = None,
+    skipped: dict[str, int] | None = None,
+) -> NeesResult:
+    """Position and rotation NEES of estimated poses against their published covariance.
+
+    Args:
+        T_o_b_est: (N, 4, 4) estimated poses, body into the odometry frame o (the pose of /vo/odometry).
+        cov_o: (N, 6, 6) their published covariances over (x, y, z, rot_x, rot_y, rot_z) in o: the
+            position error p_true - p_est and the rotation error delta with R_true = Exp(delta) R_est
+            (a left perturbation in o, rad), in the estimate's units.
+        T_g_b_gt: (N, 4, 4) ground-truth poses of the same body, row-matched, any world frame g, any
+            units (metric when ``metric``).
+        evaluate: (N,) which rows get a NEES (tracking frames); the others are ignored.
+        metric: the estimate claims metres: SE(3) alignment, no scale fitted (s = 1).
+        anchor: how the alignment is found (see ``AlignmentAnchor``).
+        anchor_row: the row of the odometry origin for ``AlignmentAnchor.ORIGIN``.
+        frame_index: (N,) frame numbers of the rows (default 0..N-1), reported for the evaluated ones.
+        skipped: counts of frames left out before this call, by reason (copied into the result).
+
+    The alignment S = (s, R, t) takes the estimate into g: p_g ~= s R p_o + t, R_g ~= R R_o. Errors are
+    taken in g and expressed back in o, where the covariance lives: e_pos = R^T (p_gt - (s R p_est + t)) / s,
+    e_rot = R^T Log(R_gt (R R_est)^T); equivalently the covariance is rotated by R (and the position block
+    scaled by s^2) into g. NEES = e^T P^-1 e with the 3x3 position / rotation block P of ``cov_o``; for a
+    consistent estimator it is chi-square with 3 dof (mean 3, 99 % below ``CHI2_3DOF_99``). Both NEES are
+    invariant to a Sim(3) change of the estimate's frame (SE(3) when ``metric``) with the covariance
+    transformed alike, and to one of the ground truth's.
+
+    Returns:
+        The per-frame NEES; ``nees_pos`` is NaN when no alignment exists (fewer than 2 evaluated frames,
+        an estimate that never left the anchor, or a degenerate Umeyama fit).
+
+    Raises:
+        EvaluationError: shapes that do not match, non-finite poses or covariances, a bad anchor row.
+    """
+    T_est = np.asarray(T_o_b_est, dtype=np.float64)
+    cov = np.asarray(cov_o, dtype=np.float64)
+    T_gt = np.asarray(T_g_b_gt, dtype=np.float64)
+    mask = np.asarray(evaluate, dtype=bool)
+    n = T_est.shape[0] if T_est.ndim == 3 else -1
+    if T_est.shape != (n, 4, 4) or T_gt.shape != (n, 4, 4) or cov.shape != (n, 6, 6) or mask.shape != (n,):
+        msg = (f"expected (N, 4, 4) poses, (N, 6, 6) covariances, (N, 4, 4) ground truth and (N,) mask, got "
+               f"{T_est.shape}, {cov.shape}, {T_gt.shape} and {mask.shape}")
+        raise EvaluationError(msg)
+    for name, a in (("estimated poses", T_est), ("covariances", cov), ("ground-truth poses", T_gt)):
+        if not np.isfinite(a[mask]).all():
+            msg = f"{name} of the evaluated frames have non-finite values"
+            raise EvaluationError(msg)
+    if anchor is AlignmentAnchor.ORIGIN and not 0 <= anchor_row < n:
+        msg = f"anchor_row {anchor_row} is not a row of the {n} poses"
+        raise EvaluationError(msg)
+    idx = np.arange(n, dtype=np.int64) if frame_index is None else np.asarray(frame_index, dtype=np.int64)
+    s, R, t = _nees_alignment(T_est, T_gt, mask, metric, anchor, anchor_row)
+    T_e, P, T_g = T_est[mask], cov[mask], T_gt[mask]
+    nees_pos = np.full(T_e.shape[0], np.nan)
+    if math.isfinite(s):
+        e_g = T_g[:, :3, 3] - (s * T_e[:, :3, 3] @ R.T + t)
+        nees_pos = _quadratic_forms(e_g @ R / s, P[:, :3, :3])  # rows: R^T e_g / s, the error in o
+    R_est_g = np.einsum("ij,njk->nik", R, T_e[:, :3, :3])
+    e_rot_g = rotation_vectors(np.einsum("nij,nkj->nik", T_g[:, :3, :3], R_est_g))  # Log(R_gt R_est_g^T)
+    nees_rot = _quadratic_forms(e_rot_g @ R, P[:, 3:, 3:])
+    return NeesResult(idx[mask], nees_pos, nees_rot, dict(skipped or {}), "se3" if metric else "sim3", anchor,
+                      s if math.isfinite(s) else float("nan"))
+
+
+def _nees_alignment(T_est: NDArray[np.float64], T_gt: NDArray[np.float64], mask: NDArray[np.bool_], metric: bool,
+                    anchor: AlignmentAnchor, anchor_row: int) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
+    """(s, R, t) of p_g ~= s R p_o + t; s is NaN when no alignment exists (R then from the anchor or I)."""
+    p_e, p_g = T_est[:, :3, 3], T_gt[:, :3, 3]
+    if anchor is AlignmentAnchor.ORIGIN:
+        a = anchor_row
+        R = T_gt[a, :3, :3] @ T_est[a, :3, :3].T
+        s = 1.0
+        if not metric:
+            d_e = (p_e[mask] - p_e[a]) @ R.T
+            d_g = p_g[mask] - p_g[a]
+            den = float(np.sum(d_e * d_e))
+            s = float(np.sum(d_e * d_g)) / den if den > 1e-18 else float("nan")
+            if not s > 0.0:
+                s = float("nan")
+        t = p_g[a] - (s if math.isfinite(s) else 1.0) * R @ p_e[a]
+        return s, R, t
+    if np.count_nonzero(mask) < 3:
+        return float("nan"), np.eye(3), np.zeros(3)
+    try:
+        R, t, s = geometry.umeyama_alignment(p_e[mask].T, p_g[mask].T, with_scale=not metric)
+    except geometry.GeometryException:
+        return float("nan"), np.eye(3), np.zeros(3)
+    return float(s), np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64)
+
+
+def poses_from_xyz_quat(positions: NDArray[np.float64], quats_xyzw: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(N, 3) positions and (N, 4) x, y, z, w quaternions -> (N, 4, 4) homogeneous poses."""
+    n = positions.shape[0]
+    T = np.tile(np.eye(4), (n, 1, 1))
+    for i in range(n):
+        T[i] = make_T(rotation_from_quat_xyzw(quats_xyzw[i]), positions[i])
+    return T
+
+
+def replay_nees(
+    records: Sequence[dict[str, Any]],
+    odometry: OdometryTrack,
+    gt: StampedPoses | tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]],
+    *,
+    T_base_cam: NDArray[np.float64] | None = None,
+    anchor: AlignmentAnchor = AlignmentAnchor.ORIGIN,
+    max_time_diff: float = 0.01,
+) -> NeesResult:
+    """Covariance consistency of a replay: its frame records, its /vo/odometry messages and ground truth.
+
+    ``records`` are frames.jsonl (``stamp_ns``, ``index``, ``state``, ``metric_scale``); ``odometry`` the
+    replay's output.mcap /vo/odometry (pose of base_link in odom and the 6x6 covariance as published,
+    matched to the records by header stamp); ``gt`` ground-truth camera optical-frame poses (TUM),
+    turned into base poses with ``T_base_cam`` (the replay's extrinsic: the default optical rotation,
+    no offset) and paired with the nearest stamp within ``max_time_diff`` s.
+
+    Only frames in state ``tracking`` are evaluated; lost, initializing, rotation_only and static frames
+    keep their meaning (a held pose with an "unknown" or "still" covariance) and are counted in
+    ``skipped`` by state. When the run established a metric scale (a record with ``metric_scale``), the
+    alignment is SE(3) over the metric frames and the tracking frames before it are skipped ("metric
+    scale not established"); otherwise Sim(3). The anchor is the first odometry message with ground
+    truth (the odometry origin).
+
+    Raises:
+        EvaluationError: no odometry message, or none paired with ground truth.
+    """
+    T_bc = default_T_base_cam() if T_base_cam is None else np.asarray(T_base_cam, dtype=np.float64)
+    T_cb = invert_T(T_bc)
+    gt_stamps, gt_pos, gt_quat = (np.asarray(a, dtype=np.float64) for a in gt)
+    if odometry.stamps_ns.size == 0:
+        msg = "no odometry messages"
+        raise EvaluationError(msg)
+    if gt_stamps.size == 0:
+        msg = "no ground-truth poses"
+        raise EvaluationError(msg)
+    row_of_stamp = {int(s): i for i, s in enumerate(odometry.stamps_ns)}
+    # Ground truth nearest to each odometry stamp.
+    odo_s = odometry.stamps_ns.astype(np.float64) * 1e-9
+    j = np.clip(np.searchsorted(gt_stamps, odo_s), 1, max(gt_stamps.size - 1, 1))
+    j = np.where(np.abs(gt_stamps[j - 1] - odo_s) <= np.abs(gt_stamps[np.minimum(j, gt_stamps.size - 1)] - odo_s),
+                 j - 1, np.minimum(j, gt_stamps.size - 1))
+    has_gt = np.abs(gt_stamps[j] - odo_s) <= max_time_diff
+    if not has_gt.any():
+        msg = f"no odometry message has a ground-truth pose within {max_time_diff} s"
+        raise EvaluationError(msg)
+    metric = any(bool(r.get("metric_scale")) for r in records if r.get("state") == TRACKING_STATE)
+    skipped: collections.Counter[str] = collections.Counter()
+    evaluate = np.zeros(odometry.stamps_ns.size, dtype=bool)
+    frame_index = np.full(odometry.stamps_ns.size, -1, dtype=np.int64)
+    for rec in records:
+        state = str(rec.get("state"))
+        row = row_of_stamp.get(int(rec.get("stamp_ns", -1)))
+        if row is not None:
+            frame_index[row] = int(rec["index"])
+        if state != TRACKING_STATE:
+            skipped[state] += 1
+        elif row is None:
+            skipped["no odometry message"] += 1
+        elif not has_gt[row]:
+            skipped["no ground truth"] += 1
+        elif metric and not rec.get("metric_scale"):
+            skipped["metric scale not established"] += 1
+        else:
+            evaluate[row] = True
+    T_est = poses_from_xyz_quat(odometry.positions, odometry.quats_xyzw)
+    T_gt = poses_from_xyz_quat(gt_pos[j], gt_quat[j]) @ T_cb  # T_g_base = T_g_cam T_cam_base
+    anchor_row = int(np.argmax(has_gt))
+    return covariance_consistency(T_est, odometry.pose_covariance, T_gt, evaluate, metric=metric, anchor=anchor,
+                                  anchor_row=anchor_row, frame_index=frame_index, skipped=dict(skipped))
+
+
+def replay_dir_nees(directory: str | Path, anchor: AlignmentAnchor = AlignmentAnchor.ORIGIN) -> NeesResult | None:
+    """:func:`replay_nees` of an ``epi-vo replay`` output directory (frames.jsonl, output.mcap,
+    groundtruth.tum); None when it has no ground truth.
+
+    Raises:
+        EvaluationError: the files cannot be read or evaluated (the message names the file).
+    """
+    d = Path(directory)
+    if not (d / "groundtruth.tum").is_file():
+        return None
+    try:
+        records = [json.loads(line) for line in (d / "frames.jsonl").read_text(encoding="utf-8").splitlines()
+                   if line.strip()]
+        odometry = read_odometry(d / "output.mcap")
+        gt = tum.read_tum(d / "groundtruth.tum")
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, EpiVoError) as exc:
+        msg = f"{d}: cannot read the replay output for the covariance check: {exc}"
+        raise EvaluationError(msg) from None
+    return replay_nees(records, odometry, gt, anchor=anchor)

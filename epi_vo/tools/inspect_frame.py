@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 
 from epi_vo.core.camera import CameraModel, CameraModelCache, DistortionModel
 from epi_vo.core.config import VoConfig
+from epi_vo.core.debug_image import mover_mask
 from epi_vo.core.errors import BagError, OutputError
 from epi_vo.core.frame import FrameResult, Model
 from epi_vo.core.geometry import CHI2_1DOF, CHI2_2DOF, epipolar_distances_sq, homogeneous, transfer_errors_sq
@@ -58,7 +59,9 @@ class PairData:
     """Residuals of the chosen model and what to draw, for one frame pair (row order of ``Matches``).
 
     ``residual_px`` (N,) the chosen model's residual of every correspondence (see module doc), empty
-    when no model was chosen; ``gate_px`` its inlier gate; ``inliers`` (N,) the pipeline's inliers.
+    when no model was chosen; ``gate_px`` its inlier gate; ``inliers`` (N,) the pipeline's inliers;
+    ``movers`` (N,) the features that moved on their own, as the debug image draws them
+    (:func:`epi_vo.core.debug_image.mover_mask`); ``moving_region`` their box (x0, y0, x1, y1), undistorted px.
     ``line_idx`` rows whose correspondence lines are drawn (at most ``MAX_LINES``); ``epi_idx`` (k,)
     inlier rows shown in detail: ``lines_cur``/``lines_kf`` (k, 3) their epipolar lines
     ``F x_kf`` / ``F^T x_cur`` (E), or ``transfer_cur``/``transfer_kf`` (k, 2) their points mapped by
@@ -71,6 +74,8 @@ class PairData:
     gate_px: float
     gate_rule: str
     inliers: NDArray[np.bool_]
+    movers: NDArray[np.bool_]
+    moving_region: tuple[int, int, int, int] | None
     uv_kf: F64
     uv_cur: F64
     line_idx: NDArray[np.int64]
@@ -83,6 +88,10 @@ class PairData:
     @property
     def n_inliers(self) -> int:
         return int(np.count_nonzero(self.inliers))
+
+    @property
+    def n_movers(self) -> int:
+        return int(np.count_nonzero(self.movers))
 
 
 @dataclass(frozen=True)
@@ -151,7 +160,8 @@ def pair_data(result: FrameResult, sigma_px: float, max_lines: int = MAX_LINES,
         transfer_cur = _apply_h(m.H, m.uv_kf[epi_idx])
         transfer_kf = _apply_h(np.linalg.inv(m.H), m.uv_cur[epi_idx])
     return PairData(model=model, residual_px=residual, residual_label=label, gate_px=gate, gate_rule=rule,
-                    inliers=inliers, uv_kf=np.asarray(m.uv_kf), uv_cur=np.asarray(m.uv_cur),
+                    inliers=inliers, movers=mover_mask(result), moving_region=result.moving_region,
+                    uv_kf=np.asarray(m.uv_kf), uv_cur=np.asarray(m.uv_cur),
                     line_idx=_subsample_lines(inliers, max_lines) if n else np.zeros(0, np.int64),
                     epi_idx=epi_idx, lines_cur=lines_cur, lines_kf=lines_kf, transfer_cur=transfer_cur,
                     transfer_kf=transfer_kf)
@@ -291,8 +301,18 @@ def summary_line(insp: Inspection) -> str:
     kf = f"keyframe {insp.keyframe_index}" if insp.keyframe_index is not None else "no keyframe"
     line = (f"frame {insp.frame_index} (stamp {r.stamp_ns * 1e-9:.6f} s) vs {kf}: {r.state.value}, model "
             f"{r.model.value}, RH {_fmt(r.rh)}, inliers {r.n_inliers}/{r.n_tracked} ({r.inlier_ratio:.0%}), "
-            f"parallax {_fmt(r.median_parallax_deg, unit=' deg')}, triangulated {r.n_triangulated}")
+            f"parallax {_fmt(r.median_parallax_deg, unit=' deg')}, triangulated {r.n_triangulated}, "
+            f"{moving_text(r)}")
     return line + (f"; {r.reason}" if r.reason else "")
+
+
+def moving_text(r: FrameResult) -> str:
+    """'moving 53 (28%) in x 62-245, y 155-451 px, static score 0.72' (or 'moving 0, ...')."""
+    where = ""
+    if r.moving_region is not None:
+        x0, y0, x1, y1 = r.moving_region
+        where = f" in x {x0}-{x1}, y {y0}-{y1} px"
+    return f"moving {r.n_moving} ({r.moving_fraction:.0%}){where}, static score {_fmt(r.static_score)}"
 
 
 def record_lines(insp: Inspection, width: int = 78) -> list[str]:
@@ -318,6 +338,7 @@ def record_lines(insp: Inspection, width: int = 78) -> list[str]:
         ("positive depth", _fmt(100.0 * r.positive_depth_ratio, ".1f", " %")),
         ("median reproj. error", _fmt(r.median_reproj_err_px, ".3f", " px")),
         ("relative scale", _fmt(r.relative_scale, ".4f")),
+        ("moving features", moving_text(r)),
         ("keyframes so far", str(r.n_keyframes)),
     ]
     lines = [f"{k:<21}{v}" for k, v in rows]
@@ -329,8 +350,8 @@ def record_lines(insp: Inspection, width: int = 78) -> list[str]:
 # -------------------------------------------------------------------------------------------------
 # Drawing
 
-_GREEN, _RED = "#19c219", "#e8281e"
-_DETAIL_COLORS = ("#00e5ff", "#ff40ff", "#ff9900", "#3355ff", "#ffee00", "#000000", "#8c564b", "#ffffff")
+_GREEN, _RED, _MAGENTA = "#19c219", "#e8281e", "#e600e6"  # magenta: movers, as in the debug image
+_DETAIL_COLORS = ("#00e5ff", "#00a0a0", "#ff9900", "#3355ff", "#ffee00", "#000000", "#8c564b", "#ffffff")
 
 
 def draw_inspection(insp: Inspection, path: str | Path) -> Path:
@@ -371,6 +392,9 @@ def draw_inspection(insp: Inspection, path: str | Path) -> Path:
 
 
 def _draw_pair(ax: Any, pair: Gray, insp: Inspection, w: int, h: int) -> None:
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Rectangle
+
     d = insp.data
     ax.imshow(pair, cmap="gray", vmin=-60, vmax=255, interpolation="bilinear")  # lightened: lines stand out
     ax.axvline(w - 0.5, color="white", lw=2)
@@ -388,14 +412,26 @@ def _draw_pair(ax: Any, pair: Gray, insp: Inspection, w: int, h: int) -> None:
         ax.text(w / 2, h / 2, "no correspondences with a keyframe", color="black", fontsize=14, ha="center",
                 bbox={"facecolor": "white", "alpha": 0.8, "lw": 0})
         return
-    for ok, color, lw in ((True, _GREEN, 0.7), (False, _RED, 1.2)):  # outliers on top, thicker: they are few
-        sel = d.line_idx[d.inliers[d.line_idx] == ok]
+    kind = np.where(d.inliers, 0, np.where(d.movers, 2, 1))  # 0 inlier, 1 outlier, 2 mover
+    n_out = int(np.count_nonzero(kind == 1))
+    classes = ((0, _GREEN, 0.7, f"inliers ({d.n_inliers})"), (1, _RED, 1.2, f"outliers ({n_out})"),
+               (2, _MAGENTA, 1.2, f"movers ({d.n_movers})"))
+    handles = []
+    for k, color, lw, label in classes:  # outliers and movers on top, thicker: they are few
+        sel = d.line_idx[kind[d.line_idx] == k]
+        if k < 2 or d.n_movers:  # movers in the legend only when there are some
+            handles.append(Line2D([], [], color=color, lw=2, marker="o", ms=4, label=label))
         if sel.size == 0:
             continue
         u0, v0 = d.uv_kf[sel, 0], d.uv_kf[sel, 1]
         u1, v1 = d.uv_cur[sel, 0] + w, d.uv_cur[sel, 1]
         ax.plot(np.vstack([u0, u1]), np.vstack([v0, v1]), color=color, lw=lw, alpha=0.8)
         ax.plot(np.r_[u0, u1], np.r_[v0, v1], "o", color=color, ms=2.5, mew=0)
+    if d.moving_region is not None:
+        x0, y0, x1, y1 = d.moving_region
+        ax.add_patch(Rectangle((x0 + w, y0), x1 - x0, y1 - y0, fill=False, ec=_MAGENTA, lw=2, ls="--"))
+        handles.append(Rectangle((0, 0), 1, 1, fill=False, ec=_MAGENTA, lw=2, ls="--", label="movers' region"))
+    ax.legend(handles=handles, loc="lower right", fontsize=9, framealpha=0.85)
     for k, i in enumerate(d.epi_idx):
         c = _DETAIL_COLORS[k % len(_DETAIL_COLORS)]
         if d.model is Model.ESSENTIAL:
@@ -409,11 +445,11 @@ def _draw_pair(ax: Any, pair: Gray, insp: Inspection, w: int, h: int) -> None:
             ax.plot(d.transfer_cur[k, 0] + w, d.transfer_cur[k, 1], "x", color=c, ms=11, mew=1.8)
         ax.plot(d.uv_kf[i, 0], d.uv_kf[i, 1], "o", mfc="none", mec=c, ms=11, mew=1.8)
         ax.plot(d.uv_cur[i, 0] + w, d.uv_cur[i, 1], "o", mfc="none", mec=c, ms=11, mew=1.8)
-    n_out = int(np.count_nonzero(~d.inliers))
     detail = ("epipolar lines of circled inliers: F^T x_cur (left), F x_kf (right)" if d.model is Model.ESSENTIAL
               else "x: circled inliers mapped by H^-1 (left) and H (right)" if d.model is Model.HOMOGRAPHY else "")
     ax.set_xlabel(f"undistorted images; {d.line_idx.size} of {n} correspondences drawn "
-                  f"(green: {d.n_inliers} inliers, red: {n_out} outliers of {d.model.value}); {detail}",
+                  f"(green: {d.n_inliers} inliers, red: {n_out} outliers of {insp.result.model.value}, "
+                  f"magenta: {d.n_movers} movers); {detail}",
                   fontsize=10.5)
 
 
@@ -429,8 +465,15 @@ def _draw_histogram(ax: Any, d: PairData) -> None:
     hi = min(hi, 12.0 * d.gate_px)
     bins = np.linspace(0.0, hi, 41)
     clipped = np.clip(np.where(np.isfinite(res), res, hi), 0.0, hi)
-    ax.hist([clipped[d.inliers], clipped[~d.inliers]], bins=bins, stacked=True, color=[_GREEN, _RED],
-            label=[f"inliers ({d.n_inliers})", f"outliers ({int(np.count_nonzero(~d.inliers))})"])
+    out = ~d.inliers & ~d.movers
+    data = [clipped[d.inliers], clipped[out]]
+    colors = [_GREEN, _RED]
+    labels = [f"inliers ({d.n_inliers})", f"outliers ({int(np.count_nonzero(out))})"]
+    if d.n_movers:  # movers only when there are some, as in the picture's legend
+        data.append(clipped[d.movers])
+        colors.append(_MAGENTA)
+        labels.append(f"movers ({d.n_movers})")
+    ax.hist(data, bins=bins, stacked=True, color=colors, label=labels)
     ax.axvline(d.gate_px, color="black", ls="--", lw=1.5, label=f"inlier gate {d.gate_px:.2f} px = {d.gate_rule}")
     n_over = int(np.count_nonzero(~(res <= hi)))
     if n_over:

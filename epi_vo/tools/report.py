@@ -3,7 +3,10 @@ file that embeds the PNGs as data URIs and needs nothing else.
 
 Lengths are labelled in the run's units (``stats.json`` ``units``: metres once a metric scale source was
 established, VO units otherwise). ``scale.png`` is drawn only for a run with a metric scale source
-(``scale_source`` other than none); errors.png only with ground truth.
+(``scale_source`` other than none); errors.png and nees.png (covariance consistency,
+:func:`epi_vo.tools.evaluation.replay_dir_nees`) only with ground truth. Static spans (state ``static``)
+are shaded like the other states; spans with movers in view (:mod:`epi_vo.tools.report_movers`) are a
+magenta band along the bottom of every timeline panel, and both are listed with what moved.
 
 The data come from :mod:`epi_vo.tools.report_data` (what the tests check), the figures from
 :mod:`epi_vo.tools.report_plots`; this module writes them and renders the HTML.
@@ -25,7 +28,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from epi_vo.core.config import config_fields, field_doc
-from epi_vo.core.errors import ReportError
+from epi_vo.core.errors import EvaluationError, ReportError
+from epi_vo.tools.evaluation import NeesResult, replay_dir_nees
 from epi_vo.tools.report_data import (
     NO_SIM3,
     REPORT_HTML,
@@ -49,7 +53,15 @@ from epi_vo.tools.report_data import (
     trajectory_views,
     units_name,
 )
-from epi_vo.tools.report_plots import draw_errors, draw_scale, draw_timeline, draw_trajectory
+from epi_vo.tools.report_movers import (
+    MOVER_FRACTION_MIN,
+    MoverSpan,
+    StaticSpan,
+    mover_series,
+    mover_spans,
+    static_spans,
+)
+from epi_vo.tools.report_plots import draw_errors, draw_nees, draw_scale, draw_timeline, draw_trajectory
 
 _log = logging.getLogger(__name__)
 
@@ -79,14 +91,20 @@ def _write_report(run: Run) -> Path:
     span_list = spans(run)
     err = error_series(run)
     units = units_name(run_scale(run).units)
+    mseries = mover_series(run)
+    movers = mover_spans(run, mseries)
     pngs = [(draw_trajectory(views, png_dir / "trajectory.png"), "Trajectory: top view (x right, z forward) and "
              f"side view (z forward, -y up), estimate in {units} with its keyframes; ground truth in the same "
              "frame."),
-            (draw_timeline(tl, span_list, png_dir / "timeline.png"), "Per-frame timeline. Shaded: frames not "
-             "tracking, by state; ticks at the top of each panel: keyframes.")]
+            (draw_timeline(tl, span_list, png_dir / "timeline.png", movers, mseries), "Per-frame timeline. Shaded: "
+             "frames not tracking, by state (static: the camera held still while something moved); magenta band "
+             "at the bottom of each panel: movers in view (at least "
+             f"{MOVER_FRACTION_MIN:.0%} of the tracked features moved on their own); ticks at the top of each "
+             "panel: keyframes. Last panel: the features that moved on their own and the static hypothesis' "
+             "score.")]
     errors_png = png_dir / "errors.png"
     if err is not None:
-        pngs.append((draw_errors(err, span_list, tl.keyframe_index, errors_png),
+        pngs.append((draw_errors(err, span_list, tl.keyframe_index, errors_png, movers),
                      "Errors against ground truth (evo): ATE of the Sim(3)-aligned estimate over time, RPE between "
                      "consecutive frames."))
     else:
@@ -94,16 +112,41 @@ def _write_report(run: Run) -> Path:
     scale = scale_series(run)
     scale_png = png_dir / "scale.png"
     if scale is not None:
-        pngs.append((draw_scale(scale, span_list, tl.keyframe_index, scale_png),
+        pngs.append((draw_scale(scale, span_list, tl.keyframe_index, scale_png, movers),
                      f"Metric scale ({scale.source}): metres per VO unit of the first map, shaded ±1 sigma "
                      "(scale_rel_std), drawn from the frame metric scale was established" +
                      ("; below, the camera's pitch and roll to the floor." if scale.has_floor else ".")))
     else:
         scale_png.unlink(missing_ok=True)
-    page = render_html(run, run_figures(run), span_list, views.alignment, pngs)
+    nees, nees_note = run_nees(run)
+    nees_png = png_dir / "nees.png"
+    if nees is not None and nees.evaluated:  # no tracking frame (a static or rotating camera): the summary says so
+        frame_range = (int(tl.frame_index[0]), int(tl.frame_index[-1]))
+        pngs.append((draw_nees(nees, span_list, tl.keyframe_index, nees_png, frame_range, movers),
+                     "Covariance consistency: per tracking frame, the normalised estimation error squared of the "
+                     "position and of the rotation against the covariance published in /vo/odometry (3 dof, log "
+                     "scale), after the one global scale (Sim(3) anchored at the odometry origin; SE(3) with metric "
+                     "scale). A consistent covariance gives a mean of 3 and 99 % of the frames below the dashed "
+                     "bound."))
+    else:
+        nees_png.unlink(missing_ok=True)
+    page = render_html(run, run_figures(run), span_list, views.alignment, pngs, nees=nees, nees_note=nees_note,
+                       movers=movers, statics=static_spans(run, span_list, mseries))
     out = run.directory / REPORT_HTML
     out.write_text(page, encoding="utf-8")
     return out
+
+
+def run_nees(run: Run) -> tuple[NeesResult | None, str]:
+    """The run's covariance consistency and, when there is none, why (no ground truth, no output.mcap, ...)."""
+    if run.gt is None:
+        return None, "no ground truth"
+    if not (run.directory / "output.mcap").is_file():
+        return None, "no output.mcap (the published covariance)"
+    try:
+        return replay_dir_nees(run.directory), ""
+    except EvaluationError as exc:
+        return None, f"not computed: {exc}"
 
 
 def run(args: argparse.Namespace) -> int:
@@ -138,7 +181,8 @@ window.addEventListener('load', function () {
 
 
 def render_html(run: Run, figs: RunFigures, span_list: Sequence[Span], alignment: GtAlignment | None,
-                pngs: Sequence[tuple[Path, str]]) -> str:
+                pngs: Sequence[tuple[Path, str]], *, nees: NeesResult | None = None, nees_note: str = "",
+                movers: Sequence[MoverSpan] = (), statics: Sequence[StaticSpan] = ()) -> str:
     """The report page: inline CSS, PNGs as base64 data URIs, no external resource."""
     e = html.escape
     stats = run.stats or {}
@@ -184,6 +228,7 @@ def render_html(run: Run, figs: RunFigures, span_list: Sequence[Span], alignment
                   if m.trans_direction_pairs else "undefined: no step with a direction in both trajectories")]
     else:
         rows.append(("ATE / RPE", f"<span class=\"muted\">{e(figs.metrics_note)}</span>"))
+    rows += _nees_rows(nees, nees_note)
     parts.append(_kv_table(rows))
     notes = [str(n) for n in stats.get("notes", []) or []]
     if alignment is not None and alignment.kind is not AlignmentKind.SIM3:
@@ -205,6 +250,7 @@ def render_html(run: Run, figs: RunFigures, span_list: Sequence[Span], alignment
         parts.append(head + "".join(body) + "</table>")
     else:
         parts.append("<p>None: every frame was tracking.</p>")
+    parts.append(_mover_section(movers, statics))
     parts.append("<h2>Parameters</h2>")
     params, source = run_parameters(run)
     docs = {f.name: field_doc(f) for f in config_fields()}
@@ -231,6 +277,49 @@ def render_html(run: Run, figs: RunFigures, span_list: Sequence[Span], alignment
 
     parts.append(f"</main><script>{_SCRIPT}</script></body></html>\n")
     return "\n".join(parts)
+
+
+def _nees_rows(nees: NeesResult | None, note: str) -> list[tuple[str, str]]:
+    """Summary rows of the covariance consistency (already-escaped HTML)."""
+    if nees is None:
+        why = html.escape(note or "not computed")
+        return [("covariance consistency (NEES)", f"<span class=\"muted\">{why}</span>")]
+    skipped = ", ".join(f"{html.escape(k)} {n}" for k, n in sorted(nees.skipped.items())) or "none"
+    how = ("SE(3), metric scale" if nees.alignment == "se3"
+           else f"Sim(3), scale estimate&rarr;GT {fmt_num(nees.scale)}")
+    return [("NEES position (3 dof)", f"mean {fmt_num(nees.mean_nees_pos)}, {fmt_num(nees.inside_pos_percent, '.1f')}"
+                                      f" % inside the 99 % bound ({nees.bound:g}); consistent: 3 and 99 %"),
+            ("NEES rotation (3 dof)", f"mean {fmt_num(nees.mean_nees_rot)}, {fmt_num(nees.inside_rot_percent, '.1f')}"
+                                      " % inside the 99 % bound"),
+            ("NEES frames", f"{nees.evaluated} tracking frames evaluated ({how}, anchored at the odometry "
+                            f"origin); skipped: {skipped}")]
+
+
+def _mover_section(movers: Sequence[MoverSpan], statics: Sequence[StaticSpan]) -> str:
+    """The static-camera and mover spans, in frame order, with what moved."""
+    e = html.escape
+    rows = [(s.span.start_index, "static camera", s.span.start_index, s.span.end_index, s.span.n_frames,
+             s.span.start_stamp_s, s.span.end_stamp_s, STATIC_STATE, s.what) for s in statics]
+    rows += [(m.start_index, "movers in view", m.start_index, m.end_index, m.n_frames, m.start_stamp_s,
+              m.end_stamp_s, ", ".join(m.states), m.what) for m in movers]
+    rows.sort(key=lambda r: (r[0], r[1]))
+    out = [f"<h2 id=\"movers\">Static camera and moving objects ({len(statics)} static, {len(movers)} mover "
+           "spans)</h2>"]
+    if not rows:
+        out.append("<p>None: the camera never held still for a moving object, and nothing moved on its own.</p>")
+        return "\n".join(out)
+    body = []
+    for _, kind, a, b, n, t0, t1, states, what in rows:
+        frames = f"{a}" if a == b else f"{a}&ndash;{b}"
+        chips = " ".join(_chip(st) for st in states.split(", "))
+        body.append(f"<tr><td>{e(kind)}</td><td class=\"num\">{frames}</td><td class=\"num\">{n}</td>"
+                    f"<td class=\"num\">{t0:.3f}&ndash;{t1:.3f}</td><td>{chips}</td><td>{e(what)}</td></tr>")
+    out.append("<table class=\"movers\"><tr><th>span</th><th>frames</th><th>count</th><th>stamps [s]</th>"
+               "<th>states</th><th>what moved</th></tr>" + "".join(body) + "</table>")
+    return "\n".join(out)
+
+
+STATIC_STATE = "static"
 
 
 def _kv_table(rows: Sequence[tuple[str, str]]) -> str:

@@ -18,6 +18,7 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 from numpy.typing import NDArray
 
+from epi_vo.tools.evaluation import NeesResult
 from epi_vo.tools.report_data import (
     EST_COLOUR,
     GT_COLOUR,
@@ -32,10 +33,13 @@ from epi_vo.tools.report_data import (
     TrajectoryViews,
     fmt_num,
 )
+from epi_vo.tools.report_movers import MoverSeries, MoverSpan
 
 _log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
+
+MOVER_COLOUR = "#e600e6"  # magenta, as the debug image and epi-vo inspect draw movers
 
 def draw_trajectory(views: TrajectoryViews, path: Path) -> Path:
     """trajectory.png: top and side views, estimate (keyframes marked) and aligned ground truth."""
@@ -87,29 +91,38 @@ def draw_trajectory(views: TrajectoryViews, path: Path) -> Path:
     return _save(fig, path)
 
 
-def _shade(ax: Any, span_list: Sequence[Span], keyframes: NDArray[np.int64]) -> None:
+def _shade(ax: Any, span_list: Sequence[Span], keyframes: NDArray[np.int64],
+           movers: Sequence[MoverSpan] = ()) -> None:
     for s in span_list:
         ax.axvspan(s.start_index - 0.5, s.end_index + 0.5, color=STATE_COLOURS.get(s.state, "#dddddd"), alpha=0.45,
                    lw=0, zorder=0)
+    for m in movers:  # a magenta band along the bottom of the panel: movers in view
+        ax.axvspan(m.start_index - 0.5, m.end_index + 0.5, ymin=0.0, ymax=0.05, color=MOVER_COLOUR, alpha=0.8,
+                   lw=0, zorder=1)
     if keyframes.size:
         ax.plot(keyframes, np.full(keyframes.shape, 1.0), "|", color="black", ms=9, mew=1.2, clip_on=False,
                 transform=ax.get_xaxis_transform(), zorder=5)
 
 
-def _state_legend(fig: Figure, span_list: Sequence[Span]) -> None:
+def _state_legend(fig: Figure, span_list: Sequence[Span], movers: Sequence[MoverSpan] = ()) -> None:
     states = list(dict.fromkeys(s.state for s in span_list))
     handles: list[Any] = [Patch(color=STATE_COLOURS.get(s, "#dddddd"), alpha=0.6, label=s) for s in states]
+    if movers:
+        handles.append(Patch(color=MOVER_COLOUR, alpha=0.8, label="movers in view (bottom band)"))
     handles.append(Line2D([], [], marker="|", color="black", ls="none", ms=9, mew=1.2, label="keyframe"))
     fig.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, 1.0), ncol=len(handles), fontsize=9,
                frameon=False)
 
 
-def draw_timeline(tl: Timeline, span_list: Sequence[Span], path: Path) -> Path:
-    """timeline.png: stacked per-frame panels sharing the frame axis."""
+def draw_timeline(tl: Timeline, span_list: Sequence[Span], path: Path, movers: Sequence[MoverSpan] = (),
+                  mseries: MoverSeries | None = None) -> Path:
+    """timeline.png: stacked per-frame panels sharing the frame axis (a seventh, the features that moved on
+    their own and the static hypothesis' score, with ``mseries``)."""
     # Fixed margins: constrained layout would double the drawing time of this figure.
-    fig = Figure(figsize=(13, 17), dpi=100)
+    rows = 6 if mseries is None else 7
+    fig = Figure(figsize=(13, 17 + 2.6 * (rows - 6)), dpi=100)
     fig.subplots_adjust(left=0.065, right=0.935, top=0.955, bottom=0.035, hspace=0.3)
-    axes = fig.subplots(6, 1, sharex=True)
+    axes = fig.subplots(rows, 1, sharex=True)
     x = tl.frame_index
     kf = tl.keyframe_index
 
@@ -176,14 +189,29 @@ def draw_timeline(tl: Timeline, span_list: Sequence[Span], path: Path) -> Path:
     ax.set_ylim(bottom=0)
     ax.legend(loc="upper right", fontsize=8, ncol=len(tl.stage_ms) + 1, framealpha=0.9)
     ax.set_title("processing time per stage (stacked)")
-    ax.set_xlabel("frame index")
+
+    if mseries is not None:
+        ax = axes[6]
+        ax.plot(mseries.frame_index, mseries.moving_fraction, "-", color=MOVER_COLOUR, marker=".", ms=4, lw=1.2,
+                label="moving fraction (of tracked features)")
+        ax.plot(mseries.frame_index, mseries.static_score, ":", color="#555555", marker=".", ms=3, lw=1.2,
+                label="static score (features that did not move)")
+        ax.set_ylim(0, 1.05)
+        ax.set_ylabel("fraction")
+        axr = ax.twinx()
+        axr.plot(mseries.frame_index, mseries.n_moving, "|", color=MOVER_COLOUR, ms=6, label="moving features")
+        axr.set_ylim(bottom=0)
+        axr.set_ylabel("features")
+        _legend_pair(ax, axr)
+        ax.set_title("features that moved on their own, and the static-camera hypothesis")
+    axes[-1].set_xlabel("frame index")
 
     for ax in axes:
-        _shade(ax, span_list, kf)
+        _shade(ax, span_list, kf, movers)
         ax.grid(True, alpha=0.3)
     if x.size:
         axes[-1].set_xlim(x[0] - 0.5, x[-1] + 0.5)
-    _state_legend(fig, span_list)
+    _state_legend(fig, span_list, movers)
     return _save(fig, path)
 
 
@@ -198,7 +226,8 @@ def _legend_pair(ax: Any, axr: Any) -> None:
     axr.legend(h1 + h2, l1 + l2, loc="lower right", fontsize=8, ncol=4)
 
 
-def draw_errors(err: ErrorSeries, span_list: Sequence[Span], keyframes: NDArray[np.int64], path: Path) -> Path:
+def draw_errors(err: ErrorSeries, span_list: Sequence[Span], keyframes: NDArray[np.int64], path: Path,
+                movers: Sequence[MoverSpan] = ()) -> Path:
     """errors.png: ATE over time (Sim(3)-aligned) and RPE rotation / translation per frame."""
     fig = Figure(figsize=(13, 9), dpi=100)
     fig.subplots_adjust(left=0.065, right=0.985, top=0.92, bottom=0.06, hspace=0.32)
@@ -221,16 +250,54 @@ def draw_errors(err: ErrorSeries, span_list: Sequence[Span], keyframes: NDArray[
             ax.set_yticks([])
         ax.set_ylabel(ylabel)
         ax.set_title(title)
-        _shade(ax, span_list, keyframes)
+        _shade(ax, span_list, keyframes, movers)
         ax.grid(True, alpha=0.3)
     axes[-1].set_xlabel("frame index")
     if err.frame_index.size:
         axes[-1].set_xlim(err.frame_index[0] - 0.5, err.frame_index[-1] + 0.5)
-    _state_legend(fig, span_list)
+    _state_legend(fig, span_list, movers)
     return _save(fig, path)
 
 
-def draw_scale(series: ScaleSeries, span_list: Sequence[Span], keyframes: NDArray[np.int64], path: Path) -> Path:
+def draw_nees(nees: NeesResult, span_list: Sequence[Span], keyframes: NDArray[np.int64], path: Path,
+              frame_range: tuple[int, int], movers: Sequence[MoverSpan] = ()) -> Path:
+    """nees.png: per-frame position and rotation NEES (log y) with the chi-square 3-dof 99 % bound and the
+    consistent mean 3; frames not evaluated (not tracking) are gaps."""
+    fig = Figure(figsize=(13, 7.5), dpi=100)
+    fig.subplots_adjust(left=0.065, right=0.985, top=0.9, bottom=0.08, hspace=0.35)
+    axes = fig.subplots(2, 1, sharex=True)
+    x = nees.frame_index
+    for ax, y, name, mean, inside in ((axes[0], nees.nees_pos, "position", nees.mean_nees_pos,
+                                       nees.inside_pos_percent),
+                                      (axes[1], nees.nees_rot, "rotation", nees.mean_nees_rot,
+                                       nees.inside_rot_percent)):
+        ok = np.isfinite(y) & (y > 0)
+        if ok.any():
+            ax.plot(*_break_at_gaps(x[ok], y[ok]), "-", color="#1f77b4", marker=".", ms=4, lw=1.0,
+                    label=f"NEES {name}")
+            ax.set_yscale("log")
+            lo, hi = float(y[ok].min()), float(y[ok].max())
+            ax.set_ylim(min(lo, 1.0) / 2.0, max(hi, nees.bound) * 2.0)  # the bound and the mean 3 always in view
+            ax.axhline(nees.bound, ls="--", color="#d62728", lw=1.3, label=f"99 % bound, 3 dof ({nees.bound:g})")
+            ax.axhline(3.0, ls=":", color="black", lw=1.2, label="consistent mean (3)")
+            ax.legend(loc="upper right", fontsize=8, ncol=3, framealpha=0.9)
+        else:
+            ax.text(0.5, 0.5, "no tracking frame with ground truth" if not x.size else "undefined: no scale alignment",
+                    transform=ax.transAxes, ha="center", va="center", fontsize=10, color="#555555")
+            ax.set_yticks([])
+        ax.set_ylabel("NEES (3 dof)")
+        ax.set_title(f"{name} NEES against the published covariance: mean {fmt_num(mean)}, "
+                     f"{fmt_num(inside, '.1f')} % inside the 99 % bound ({x.size} tracking frames)")
+        _shade(ax, span_list, keyframes, movers)
+        ax.grid(True, alpha=0.3, which="both")
+    axes[-1].set_xlabel("frame index")
+    axes[-1].set_xlim(frame_range[0] - 0.5, frame_range[1] + 0.5)
+    _state_legend(fig, span_list, movers)
+    return _save(fig, path)
+
+
+def draw_scale(series: ScaleSeries, span_list: Sequence[Span], keyframes: NDArray[np.int64], path: Path,
+               movers: Sequence[MoverSpan] = ()) -> Path:
     """scale.png: metres per VO unit with its 1-sigma band over frames; the floor's pitch and roll below it
     when the source measured them (ground_plane)."""
     rows = 2 if series.has_floor else 1
@@ -265,12 +332,12 @@ def draw_scale(series: ScaleSeries, span_list: Sequence[Span], keyframes: NDArra
         ax.set_title("camera pitch and roll to the floor (ground plane)")
 
     for ax in axes:
-        _shade(ax, span_list, keyframes)
+        _shade(ax, span_list, keyframes, movers)
         ax.grid(True, alpha=0.3)
     axes[-1].set_xlabel("frame index")
     if x.size:
         axes[-1].set_xlim(x[0] - 0.5, x[-1] + 0.5)
-    _state_legend(fig, span_list)
+    _state_legend(fig, span_list, movers)
     return _save(fig, path)
 
 

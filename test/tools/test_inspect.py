@@ -18,6 +18,7 @@ import pytest
 
 from epi_vo.cli import main
 from epi_vo.core import geometry as geo
+from epi_vo.core.debug_image import mover_mask
 from epi_vo.core.errors import BagError
 from epi_vo.core.frame import FrameResult, Matches, Model
 from epi_vo.tools.inspect_frame import (
@@ -28,6 +29,8 @@ from epi_vo.tools.inspect_frame import (
     line_in_box,
     nearest_frame,
     pair_data,
+    record_lines,
+    summary_line,
 )
 from epi_vo.tools.replay import run_replay
 
@@ -245,3 +248,58 @@ def test_line_in_box() -> None:
     (u0, v0), (u1, v1) = line_in_box(np.array([1.0, -1.0, 0.0]), 640, 480)  # u = v: corner to bottom edge
     assert (u0, v0) == pytest.approx((0.0, 0.0)) and (u1, v1) == pytest.approx((479.0, 479.0))
     assert line_in_box(np.array([0.0, 1.0, 1000.0]), 640, 480) is None  # v = -1000: outside
+
+
+# -------------------------------------------------------------------------------------------------
+# Movers: coloured like the debug image, counted in the summary
+
+
+def test_static_mover_frame_colours_the_movers(tmp_path: Path) -> None:
+    insp = inspect_bag(REPO / "bags" / "static_mover" / "bag", 40)
+    r, d = insp.result, insp.data
+    assert r.state.value == "static" and r.n_moving >= 0.25 * r.n_tracked
+    # In front of a still camera every feature the static hypothesis did not explain moved.
+    assert d.n_movers == r.n_moving
+    assert np.array_equal(d.movers, ~d.inliers)
+    x0, y0, x1, y1 = r.moving_region
+    assert d.moving_region == r.moving_region
+    line = summary_line(insp)
+    assert f"moving {r.n_moving} ({r.moving_fraction:.0%}) in x {x0}-{x1}, y {y0}-{y1} px, static score " in line
+    assert any(s.startswith("moving features") and f"moving {r.n_moving}" in s for s in record_lines(insp))
+    png = cv2.imread(str(draw_inspection(insp, tmp_path / "f40.png")))
+    magenta = np.all(png == (230, 0, 230), axis=2)  # BGR of #e600e6
+    assert int(magenta.sum()) > 500
+
+
+def test_moving_mover_frame_colours_exactly_the_pipelines_movers() -> None:
+    insp = inspect_bag(REPO / "bags" / "moving_mover" / "bag", 56)
+    r, d = insp.result, insp.data
+    assert r.state.value == "tracking" and r.n_moving > 0 and r.moving_region is not None
+    assert r.matches.moving is not None and np.array_equal(d.movers, r.matches.moving)
+    assert d.n_movers == r.n_moving
+    assert not np.any(d.movers & d.inliers)
+    x0, y0, x1, y1 = r.moving_region
+    inside = (d.uv_cur[:, 0] >= x0) & (d.uv_cur[:, 0] <= x1) & (d.uv_cur[:, 1] >= y0) & (d.uv_cur[:, 1] <= y1)
+    assert np.all(inside[d.movers])  # the box is the movers' own
+
+
+def test_no_movers_no_magenta(general20: Inspection, tmp_path: Path) -> None:
+    assert general20.result.n_moving == 0 and general20.data.n_movers == 0
+    assert "moving 0 (0%), static score" in summary_line(general20)
+    png = cv2.imread(str(draw_inspection(general20, tmp_path / "f20.png")))
+    assert int(np.all(png == (230, 0, 230), axis=2).sum()) == 0
+
+
+def test_mover_mask_known_answer(general20: Inspection) -> None:
+    r = general20.result
+    uv = np.array([[10.0, 10.0], [50.0, 50.0], [55.0, 45.0], [200.0, 200.0], [52.0, 52.0]])
+    m = Matches(uv, uv, uv, uv, np.array([False, False, False, False, True]), np.zeros((3, 3)), np.zeros((3, 3)))
+    moving = replace(r, matches=m, n_moving=2, moving_fraction=0.4, moving_region=(45, 40, 60, 55),
+                     model=Model.ESSENTIAL)
+    # Matches without the pipeline's mask (older records): the outliers in the box; the inlier in it is none.
+    assert mover_mask(moving).tolist() == [False, True, True, False, False]
+    exact = replace(moving, matches=replace(m, moving=np.array([False, True, False, False, False])))
+    assert mover_mask(exact).tolist() == [False, True, False, False, False]  # the pipeline's mask wins
+    static = replace(moving, model=Model.STATIC)
+    assert mover_mask(static).tolist() == [True, True, True, True, False]
+    assert mover_mask(replace(moving, n_moving=0, moving_region=None)).tolist() == [False] * 5

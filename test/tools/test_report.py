@@ -511,7 +511,8 @@ def test_metric_replay_report(ground_plane_report: Path) -> None:
     assert _summary_row(page, "metric from frame") == str(stats["metric_from_frame"])
     assert "[VO units]" not in page and "no scale plot" not in page
     # The scale panel: embedded, and its data are the records' (metres per VO unit, 1-sigma band, floor).
-    assert '<figure id="scale">' in page and len(_data_pngs(page)) == 4  # trajectory, timeline, errors, scale
+    # trajectory, timeline, errors, scale and the covariance consistency (NEES)
+    assert '<figure id="scale">' in page and '<figure id="nees">' in page and len(_data_pngs(page)) == 5
     assert (out / "report" / "scale.png").stat().st_size > 10_000
     sc = scale_series(run)
     assert sc is not None and sc.has_floor
