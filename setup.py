@@ -11,7 +11,10 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
-        ("share/" + package_name + "/config", glob("config/*.yaml")),
+        # the default parameter file, the RViz2 config and the Foxglove layout; the launch file
+        ("share/" + package_name + "/config", sorted(glob("config/*.yaml") + glob("config/*.rviz")
+                                                     + glob("config/*.json"))),
+        ("share/" + package_name + "/launch", sorted(glob("launch/*.launch.py"))),
     ],
     install_requires=["setuptools", "numpy", "opencv-python-headless", "PyYAML", "rosbags", "mcap", "evo", "tqdm"],
     extras_require={"ba": ["gtsam"]},  # the windowed bundle adjustment (ba_window_keyframes > 0)

@@ -7,7 +7,7 @@ import logging
 import signal
 import sys
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from epi_vo.core.errors import EpiVoError
 
@@ -22,17 +22,36 @@ EXIT_HANGUP = 129
 
 
 def _add_replay(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("replay", help="run the VO over a recorded bag and write trajectory, records and a bag",
+    p = sub.add_parser("replay", help="run the VO over recorded bags and write trajectory, records and a bag",
                        description="Replay a ROS 2 bag (directory or .mcap; MCAP or sqlite3) through the VO "
-                                   "pipeline. Every frame is processed.")
-    p.add_argument("bag", help="bag directory or .mcap file")
+                                   "pipeline. Every frame is processed. One bag writes into OUTPUT; several bags "
+                                   "(paths, a directory holding bags, globs) are replayed in parallel, each into "
+                                   "OUTPUT/<bag name>/, with OUTPUT/summary.csv and summary.md; the exit status is "
+                                   "then the number of bags that failed (at most 100), 130 when interrupted.")
+    p.add_argument("bag", nargs="+", help="bag directory or .mcap file; several, a directory of bags or a glob "
+                                          "('logs/**/*.mcap') for a fleet")
     p.add_argument("--output", "-o", required=True, help="output directory")
+    p.add_argument("--jobs", "-j", type=int, default=None,
+                   help="fleet: bags replayed at once, one process each (default: the number of cores)")
+    p.add_argument("--force", action="store_true",
+                   help="fleet: replay also the bags whose outputs are complete from an earlier run")
     p.add_argument("--params", help="ROS 2 parameter file (default: built-in defaults = config/epi_vo.yaml)")
     p.add_argument("--image-topic", help="sensor_msgs/Image or CompressedImage topic (default: the only one)")
     p.add_argument("--camera-info-topic", help="sensor_msgs/CameraInfo topic (default: the only one)")
     p.add_argument("--gt", help="ground truth TUM file (default: a PoseStamped/Odometry topic in the bag, if any)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--report", action="store_true", help="also write plots and report.html into the output")
+    p.add_argument("--report", action="store_true", help="also write plots and report.html into the output "
+                                                         "(fleet: per bag, and OUTPUT/index.html linking them)")
+
+
+def _add_summarize(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("summarize", help="summary.csv / summary.md of replay output directories (e.g. made one "
+                                         "bag per cluster job)")
+    p.add_argument("dirs", nargs="+", metavar="DIR",
+                   help="replay output directories, or directories holding them (a fleet's OUTPUT)")
+    p.add_argument("--output", "-o", default=None,
+                   help="where to write the summary (default: DIR when one holding outputs is given, else the "
+                        "directory the outputs share)")
 
 
 def _add_benchmark(sub: argparse._SubParsersAction) -> None:
@@ -89,7 +108,8 @@ def _add_soak(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_params(sub: argparse._SubParsersAction) -> None:
-    sub.add_parser("params", help="print the default parameter file (ROS 2 YAML) with one comment per knob")
+    sub.add_parser("params", help="print the default parameter file (ROS 2 YAML: the node's own parameters and "
+                                  "the pipeline's) with one comment per parameter")
 
 
 def _add_play(sub: argparse._SubParsersAction) -> None:
@@ -122,6 +142,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)
     _add_replay(sub)
+    _add_summarize(sub)
     _add_benchmark(sub)
     _add_params(sub)
     _add_latency(sub)
@@ -136,6 +157,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.command == "replay":
             return _replay(args)
+        if args.command == "summarize":
+            return _summarize(args)
         if args.command == "benchmark":
             from epi_vo.tools.benchmark import run_benchmark
 
@@ -158,9 +181,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             return latency_main([float(r) for r in args.rates.split(",")], args.seconds)
         if args.command == "params":
             from epi_vo.core.config import VoConfig
+            from epi_vo.io.node_options import NodeOptions
             from epi_vo.io.params import to_params_yaml
 
-            sys.stdout.write(to_params_yaml(VoConfig()))
+            sys.stdout.write(to_params_yaml(VoConfig(), node=NodeOptions()))
             return 0
         if args.command == "play":
             return _play(args)
@@ -204,11 +228,13 @@ def _say(line: str, *, stdout: bool = False) -> None:
 
 def _replay(args: argparse.Namespace) -> int:
     from epi_vo.io.params import load_config
+    from epi_vo.tools.fleet import is_fleet
     from epi_vo.tools.replay import format_summary, run_replay
 
-
+    if is_fleet(args.bag):
+        return _replay_fleet(args)
     cfg = load_config(args.params)
-    summary = run_replay(args.bag, args.output, cfg, image_topic=args.image_topic,
+    summary = run_replay(args.bag[0], args.output, cfg, image_topic=args.image_topic,
                          camera_info_topic=args.camera_info_topic, gt_tum=args.gt,
                          progress=not args.no_progress)
     _say(format_summary(summary), stdout=True)
@@ -222,16 +248,57 @@ def _replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _replay_fleet(args: argparse.Namespace) -> int:
+    from epi_vo.io.params import load_config
+    from epi_vo.tools.fleet import find_bags, run_fleet
+    from epi_vo.tools.fleet_summary import exit_code
+
+    if args.gt is not None:
+        _say("epi-vo: error: --gt is the ground truth of one bag; with several bags each bag's own ground-truth "
+             "topic is used")
+        return 2
+    if args.jobs is not None and args.jobs < 1:
+        _say(f"epi-vo: error: --jobs must be at least 1, got {args.jobs}")
+        return 2
+    cfg = load_config(args.params)
+    bags = find_bags(args.bag)
+    result = run_fleet(bags, args.output, cfg, jobs=args.jobs, force=args.force, report=args.report,
+                       progress=not args.no_progress, image_topic=args.image_topic,
+                       camera_info_topic=args.camera_info_topic)
+    _print_rows(result.rows, result.summary_files)
+    if result.signum is not None:
+        hangup = result.signum == getattr(signal, "SIGHUP", None)
+        _say("epi-vo: interrupted" + (" (SIGHUP: terminal closed)" if hangup else "") +
+             ": finished bags are complete, the others are marked in their status.json")
+        return EXIT_HANGUP if hangup else EXIT_INTERRUPTED
+    return exit_code(result.rows)
+
+
+def _summarize(args: argparse.Namespace) -> int:
+    from epi_vo.tools.fleet_summary import exit_code, summarize
+
+    rows, files = summarize(args.dirs, args.output)
+    _print_rows(rows, files)
+    return exit_code(rows)
+
+
+def _print_rows(rows: Sequence[Any], files: Sequence[Any]) -> None:
+    from epi_vo.tools.fleet_summary import counts_line
+
+    for r in rows:
+        s = r.summary
+        figures = (f"{s.frames} frames, {s.tracked_percent:.1f} % with pose, {s.ms_per_frame:.2f} ms/frame, "
+                   f"{s.end_to_end_fps:.1f} frames/s end to end" if s is not None else "")
+        tail = "; ".join(x for x in (figures, r.run, r.reason) if x)
+        _say(f"  {r.name:<28} {r.status.value:<11} {tail}", stdout=True)
+    _say(counts_line(rows), stdout=True)
+    for f in files:
+        _say(f"  {f}", stdout=True)
+
+
 def replay_problem_line(summary: ReplaySummary) -> str:
     """One line: how many of the frames read were rejected and the first problem, then what was skipped."""
-    rejected, skipped = summary.rejected, summary.skipped_messages
-    parts = []
-    if rejected:
-        others = f" (and {len(rejected) - 1} other problem(s))" if len(rejected) > 1 else ""
-        parts.append(f"{summary.rejected_frames} of {summary.frames} frames rejected: {rejected[0]}{others}")
-    if skipped:
-        parts.append(f"{len(skipped)} message(s) skipped: {skipped[0]}")
-    return _one_line("; ".join(parts))
+    return summary.problem_line()
 
 
 def _play(args: argparse.Namespace) -> int:

@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from epi_vo.core.frame import FrameResult
+from epi_vo.core.status import StatusPose
 from epi_vo.core.transforms import invert_T, make_T, quat_xyzw_from_rotation
 
 F64 = NDArray[np.float64]
@@ -131,3 +133,13 @@ def _log_so3(R: F64) -> F64:
         axis = B[:, k] / math.sqrt(max(B[k, k], 1e-12))
         return axis * angle
     return w * (angle / (2.0 * math.sin(angle)))
+
+
+def status_pose(converter: OdometryConverter, result: FrameResult, frame: str, child_frame: str) -> StatusPose:
+    """The frame's pose as vo/odometry carries it (``child_frame`` in ``frame``, odom -> base_link), for
+    its diagnostics status: one frame convention in the node, the replay and every tool."""
+    T_odom_base = converter.base_pose(result.T_w_c)
+    cov = rotate_covariance(result.covariance, converter.T_base_cam[:3, :3])
+    return StatusPose(frame, child_frame, tuple(float(v) for v in T_odom_base[:3, 3]),  # type: ignore[arg-type]
+                      tuple(float(v) for v in quat_xyzw_from_rotation(T_odom_base[:3, :3])),  # type: ignore
+                      tuple(float(v) for v in np.diag(cov)))

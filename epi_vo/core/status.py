@@ -9,6 +9,7 @@ key/values are the frame record's fields.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 from epi_vo.core.diagnostics import DiagnosticLevel, DiagnosticStatusRecord
 from epi_vo.core.frame import FrameResult, TrackingState
@@ -32,12 +33,46 @@ def _fmt(v: object) -> str:
     return str(v)
 
 
-def frame_status(result: FrameResult, node_name: str, hardware_id: str) -> DiagnosticStatusRecord:
-    """Status named ``<node_name>: tracking`` with the level, the reason and the frame record."""
+@dataclass(frozen=True)
+class StatusPose:
+    """A frame's pose as the node publishes it: the position and orientation of ``child_frame`` in
+    ``frame`` (odom -> base_link, as vo/odometry), with the diagonal of its covariance in that frame."""
+
+    frame: str
+    child_frame: str
+    position: tuple[float, float, float]
+    quat_xyzw: tuple[float, float, float, float]
+    covariance_diagonal: tuple[float, ...]
+
+
+# Without a StatusPose, the record's pose: the camera's optical frame at the first image (the pipeline's w).
+CAMERA_POSITION_FRAME = "camera optical frame of the first image"
+
+
+def frame_status(result: FrameResult, node_name: str, hardware_id: str,
+                 pose: StatusPose | None = None) -> DiagnosticStatusRecord:
+    """Status named ``<node_name>: tracking`` with the level, the reason and the frame record.
+
+    ``position``, ``quat_xyzw`` and ``covariance_diagonal`` are those of ``pose`` when given (the node
+    gives the odometry's, odom -> base_link), else the record's (camera optical frame); the key
+    ``position_frame`` names which ("odom -> base_link" for the former).
+    """
     level = DiagnosticLevel.WARN if result.skipped else _LEVELS[result.state]
     message = result.reason or result.state.value
     if not message.startswith(result.state.value):
         message = f"{result.state.value}: {message}"
     record = result.to_record()
+    if pose is not None:
+        record["position"] = list(pose.position)
+        record["quat_xyzw"] = list(pose.quat_xyzw)
+        record["covariance_diagonal"] = list(pose.covariance_diagonal)
+    record["position_frame"] = f"{pose.frame} -> {pose.child_frame}" if pose is not None else CAMERA_POSITION_FRAME
     values = tuple((k, _fmt(v)) for k, v in record.items())
     return DiagnosticStatusRecord(level, f"{node_name}: tracking", message, hardware_id, values)
+
+
+def summary_status(node_name: str, hardware_id: str, level: DiagnosticLevel, message: str,
+                   values: tuple[tuple[str, str], ...]) -> DiagnosticStatusRecord:
+    """The node's once-a-second status, in diagnostic_updater's style: ``<node_name>: summary``, the worst
+    level of what it summarises, one message, and key/values (input, transport, extrinsic, ...)."""
+    return DiagnosticStatusRecord(level, f"{node_name}: summary", message, hardware_id, values)

@@ -1,8 +1,9 @@
 """ROS 2 parameter files: read the ``ros__parameters`` of ``vo_node`` (or ``/**``) into a ``VoConfig``,
 and write a config back as such a file (``epi-vo params``).
 
-Every name in a file must be a parameter: a pipeline knob, a node option or a ROS node parameter
-(``epi_vo.core.config``); any other is an error naming it with the closest parameter name.
+Every name in a file must be a parameter: a pipeline knob (``epi_vo.core.config``), a node option
+(``epi_vo.io.node_options``) or a ROS node parameter; any other is an error naming it with the closest
+parameter name.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from epi_vo.core.config import (
     unknown_names_text,
 )
 from epi_vo.core.errors import ConfigError
+from epi_vo.io.node_options import NODE_DOCS, NODE_OPTION_NAMES, NodeOptions, is_read_only
 
 
 def load_params_file(path: str | Path, node_name: str = "vo_node") -> dict[str, Any]:
@@ -61,7 +63,7 @@ def load_config(path: str | Path | None = None) -> VoConfig:
     if path is None:
         return VoConfig()
     params = load_params_file(path)
-    unknown = [k for k in params if not is_parameter_name(k)]
+    unknown = [k for k in params if not is_parameter_name(k) and k not in NODE_OPTION_NAMES]
     unknown_text = f"unknown parameters: {unknown_names_text(unknown)}" if unknown else ""
     try:
         cfg = from_dict({k: v for k, v in params.items() if k in PIPELINE_NAMES})
@@ -72,13 +74,33 @@ def load_config(path: str | Path | None = None) -> VoConfig:
     return cfg
 
 
-def to_params_yaml(cfg: VoConfig, extra: dict[str, Any] | None = None) -> str:
-    """The config as a ROS 2 parameter file (``/**: ros__parameters:``) with doc comments."""
+def to_params_yaml(cfg: VoConfig, extra: dict[str, Any] | None = None, node: NodeOptions | None = None) -> str:
+    """The config as a ROS 2 parameter file (``/**: ros__parameters:``) with doc comments.
+
+    With ``node``, the node's own parameters follow the pipeline's, each with its doc comment (the form
+    of ``config/epi_vo.yaml``); ``extra`` names are appended without a comment. Parameters the node
+    declares read-only (a change needs a restart) say so in their comment.
+    """
     lines = ["/**:", "  ros__parameters:"]
+    if node is not None:
+        lines.append("    # ---- vo_node: frames, camera extrinsic, input, outputs, diagnostics")
+        for name in NODE_OPTION_NAMES:
+            lines.append(f"    # {NODE_DOCS[name]}{_RESTART if is_read_only(name) else ''}")
+            lines.append(f"    {name}: {_yaml_value(getattr(node, name))}")
+        lines.append("    # ---- pipeline (epi_vo.core.config.VoConfig)")
     for f in config_fields():
-        lines.append(f"    # {field_doc(f)}")
-        lines.append(f"    {f.name}: {yaml.safe_dump(getattr(cfg, f.name), default_flow_style=True).strip()}"
-                     .replace("\n...", ""))
+        lines.append(f"    # {field_doc(f)}{_RESTART if is_read_only(f.name) else ''}")
+        lines.append(f"    {f.name}: {_yaml_value(getattr(cfg, f.name))}")
     for name, value in (extra or {}).items():
-        lines.append(f"    {name}: {yaml.safe_dump(value, default_flow_style=True).strip()}".replace("\n...", ""))
+        lines.append(f"    {name}: {_yaml_value(value)}")
     return "\n".join(lines) + "\n"
+
+
+_RESTART = " [read-only: restart to change]"
+
+
+def _yaml_value(value: Any) -> str:
+    """One YAML scalar or flow list (tuples as lists), without the document end marker."""
+    if isinstance(value, tuple):
+        value = list(value)
+    return yaml.safe_dump(value, default_flow_style=True).strip().replace("\n...", "")

@@ -5,10 +5,11 @@ Two parts, as the node / pipeline split:
 - :class:`MonitorState` is an immutable snapshot with no rclpy: ``update_from_status`` and
   ``update_from_odometry`` return a new state, ``render_text`` gives the text shown by ``--once``, by
   non-TTY output and inside the live panel. Tests feed it plain values.
-- :func:`run` owns rclpy: it subscribes to ``/diagnostics`` (statuses named ``<node name>: tracking``,
-  published by the node once per frame and by its watchdog) and to the odometry topic (relative, so
-  it follows the user's namespace), and shows the state with ``rich.live`` on a terminal, as plain
-  snapshots once a second otherwise.
+- :func:`run` owns rclpy: it subscribes to ``/diagnostics`` (statuses named ``<fully qualified node
+  name>: tracking``, published by the node once per frame and by its watchdog) and to the odometry
+  topic (relative, so it follows the user's namespace); it follows the VO node of the odometry topic's
+  namespace (``/robot1/vo/odometry``: ``/robot1/<node>: tracking``), and shows the state with
+  ``rich.live`` on a terminal, as plain snapshots once a second otherwise.
 
 DDS settings (ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE) come from the user's environment: this is
 a user tool, it does not force loopback discovery.
@@ -67,15 +68,42 @@ def level_name(level: int) -> str:
         return f"LEVEL {level}"
 
 
-def is_vo_status(name: str, node_name: str | None = None) -> bool:
-    """Whether a status name is a VO tracking status, of ``node_name`` when given.
+def status_node(name: str) -> str:
+    """The fully qualified node name of a ``<node>: tracking`` status ('/robot1/vo_node'). The node names
+    its statuses after its fully qualified name; an older node used its bare name, taken as the root
+    namespace's."""
+    node = name.removesuffix(STATUS_SUFFIX)
+    return node if node.startswith("/") else "/" + node
 
-    The node names its status after ``get_name()``, without namespace, so ``/robot1/vo_node`` matches
-    ``vo_node: tracking``.
+
+def namespace_of(fq_name: str) -> str:
+    """'/robot1' of '/robot1/vo_node' (or of a topic '/robot1/odom_vo'), '/' at the root."""
+    return fq_name.rstrip("/").rsplit("/", 1)[0] or "/"
+
+
+def odometry_namespace(topic: str) -> str:
+    """The namespace of the node publishing a resolved odometry topic: '/robot1/vo/odometry' (the node's
+    ``vo/odometry``) and '/robot1/odom_vo' (remapped) both give '/robot1'."""
+    topic = "/" + topic.strip("/")
+    return namespace_of(topic.removesuffix("/vo/odometry") + "/x" if topic.endswith("/vo/odometry") else topic)
+
+
+def is_vo_status(name: str, node_name: str | None = None, namespace: str | None = None) -> bool:
+    """Whether a status name is a VO tracking status, of ``node_name`` and in ``namespace`` when given.
+
+    ``node_name`` absolute ('/robot1/vo_node') is compared with the status's fully qualified name, a bare
+    one ('vo_node') with its last part; ``namespace`` ('/robot1') with the namespace of the status's node.
     """
-    if not name.endswith(STATUS_SUFFIX):
+    if not name.endswith(STATUS_SUFFIX) or not name.removesuffix(STATUS_SUFFIX).strip("/"):
         return False
-    return node_name is None or name == node_name.rstrip("/").rsplit("/", 1)[-1] + STATUS_SUFFIX
+    node = status_node(name)
+    if node_name is not None:
+        wanted = node_name.rstrip("/")
+        if wanted.startswith("/") and node != wanted:
+            return False
+        if not wanted.startswith("/") and node.rsplit("/", 1)[-1] != wanted:
+            return False
+    return namespace is None or namespace_of(node) == "/" + namespace.strip("/")
 
 
 def reason_key(message: str) -> str:
@@ -106,6 +134,7 @@ class MonitorState:
     """
 
     node_name: str | None = None  # follow only '<node_name>: tracking'; None: the first VO status seen
+    namespace: str | None = None  # follow only nodes of this namespace (the odometry topic's); None: any
     source: str | None = None  # the status name followed
     hardware_id: str = ""
     level: int = -1  # -1: no status yet
@@ -135,7 +164,7 @@ class MonitorState:
                            values: Mapping[str, str] | Iterable[tuple[str, str]], now_s: float,
                            hardware_id: str = "") -> MonitorState:
         """Fold in one ``DiagnosticStatus``; statuses that are not this VO's are only noted by name."""
-        if not is_vo_status(name, self.node_name):
+        if not is_vo_status(name, self.node_name, self.namespace):
             return self
         if self.source is not None and name != self.source:
             return dataclasses.replace(self, other_sources=self.other_sources | {name})
@@ -166,8 +195,7 @@ class MonitorState:
             known = [t for t in (self.status_s, self.odometry_s) if math.isfinite(t)]
             now_s = max(known) if known else 0.0
         if not self.has_status:
-            who = f"'{self.node_name}{STATUS_SUFFIX}'" if self.node_name else f"'<node>{STATUS_SUFFIX}'"
-            return f"waiting for a VO status {who} on /diagnostics ..."
+            return f"waiting for a VO status {_wanted(self.node_name, self.namespace)} on /diagnostics ..."
         f, lt = self.frame, self.latest
         lines = [f"{self.source}" + (f"  (hardware {self.hardware_id})" if self.hardware_id else "")]
         age = now_s - self.status_s
@@ -293,8 +321,18 @@ def _rich_view(state: MonitorState, now_s: float) -> Any:
     return Panel(text, title="epi-vo monitor", subtitle="Ctrl-C to quit", border_style=border, expand=False)
 
 
-def _timeout_message(args: argparse.Namespace) -> str:
-    who = f"'{args.node_name}{STATUS_SUFFIX}'" if args.node_name else f"'<node>{STATUS_SUFFIX}'"
+def _wanted(node_name: str | None, namespace: str | None) -> str:
+    """The status name looked for, as shown to the user: '/robot1/<node>: tracking'."""
+    if node_name and node_name.startswith("/"):
+        return f"'{node_name}{STATUS_SUFFIX}'"
+    node = node_name or "<node>"
+    if namespace is None:
+        return f"'{node}{STATUS_SUFFIX}'"
+    return f"'{('/' + namespace.strip('/')).rstrip('/')}/{node}{STATUS_SUFFIX}'"
+
+
+def _timeout_message(args: argparse.Namespace, namespace: str | None = None) -> str:
+    who = _wanted(args.node_name, namespace)
     domain = os.environ.get("ROS_DOMAIN_ID", "unset (0)")
     discovery = os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "unset")
     return (f"epi-vo monitor: no VO status {who} on /diagnostics within {args.timeout:g} s "
@@ -311,9 +349,14 @@ class _Subscriber:
         from rclpy.node import Node
         from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-        self.state = MonitorState(node_name=args.node_name)
         # Several monitors may run at once: a unique node name avoids the duplicate-name warning.
         self.node = Node(f"epi_vo_monitor_{os.getpid()}", context=context)
+        # The VO node followed is the one in the namespace of the odometry topic watched (two cameras in
+        # two namespaces do not mix); an absolute --node-name says it all by itself.
+        self.odometry_topic = self.node.resolve_topic_name(args.odometry_topic)
+        absolute = bool(args.node_name) and args.node_name.startswith("/")
+        self.namespace = None if absolute else odometry_namespace(self.odometry_topic)
+        self.state = MonitorState(node_name=args.node_name, namespace=self.namespace)
         # Reliable and deep, like the node's publishers: the warning counts should not miss statuses.
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, qos)
@@ -405,7 +448,7 @@ def run(args: argparse.Namespace) -> int:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     if timed_out:
-        print(_timeout_message(args), file=sys.stderr)
+        print(_timeout_message(args, sub.namespace if sub is not None else None), file=sys.stderr)
         return 1
     return 0
 

@@ -4,23 +4,33 @@ and offline. Of the pipeline's two front doors, this is the only one that import
 ROS-facing tools, play, monitor and live_bench, do too; the core never does).
 
 Topics (relative names, so namespaces and remapping work):
-  in:  ``camera/image_raw`` (sensor_msgs/Image) or ``camera/image_raw/compressed`` (CompressedImage,
-       ``image_transport: compressed``), ``camera/camera_info``
+  in:  ``camera/image_raw`` (sensor_msgs/Image) and/or ``camera/image_raw/compressed`` (CompressedImage):
+       ``image_transport: auto`` subscribes to both and keeps whichever delivers first (logged and in the
+       diagnostics), ``raw`` / ``compressed`` to one; ``camera/camera_info``
   out: ``vo/odometry`` (nav_msgs/Odometry, odom -> base_link, REP-105), ``vo/points`` (PointCloud2 of
        the points triangulated at keyframes, frame odom), ``vo/path`` (bounded nav_msgs/Path),
-       ``/diagnostics`` (one status ``<node name>: tracking`` per frame, and from the watchdog),
-       ``vo/debug_image`` (off by default); TF odom -> base_link when tf2_ros is importable.
+       ``/diagnostics`` (``<fully qualified node name>: tracking`` per frame and from the watchdog, and a
+       ``<...>: summary`` once a second), ``vo/debug_image`` (off by default); TF odom -> base_link when
+       tf2_ros is importable.
   srv: ``vo/reset`` (std_srvs/Trigger): restart tracking from the last pose.
+
+Camera extrinsic: TF ``child_frame_id <- image frame_id`` when tf2_ros is importable, else the
+``camera_xyz`` / ``camera_rpy`` parameters (``epi_vo.ros.node_tf``). Parameters: declared from VoConfig and
+NodeOptions (``epi_vo.ros.node_params``); a pipeline knob changed at runtime is validated as at start-up
+and applied at the next frame (a new map from the last pose), a parameter that needs a restart is
+read-only. Diagnostics: every DiagnosticArray is stamped with the node's clock (ROS time, simulated
+under use_sim_time); ages (image staleness, the watchdog) are measured on the steady clock, and the
+watchdog and summary timers run on it, so they keep reporting when a simulated clock stops.
 """
 
 from __future__ import annotations
 
 import collections
+import dataclasses
 import math
 import sys
 import threading
 import time
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -29,114 +39,95 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, TransformStamped
 from nav_msgs.msg import Odometry, Path
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, PointField
 from std_srvs.srv import Trigger
 
+from epi_vo.core import covariance as covm
 from epi_vo.core.camera import CameraModelCache
-from epi_vo.core.config import VoConfig, config_fields, field_doc, from_dict, unknown_names_text
+from epi_vo.core.config import VoConfig, config_fields, unknown_names_text
 from epi_vo.core.debug_image import draw_matches
 from epi_vo.core.diagnostics import DiagnosticLevel, DiagnosticStatusRecord
 from epi_vo.core.errors import CameraModelError, ConfigError, EpiVoError
 from epi_vo.core.frame import FrameResult
-from epi_vo.core.odometry import OdometryConverter, T_base_cam_from_params
+from epi_vo.core.odometry import OdometryConverter, T_base_cam_from_params, status_pose
 from epi_vo.core.pipeline import VoPipeline
-from epi_vo.core.status import frame_status
+from epi_vo.core.status import frame_status, summary_status
+from epi_vo.core.transforms import invert_T
 from epi_vo.io import msgconv
 from epi_vo.io.association import CameraInfoAssociator, Ready
+from epi_vo.io.node_options import NodeOptions, changed_names
+from epi_vo.ros.node_params import check_change, declare_all
+from epi_vo.ros.node_tf import Extrinsic, ExtrinsicResolver, TransformLookup, make_tf2_lookup, make_tf_broadcaster
 
+__all__ = ["NodeOptions", "VoNode", "main"]
 
-@dataclass(frozen=True)
-class NodeOptions:
-    """The node's own parameters (the pipeline's come from VoConfig)."""
-
-    frame_id: str = "odom"
-    child_frame_id: str = "base_link"
-    camera_xyz: tuple[float, ...] = (0.0, 0.0, 0.0)
-    camera_rpy: tuple[float, ...] = (0.0, 0.0, 0.0)
-    image_transport: str = "raw"
-    qos_reliability: str = "best_effort"
-    qos_depth: int = 5
-    queue_size: int = 2
-    process_every_frame: bool = False
-    publish_tf: bool = True
-    publish_debug_image: bool = False
-    path_max_length: int = 1000
-    watchdog_timeout_s: float = 1.0
-    camera_info_wait_s: float = 0.2
-    hardware_id: str = "monocular_camera"
-
-
-_NODE_DOCS = {
-    "frame_id": "odometry frame (header.frame_id of vo/odometry, vo/points, vo/path)",
-    "child_frame_id": "robot base frame (child_frame_id of vo/odometry)",
-    "camera_xyz": "camera position in the base frame (m)",
-    "camera_rpy": "camera body orientation in the base frame, roll pitch yaw (rad); the optical rotation is added",
-    "image_transport": "'raw' (sensor_msgs/Image) or 'compressed' (sensor_msgs/CompressedImage)",
-    "qos_reliability": "input QoS reliability: 'best_effort' (sensor data) or 'reliable'",
-    "qos_depth": "input QoS history depth",
-    "queue_size": "frames waiting for processing in live mode; older ones are dropped and counted",
-    "process_every_frame": "never drop frames (bag playback); the queue grows instead",
-    "publish_tf": "broadcast odom -> base_link when tf2_ros is available",
-    "publish_debug_image": "publish vo/debug_image with tracks, inliers and epipolar lines",
-    "path_max_length": "poses kept in vo/path",
-    "watchdog_timeout_s": "no image for this long: diagnostics WARN (3x: STALE)",
-    "camera_info_wait_s": "how long an image waits for its camera_info before the latest one is used",
-    "hardware_id": "hardware_id of the diagnostics status",
-}
-_NODE_CHOICES = {"image_transport": ("raw", "compressed"), "qos_reliability": ("best_effort", "reliable")}
-
-
-def _descriptor(doc: str, lo: float | None, hi: float | None, choices: tuple[str, ...] | None,
-                is_int: bool) -> ParameterDescriptor:
-    d = ParameterDescriptor(description=doc)
-    if choices:
-        d.additional_constraints = "one of: " + ", ".join(choices)
-    if lo is not None and hi is not None:
-        if is_int:
-            d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=0)]
-        else:
-            d.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
-    return d
+RAW_TOPIC, COMPRESSED_TOPIC = "camera/image_raw", "camera/image_raw/compressed"
 
 
 class VoNode(Node):
-    """Subscribes to a camera, runs the VO pipeline on a worker thread, publishes its results."""
+    """Subscribes to a camera, runs the VO pipeline on a worker thread, publishes its results.
 
-    def __init__(self, **kwargs: Any) -> None:
+    ``tf_lookup`` replaces the tf2_ros lookup of the camera extrinsic (tests give a fake buffer); by
+    default one is made when tf2_ros is importable.
+    """
+
+    def __init__(self, *, tf_lookup: TransformLookup | None = None, **kwargs: Any) -> None:
         super().__init__("vo_node", **kwargs)
-        self.cfg, self.opts = self._declare_parameters()
+        self.cfg, self.opts = declare_all(self)
+        self._cfg_wanted = self.cfg  # the latest accepted config; the worker applies it at the next frame
         self._warn_undeclared_overrides()
         self._log_effective_parameters()
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self._status_name = self.get_fully_qualified_name()
         self._pipeline = VoPipeline(self.cfg)
-        self._converter = OdometryConverter(T_base_cam_from_params(self.opts.camera_xyz, self.opts.camera_rpy))
+        T_params = T_base_cam_from_params(self.opts.camera_xyz, self.opts.camera_rpy)
+        self._converter = OdometryConverter(T_params)
+        lookup = tf_lookup if tf_lookup is not None else make_tf2_lookup(self)
+        self._resolver = ExtrinsicResolver(
+            lookup, self.opts.child_frame_id, self.opts.tf_timeout_s, T_params,
+            f"camera_xyz={list(self.opts.camera_xyz)} camera_rpy={list(self.opts.camera_rpy)} parameters")
+        self._extrinsic: Extrinsic | None = None
+        self._waiting = ""  # what the worker waits for before the first frame ('' when nothing)
         self._assoc = CameraInfoAssociator(max_pending=5, max_wait_ns=int(self.opts.camera_info_wait_s * 1e9))
-        self._lock = threading.Lock()  # guards the association and the queue
+        self._lock = threading.Lock()  # guards the association, the queue and the counters
         self._cv = threading.Condition(self._lock)
         self._queue: collections.deque[Ready] = collections.deque()
         self._reset_requested = False
         self._running = True
         self._n_received = self._n_dropped = self._n_processed = 0
         self._arrivals: collections.deque[float] = collections.deque(maxlen=30)
-        self._last_image_wall: float | None = None
+        self._last_image_wall: float | None = None  # steady clock (time.monotonic) of the last image
         self._path: collections.deque[PoseStamped] = collections.deque(maxlen=self.opts.path_max_length)
         self._path_published = 0.0
         self._arrival: dict[int, float] = {}  # image stamp -> monotonic arrival time, for the latency figure
         self._last_latency_ms = math.nan
         self._cameras = CameraModelCache()
-        self._warned: set[str] = set()
         self._wheel_pending: list[tuple[int, np.ndarray]] = []  # handed to the pipeline by the worker
+        self._camera_frame = ""  # header.frame_id of the first image
+        self._last_frame_status: DiagnosticStatusRecord | None = None
+        # After a runtime change the pipeline is a new one, anchored at the pose the old one had reached.
+        self._anchor: tuple[np.ndarray, np.ndarray, int] | None = None  # T_w_a, cov_w_a, index offset
+        self._last_pose = (np.eye(4), np.zeros((6, 6)), -1)  # the last published T_w_c, covariance, index
+        self._changes: list[str] = []  # runtime changes applied, for the summary
+        self._announce_change = ""  # told in the reason of the first frame after a change
 
         in_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=self.opts.qos_depth,
                             reliability=ReliabilityPolicy.RELIABLE if self.opts.qos_reliability == "reliable"
                             else ReliabilityPolicy.BEST_EFFORT)
-        self._compressed = self.opts.image_transport == "compressed"
-        image_type, image_topic = (CompressedImage, "camera/image_raw/compressed") if self._compressed \
-            else (Image, "camera/image_raw")
-        self.create_subscription(image_type, image_topic, self._on_image, in_qos)
+        self._image_subs: dict[str, Any] = {}
+        if self.opts.image_transport in ("auto", "raw"):
+            self._image_subs["raw"] = self.create_subscription(Image, RAW_TOPIC, self._on_image, in_qos)
+        if self.opts.image_transport in ("auto", "compressed"):
+            self._image_subs["compressed"] = self.create_subscription(CompressedImage, COMPRESSED_TOPIC,
+                                                                      self._on_image, in_qos)
+        self._image_topics = {k: sub.topic_name for k, sub in self._image_subs.items()}
+        self._transport = "" if self.opts.image_transport == "auto" else self.opts.image_transport
         self.create_subscription(CameraInfo, "camera/camera_info", self._on_camera_info, in_qos)
         if self.cfg.scale_source == "wheel_odometry":
             self.create_subscription(Odometry, self.cfg.wheel_odometry_topic, self._on_wheel_odometry,
@@ -148,52 +139,33 @@ class VoNode(Node):
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._pub_debug = self.create_publisher(Image, "vo/debug_image", 2) if self.opts.publish_debug_image else None
         self.create_service(Trigger, "vo/reset", self._on_reset)
-        self._tf = self._make_tf_broadcaster()
-        self.create_timer(0.5, self._watchdog)
+        self._tf = None
+        if self.opts.publish_tf:
+            self._tf, why = make_tf_broadcaster(self)
+            if self._tf is None:
+                self.get_logger().warning(f"publish_tf is true but no TF {self.opts.frame_id} -> "
+                                          f"{self.opts.child_frame_id} is broadcast: {why} (install tf2_ros, part "
+                                          "of every ROS 2 install; vo/odometry is published either way)")
+        # Both timers on the steady clock: with use_sim_time a ROS-time timer stops with the simulated clock.
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(0.5, self._watchdog, clock=steady)
+        self.create_timer(1.0, self._publish_summary, clock=steady)
         self._worker = threading.Thread(target=self._work, name="vo_worker", daemon=True)
         self._worker.start()
 
     # -- parameters ---------------------------------------------------------------------------------
-    def _declare_parameters(self) -> tuple[VoConfig, NodeOptions]:
-        """Declare every pipeline and node parameter; collect every bad one before failing."""
-        problems: list[str] = []
-        values: dict[str, Any] = {}
-        for f in config_fields():
-            lo, hi, choices = f.metadata.get("min"), f.metadata.get("max"), f.metadata.get("choices")
-            desc = _descriptor(field_doc(f), lo, hi, choices, isinstance(f.default, int))
-            values[f.name] = self._declare(f.name, f.default, desc, problems)
-        node_values: dict[str, Any] = {}
-        defaults = NodeOptions()
-        for name, doc in _NODE_DOCS.items():
-            default = getattr(defaults, name)
-            if isinstance(default, tuple):
-                default = list(default)
-            desc = _descriptor(doc, None, None, _NODE_CHOICES.get(name), False)
-            node_values[name] = self._declare(name, default, desc, problems)
-        cfg = VoConfig()
-        try:
-            cfg = from_dict({k: v for k, v in values.items() if v is not None})
-        except ConfigError as exc:
-            problems.append(str(exc).removeprefix("invalid epi_vo parameters: "))
-        for name, choices in _NODE_CHOICES.items():
-            if node_values.get(name) is not None and node_values[name] not in choices:
-                problems.append(f"{name}={node_values[name]!r} (choose one of {', '.join(choices)})")
-        for name in ("camera_xyz", "camera_rpy"):
-            v = node_values.get(name)
-            if v is not None and (len(v) != 3 or not all(math.isfinite(x) for x in v)):
-                problems.append(f"{name}={list(v)!r} (expected 3 finite numbers)")
-        for name in ("qos_depth", "queue_size", "path_max_length"):
-            v = node_values.get(name)
-            if v is not None and v < 1:
-                problems.append(f"{name}={v} (minimum 1)")
-        for name in ("watchdog_timeout_s", "camera_info_wait_s"):
-            v = node_values.get(name)
-            if v is not None and not (math.isfinite(v) and v > 0):
-                problems.append(f"{name}={v} (must be > 0)")
-        if problems:
-            raise ConfigError("invalid vo_node parameters: " + "; ".join(problems))
-        opts = NodeOptions(**{k: tuple(v) if isinstance(v, list) else v for k, v in node_values.items()})
-        return cfg, opts
+    def _on_set_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
+        """A runtime change: validated as at start-up; pipeline knobs are applied at the next frame."""
+        with self._lock:
+            result, cfg, opts = check_change(self._cfg_wanted, self.opts, parameters)
+            if result.successful:
+                self._cfg_wanted, self.opts = cfg, opts
+        if result.successful:
+            names = ", ".join(f"{p.name}={p.value!r}" for p in parameters)
+            self.get_logger().info(f"parameters accepted: {names} (pipeline knobs apply at the next frame)")
+        else:
+            self.get_logger().warning(f"parameters {result.reason}")
+        return result
 
     def _warn_undeclared_overrides(self) -> None:
         """ROS's rule stays (an override of a parameter the node does not declare is ignored), but a
@@ -207,33 +179,20 @@ class VoNode(Node):
         self.get_logger().warning("ignoring parameter overrides that vo_node does not declare: "
                                   + unknown_names_text(unknown))
 
-    def _declare(self, name: str, default: Any, desc: ParameterDescriptor, problems: list[str]) -> Any:
-        try:
-            return self.declare_parameter(name, default, desc).value
-        except Exception as exc:  # rclpy raises several exception types for a bad override
-            problems.append(f"{name}: {exc}")
-            return None
-
     def _log_effective_parameters(self) -> None:
         lines = [f"{f.name}={getattr(self.cfg, f.name)!r}" for f in config_fields()]
         lines += [f"{k}={v!r}" for k, v in self.opts.__dict__.items()]
         self.get_logger().info("epi_vo parameters: " + ", ".join(lines))
 
-    def _make_tf_broadcaster(self) -> Any:
-        if not self.opts.publish_tf:
-            return None
-        try:
-            from tf2_ros import TransformBroadcaster
-        except ImportError:
-            self.get_logger().info("TF odom -> base_link unavailable: tf2_ros is not importable "
-                                   "(odometry is still published on vo/odometry)")
-            return None
-        return TransformBroadcaster(self)
-
     # -- input ----------------------------------------------------------------------------------------
     def _on_image(self, msg: Image | CompressedImage) -> None:
+        transport = "compressed" if isinstance(msg, CompressedImage) else "raw"
+        if transport != self._transport and not self._choose_transport(transport):
+            return
         stamp = msgconv.stamp_to_ns(msg.header.stamp)
         with self._cv:
+            if not self._camera_frame:
+                self._camera_frame = msg.header.frame_id
             self._n_received += 1
             now = time.monotonic()
             self._arrivals.append(now)
@@ -242,6 +201,19 @@ class VoNode(Node):
                 self._arrival.clear()
             self._arrival[stamp] = now
             self._enqueue(self._assoc.add_image(stamp, msg))
+
+    def _choose_transport(self, transport: str) -> bool:
+        """image_transport auto: the first transport to deliver is kept, the other subscription dropped."""
+        if self._transport:  # already chosen: a message of the other one still in flight
+            return False
+        self._transport = transport
+        other = "raw" if transport == "compressed" else "compressed"
+        sub = self._image_subs.pop(other, None)
+        if sub is not None:
+            self.destroy_subscription(sub)
+        self.get_logger().info(f"image_transport auto: using {transport} images from "
+                               f"{self._image_topics[transport]} (the first to arrive)")
+        return True
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         with self._cv:
@@ -284,9 +256,20 @@ class VoNode(Node):
                     self._cv.wait(timeout=0.2)
                 if not self._running:
                     return
-                item = self._queue.popleft()
-                reset, self._reset_requested = self._reset_requested, False
-                wheel, self._wheel_pending = self._wheel_pending, []
+                if self._extrinsic is None:
+                    # Before the first frame: the camera extrinsic (TF or parameters); the frame waits.
+                    first_frame_id = self._queue[0].image.header.frame_id
+                    item = None
+                else:
+                    item = self._queue.popleft()
+                    reset, self._reset_requested = self._reset_requested, False
+                    wheel, self._wheel_pending = self._wheel_pending, []
+                    wanted = self._cfg_wanted
+            if item is None:
+                self._resolve_extrinsic(first_frame_id)
+                continue
+            if wanted is not self.cfg:
+                self._apply_config(wanted)
             for stamp_ns, xyz in wheel:  # the pipeline is only touched by this thread
                 self._pipeline.add_wheel_odometry(stamp_ns, xyz)
             if reset:
@@ -296,7 +279,7 @@ class VoNode(Node):
             except EpiVoError as exc:
                 # Bad input in this frame: it is accounted for like any other (held pose, reason).
                 self.get_logger().warning(f"frame rejected: {exc}", throttle_duration_sec=5.0)
-                r = self._pipeline.reject(item.stamp_ns, str(exc))
+                r = self._anchored(self._pipeline.reject(item.stamp_ns, str(exc)))
                 self._publish(r, _stamp_msg(r.stamp_ns), None)
             except Exception as exc:  # never let one frame kill the node; say what happened
                 # Not an input problem: a defect. The pipeline's state may be half-updated, so tracking
@@ -304,12 +287,63 @@ class VoNode(Node):
                 self.get_logger().error(f"frame at {item.stamp_ns * 1e-9:.6f} s failed: {exc!r}")
                 self._pipeline.reset(f"internal error in the previous frame ({type(exc).__name__}): tracking "
                                      "restarted from the last pose")
-                r = self._pipeline.reject(item.stamp_ns, f"internal error: {exc!r}")
+                r = self._anchored(self._pipeline.reject(item.stamp_ns, f"internal error: {exc!r}"))
                 self._publish(r, _stamp_msg(r.stamp_ns), None)
+
+    def _resolve_extrinsic(self, frame_id: str) -> None:
+        """One poll of the extrinsic (worker thread); while TF is awaited, frames queue (or are dropped as
+        in live mode) and the diagnostics say what is awaited."""
+        now = time.monotonic()
+        extrinsic = self._resolver.poll(frame_id, now)
+        if extrinsic is None:
+            if not self._waiting:
+                self.get_logger().info(f"waiting up to tf_timeout_s={self.opts.tf_timeout_s:g} s for TF "
+                                       f"{self.opts.child_frame_id} <- {frame_id}")
+            self._waiting = self._resolver.waiting_text(now)
+            with self._cv:
+                if self._running:
+                    self._cv.wait(timeout=0.05)
+            return
+        self._waiting = ""
+        self._converter = OdometryConverter(extrinsic.T_base_cam)
+        self._extrinsic = extrinsic
+        (self.get_logger().warning if extrinsic.warn else self.get_logger().info)(extrinsic.text)
+
+    def _apply_config(self, cfg: VoConfig) -> None:
+        """A runtime change, between two frames (worker thread): a new pipeline with the new config,
+        anchored at the pose (and covariance) the old one reached, so odometry stays continuous. Like a
+        reset, the next frame starts a new map."""
+        changed = changed_names(self.cfg, cfg)
+        T_w_a, cov_w_a, index = self._last_pose
+        self._pipeline = VoPipeline(cfg)
+        self._anchor = (T_w_a, cov_w_a, index + 1)
+        self.cfg = cfg
+        text = ", ".join(changed) or "no knob changed"
+        self._changes.append(f"{text} (from frame {index + 1})")
+        self._announce_change = f"parameters changed ({text}): new map from the last pose"
+        self.get_logger().info(f"parameters applied at frame {index + 1}: {text}; tracking restarts from the "
+                               "last pose")
+
+    def _anchored(self, r: FrameResult) -> FrameResult:
+        """A result of the current pipeline in the odometry's world frame (after a runtime change)."""
+        if self._anchor is None:
+            return r
+        T_w_a, cov_w_a, offset = self._anchor
+        T_a_c = r.T_w_c
+        T_c_a = invert_T(T_a_c)
+        cov = covm.compose(cov_w_a, T_w_a, r.covariance, T_c_a[:3, 3], T_c_a[:3, :3])
+        points = r.points_w @ T_w_a[:3, :3].T + T_w_a[:3, 3] if r.points_w.shape[0] else r.points_w
+        reason = r.reason
+        if self._announce_change:
+            reason = f"{self._announce_change}; {reason}" if reason else self._announce_change
+            self._announce_change = ""
+        return dataclasses.replace(r, index=r.index + offset, T_w_c=T_w_a @ T_a_c, covariance=covm.floored(cov),
+                                   points_w=points, reason=reason)
 
     def _process(self, item: Ready) -> None:
         stamp = item.stamp_ns
         problem = msgconv.stamp_problem(item.image.header.stamp)
+        gray = None
         if problem is not None:
             # As in replay: a header stamp that is no ROS time is a rejected frame, tracking untouched.
             result = self._pipeline.skip(stamp, problem)
@@ -319,13 +353,13 @@ class VoNode(Node):
             if item.first_mismatch:
                 self.get_logger().warning("camera_info stamps do not match image stamps; using the latest "
                                           "camera_info")
-            gray = msgconv.decode_frame(item.image, self._compressed)
+            gray = msgconv.decode_frame(item.image, isinstance(item.image, CompressedImage))
             result = self._pipeline.process(gray, self._cameras.get(item.info), stamp)
+        result = self._anchored(result)
         self._n_processed += 1
         if result.skipped:
             self.get_logger().warning(f"{result.reason} ({stamp * 1e-9:.6f} s)", throttle_duration_sec=5.0)
-            self._publish_status(frame_status(result, self.get_name(), self.opts.hardware_id),
-                                 _stamp_msg(result.stamp_ns))
+            self._publish_status(self._frame_status(result), self._diagnostics_stamp())
             return
         if "time jumped backwards" in result.reason:
             self.get_logger().warning(result.reason)
@@ -333,8 +367,20 @@ class VoNode(Node):
         self._publish(result, _stamp_msg(result.stamp_ns), gray)
 
     # -- output -------------------------------------------------------------------------------------------
+    def _hardware_id(self) -> str:
+        """The hardware_id parameter, else the camera's frame id (the image header.frame_id)."""
+        return self.opts.hardware_id or self._camera_frame or "unknown camera"
+
+    def _frame_status(self, r: FrameResult) -> DiagnosticStatusRecord:
+        """The frame's status; its pose is the odometry's (odom -> base_link), named by position_frame."""
+        pose = status_pose(self._converter, r, self.opts.frame_id, self.opts.child_frame_id)
+        status = frame_status(r, self._status_name, self._hardware_id(), pose)
+        self._last_frame_status = status
+        return status
+
     def _publish(self, r: FrameResult, stamp_msg: Any, gray: np.ndarray | None) -> None:
         s = self._converter.convert(r.stamp_ns, r.T_w_c, r.covariance, r.has_pose)
+        self._last_pose = (r.T_w_c, r.covariance, r.index)
         odom = Odometry()
         odom.header.stamp = stamp_msg
         odom.header.frame_id = self.opts.frame_id
@@ -376,7 +422,7 @@ class VoNode(Node):
         if r.points_w.shape[0]:
             T = self._converter.T_base_cam
             self._pub_points.publish(_point_cloud(odom.header, r.points_w @ T[:3, :3].T + T[:3, 3]))
-        self._publish_status(frame_status(r, self.get_name(), self.opts.hardware_id), stamp_msg)
+        self._publish_status(self._frame_status(r), self._diagnostics_stamp())
         if self._pub_debug is not None and gray is not None:
             self._pub_debug.publish(_bgr_image(odom.header, draw_matches(r, gray)))
 
@@ -396,7 +442,13 @@ class VoNode(Node):
                 ("dropped_frames", str(dropped)), ("queue_depth", str(queued)),
                 ("time_since_last_image_s", f"{since:.3f}" if math.isfinite(since) else "never"))
 
-    def _publish_status(self, status: DiagnosticStatusRecord, stamp_msg: Any) -> None:
+    def _diagnostics_stamp(self) -> Time:
+        """The node's clock now: the one time base of all of vo_node's diagnostics (a frame's image stamp
+        is in its values), as diagnostic_updater stamps them."""
+        return self.get_clock().now().to_msg()
+
+    def _publish_status(self, status: DiagnosticStatusRecord, stamp_msg: Time) -> None:
+        """One status with the input figures, in a DiagnosticArray stamped ``stamp_msg``."""
         arr = DiagnosticArray()
         arr.header.stamp = stamp_msg
         msg = DiagnosticStatus(level=bytes([int(status.level)]), name=status.name, message=status.message,
@@ -405,17 +457,54 @@ class VoNode(Node):
         arr.status = [msg]
         self._pub_diag.publish(arr)
 
-    def _watchdog(self) -> None:
+    def _waiting_for_images(self) -> str:
+        """'camera/image_raw or .../compressed': the image topics still subscribed, for the stall message."""
+        return " or ".join(self._image_topics[k] for k in ("raw", "compressed") if k in self._image_subs)
+
+    def _stall(self) -> tuple[DiagnosticLevel, str] | None:
+        """The watchdog's verdict on the steady clock: None while images come in time."""
         with self._lock:
             last = self._last_image_wall
         silent = math.inf if last is None else time.monotonic() - last
         timeout = self.opts.watchdog_timeout_s
         if silent < timeout:
-            return
+            return None
         level = DiagnosticLevel.STALE if silent >= 3 * timeout else DiagnosticLevel.WARN
-        what = "no image received yet" if last is None else f"no image for {silent:.1f} s"
-        self._publish_status(DiagnosticStatusRecord(level, f"{self.get_name()}: tracking", f"stalled: {what}",
-                                                    self.opts.hardware_id), self.get_clock().now().to_msg())
+        what = f"no image received yet on {self._waiting_for_images()}" if last is None \
+            else f"no image for {silent:.1f} s on {self._waiting_for_images()}"
+        return level, f"stalled: {what}"
+
+    def _watchdog(self) -> None:
+        stall = self._stall()
+        if stall is not None:
+            self._publish_status(DiagnosticStatusRecord(stall[0], f"{self._status_name}: tracking", stall[1],
+                                                        self._hardware_id()), self._diagnostics_stamp())
+
+    def _publish_summary(self) -> None:
+        """Once a second, as diagnostic_updater would: the worst of waiting / stalled / the last frame."""
+        stall, frame = self._stall(), self._last_frame_status
+        waiting = self._waiting
+        if waiting:
+            level, message = DiagnosticLevel.WARN, waiting
+        elif stall is not None:
+            level, message = stall
+        elif frame is not None:
+            level, message = frame.level, frame.message
+        else:
+            level, message = DiagnosticLevel.WARN, "starting"
+        extrinsic = self._extrinsic
+        T = self._converter.T_base_cam
+        values = (
+            ("image_transport", self._transport or "auto (none received yet)"),
+            ("image_topic", self._waiting_for_images()),
+            ("camera_frame", self._camera_frame),
+            ("extrinsic_source", extrinsic.source if extrinsic is not None else "pending"),
+            ("camera_xyz", " ".join(f"{v:.4g}" for v in T[:3, 3])),
+            ("frames_processed", str(self._n_processed)),
+            ("parameter_changes", "; ".join(self._changes[-3:]) or "none"),  # the latest applied
+        )
+        self._publish_status(summary_status(self._status_name, self._hardware_id(), level, message, values),
+                             self._diagnostics_stamp())
 
     def destroy_node(self) -> None:
         with self._cv:

@@ -36,7 +36,7 @@ from epi_vo.core.camera import CameraModel, CameraModelCache
 from epi_vo.core.config import VoConfig
 from epi_vo.core.errors import BagError, EpiVoError, Interrupted, OutputError
 from epi_vo.core.frame import FrameResult
-from epi_vo.core.odometry import OdometryConverter
+from epi_vo.core.odometry import OdometryConverter, status_pose
 from epi_vo.core.pipeline import VoPipeline
 from epi_vo.core.status import frame_status
 from epi_vo.io import bagio, outbag, tum
@@ -214,7 +214,8 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                 if not result.skipped:  # a skipped frame gets its record and status, but no pose
                     _write_outputs(obag, converter, result, path_poses)
                 else:
-                    obag.write_diagnostics(result.stamp_ns, [frame_status(result, "epi_vo", "replay")])
+                    obag.write_diagnostics(result.stamp_ns, [frame_status(
+                        result, "epi_vo", "replay", status_pose(converter, result, ODOM_FRAME, BASE_FRAME))])
                 bar.update()
                 if on_result is not None:
                     on_result(result)
@@ -484,7 +485,8 @@ def _write_outputs(obag: outbag.OutputBag, converter: OdometryConverter, result:
     if result.has_pose:
         path_poses.append(result.stamp_ns, sample.position, sample.quat_xyzw)
         obag.write_path(result.stamp_ns, ODOM_FRAME, *path_poses.window())
-    obag.write_diagnostics(result.stamp_ns, [frame_status(result, "epi_vo", "replay")])
+    obag.write_diagnostics(result.stamp_ns, [frame_status(
+        result, "epi_vo", "replay", status_pose(converter, result, ODOM_FRAME, BASE_FRAME))])
 
 
 def _ground_truth(bag: bagio.CameraBag, gt_tum: str | Path | None

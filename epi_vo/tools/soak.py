@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from epi_vo.core.camera import CameraModel
 from epi_vo.core.config import VoConfig
 from epi_vo.core.errors import BagError
-from epi_vo.core.odometry import OdometryConverter
+from epi_vo.core.odometry import OdometryConverter, status_pose
 from epi_vo.core.pipeline import VoPipeline
 from epi_vo.core.status import frame_status
 from epi_vo.io import bagio
@@ -147,7 +147,7 @@ def run_soak(n_frames: int, frames: SoakFrames | None = None, cfg: VoConfig | No
         result = pipeline.process(gray, frames.camera, (i + 1) * frames.period_ns)
         # What the front doors do with each result (their per-frame state soaks too).
         converter.convert(result.stamp_ns, result.T_w_c, result.covariance, result.has_pose)
-        frame_status(result, "epi_vo", "soak")
+        frame_status(result, "epi_vo", "soak", status_pose(converter, result, "odom", "base_link"))
         json.dumps(result.to_record())
         times.append(result.timings_ms.get("total", math.nan))
         states[result.state.value] += 1

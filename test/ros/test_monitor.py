@@ -20,11 +20,19 @@ from typing import Any
 import pytest
 from ros_fixtures import RosSession, rclpy_session, ros_test_env, spin_until, wait_until
 
-from epi_vo.ros.monitor import HISTORY_LENGTH, MonitorState, is_vo_status, level_name, reason_key
+from epi_vo.ros.monitor import (
+    HISTORY_LENGTH,
+    MonitorState,
+    is_vo_status,
+    level_name,
+    odometry_namespace,
+    reason_key,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 BAG = REPO / "bags" / "general_motion" / "bag"
 NAME = "vo_node: tracking"
+NODE_STATUS = "/vo_node: tracking"  # what a running vo_node (root namespace) names its status
 WAIT_S = 120.0  # bound on waiting for another process: generous, a loaded machine is slow, not broken
 
 
@@ -167,11 +175,33 @@ def test_other_nodes_and_other_statuses() -> None:
     assert s.source == NAME and s.level == 0 and s.n_statuses == 1
     assert "also seen   vo_other: tracking" in s.render_text()
     chosen = MonitorState(node_name="/robot1/vo_other").update_from_status(NAME, 0, "tracking", _record(), 1.0)
+    chosen = chosen.update_from_status("/robot2/vo_other: tracking", 0, "tracking", _record(), 1.5)
     assert not chosen.has_status
-    chosen = chosen.update_from_status("vo_other: tracking", 2, "lost", _record(state="lost"), 2.0)
-    assert chosen.source == "vo_other: tracking" and re.search(r"level\s+ERROR", chosen.render_text())
+    chosen = chosen.update_from_status("/robot1/vo_other: tracking", 2, "lost", _record(state="lost"), 2.0)
+    assert chosen.source == "/robot1/vo_other: tracking" and re.search(r"level\s+ERROR", chosen.render_text())
     assert is_vo_status(NAME) and is_vo_status(NAME, "vo_node") and not is_vo_status(NAME, "vo")
-    assert not is_vo_status("vo_node: tracking extra")
+    assert not is_vo_status("vo_node: tracking extra") and not is_vo_status(": tracking")
+    assert not is_vo_status("/vo_node: summary")
+
+
+def test_statuses_are_picked_by_namespace() -> None:
+    """Two cameras, two namespaces, one node name: the monitor follows the namespace of its odometry topic."""
+    assert [odometry_namespace(t) for t in ("/robot1/vo/odometry", "/vo/odometry", "/robot1/odom_vo",
+                                            "/a/b/vo/odometry")] == ["/robot1", "/", "/robot1", "/a/b"]
+    assert is_vo_status("/robot1/vo_node: tracking", namespace="/robot1")
+    assert not is_vo_status("/robot2/vo_node: tracking", namespace="/robot1")
+    assert not is_vo_status("/robot1/sub/vo_node: tracking", namespace="/robot1")
+    assert is_vo_status("/vo_node: tracking", namespace="/") and is_vo_status("vo_node: tracking", namespace="/")
+    assert is_vo_status("/robot1/vo_node: tracking", "/robot1/vo_node", "/robot1")
+    assert not is_vo_status("/robot2/vo_node: tracking", "vo_node", "/robot1")
+    s = MonitorState(namespace="/robot2")
+    assert "'/robot2/<node>: tracking'" in s.render_text()
+    s = s.update_from_status("/robot1/vo_node: tracking", 2, "lost", _record(state="lost"), 1.0)
+    assert not s.has_status
+    s = s.update_from_status("/robot2/vo_node: tracking", 0, "tracking", _record(n_inliers="77"), 2.0)
+    s = s.update_from_status("/robot1/vo_node: tracking", 2, "lost", _record(state="lost"), 3.0)
+    assert s.source == "/robot2/vo_node: tracking" and s.level == 0 and "inliers 77" in s.render_text()
+    assert not s.other_sources  # the other namespace's node is not even a candidate
 
 
 def test_state_is_immutable_and_odd_values_are_shown_not_refused() -> None:
@@ -301,7 +331,7 @@ def test_monitor_against_a_running_node(ros: RosSession) -> None:
                               QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
 
     def frame_records() -> list[dict[str, str]]:
-        return [{kv.key: kv.value for kv in s.values} for s in statuses if s.name == NAME
+        return [{kv.key: kv.value for kv in s.values} for s in statuses if s.name == NODE_STATUS
                 and any(kv.key == "state" for kv in s.values)]
 
     # A long watchdog timeout: the gap between loops of the player must not produce 'stalled' statuses,
@@ -320,7 +350,7 @@ def test_monitor_against_a_running_node(ros: RosSession) -> None:
         assert once.returncode == 0, once.stderr
         assert "Traceback" not in once.stderr
         out = once.stdout
-        assert out.startswith(NAME) and re.search(r"level\s+(OK|WARN)\b", out), out
+        assert out.startswith(NODE_STATUS) and re.search(r"level\s+(OK|WARN)\b", out), out
         assert re.search(r"state\s+(tracking|initializing|rotation_only)\s+frame \d+", out), out
         (index,), (features,) = _ints(out, "frame"), _ints(out, "features")
         assert 50 <= features <= 2000
@@ -364,7 +394,7 @@ LIVE_SNAPSHOTS = 3
 
 def _snapshots(stdout: str) -> list[str]:
     """The complete snapshots of the live monitor's plain output (each ends with an empty line)."""
-    return [s for s in stdout.split("\n\n")[:-1] if s.startswith(NAME)]
+    return [s for s in stdout.split("\n\n")[:-1] if s.startswith(NODE_STATUS)]
 
 
 def _live_view_complete(snapshots: list[str]) -> bool:
@@ -403,3 +433,42 @@ class _Reader:
             t.join(timeout=WAIT_S)
         with self._lock:
             return "".join(self._parts["out"]), "".join(self._parts["err"])
+
+
+def test_monitor_follows_the_namespace_of_its_odometry_topic(ros: RosSession) -> None:
+    """Statuses of two nodes named vo_node in /robot1 and /robot2: `--odometry-topic /robot2/vo/odometry`
+    shows robot2's, and the other one is not mistaken for it (nor listed)."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    probe = rclpy.create_node("probe_monitor_ns", context=ros.context)
+    executor = SingleThreadedExecutor(context=ros.context)
+    executor.add_node(probe)
+    pub = probe.create_publisher(DiagnosticArray, "/diagnostics",
+                                 QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+
+    def publish() -> None:
+        arr = DiagnosticArray()
+        for ns, level, inliers in (("/robot1", 2, "11"), ("/robot2", 0, "222")):
+            st = DiagnosticStatus(level=bytes([level]), name=f"{ns}/vo_node: tracking", message="tracking",
+                                  hardware_id=f"{ns[1:]}_camera")
+            st.values = [KeyValue(key=k, value=v) for k, v in _record(n_inliers=inliers).items()]
+            arr.status.append(st)
+        pub.publish(arr)
+
+    probe.create_timer(0.1, publish)
+    monitor = subprocess.Popen([sys.executable, "-m", "epi_vo.cli", "monitor", "--once", "--timeout", str(WAIT_S),
+                                "--odometry-topic", "/robot2/vo/odometry"], env=ros.env, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    try:
+        assert spin_until(executor, lambda: monitor.poll() is not None, 2 * WAIT_S)
+        out, err = monitor.communicate()
+        assert monitor.returncode == 0, err
+        assert out.startswith("/robot2/vo_node: tracking  (hardware robot2_camera)"), out
+        assert "inliers 222" in out and "robot1" not in out
+    finally:
+        _stop(monitor)
+        executor.shutdown()
+        probe.destroy_node()

@@ -1,0 +1,96 @@
+"""``vo_node``'s ROS parameters: declared from one table (VoConfig's fields, then NodeOptions'), with
+descriptors (doc, range, choices, read-only), and the check of a runtime change.
+
+Start-up and runtime changes go through the same validation (``epi_vo.core.config.from_dict`` and
+``epi_vo.io.node_options``). Parameters that need a restart are declared read-only, so ROS itself
+refuses a change of them; a runtime change of a pipeline knob is accepted here and applied by the node
+at its next frame.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+
+from epi_vo.core.config import VoConfig, config_fields, field_doc, from_dict
+from epi_vo.core.errors import ConfigError
+from epi_vo.io.node_options import (
+    NODE_CHOICES,
+    NODE_DOCS,
+    NODE_OPTION_NAMES,
+    NodeOptions,
+    apply_changes,
+    is_read_only,
+    make_node_options,
+    node_option_problems,
+)
+
+READ_ONLY_NOTE = " (read-only: restart the node to change it)"
+
+
+def descriptor(name: str, doc: str, lo: float | None, hi: float | None, choices: tuple[str, ...] | None,
+               is_int: bool) -> ParameterDescriptor:
+    """The ROS descriptor of one parameter: its doc line, range or choices, and whether it is read-only."""
+    read_only = is_read_only(name)
+    d = ParameterDescriptor(description=doc + (READ_ONLY_NOTE if read_only else ""), read_only=read_only)
+    if choices:
+        d.additional_constraints = "one of: " + ", ".join(choices)
+    if lo is not None and hi is not None:
+        if is_int:
+            d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=0)]
+        else:
+            d.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
+    return d
+
+
+def declare_all(node: Any) -> tuple[VoConfig, NodeOptions]:
+    """Declare every pipeline and node parameter on ``node``; ConfigError naming every bad one at once."""
+    problems: list[str] = []
+    values: dict[str, Any] = {}
+    for f in config_fields():
+        lo, hi, choices = f.metadata.get("min"), f.metadata.get("max"), f.metadata.get("choices")
+        is_int = isinstance(f.default, int) and not isinstance(f.default, bool)
+        desc = descriptor(f.name, field_doc(f), lo, hi, choices, is_int)
+        values[f.name] = _declare(node, f.name, f.default, desc, problems)
+    node_values: dict[str, Any] = {}
+    defaults = NodeOptions()
+    for name in NODE_OPTION_NAMES:
+        default = getattr(defaults, name)
+        if isinstance(default, tuple):
+            default = list(default)
+        desc = descriptor(name, NODE_DOCS[name], None, None, NODE_CHOICES.get(name), False)
+        node_values[name] = _declare(node, name, default, desc, problems)
+    cfg = VoConfig()
+    try:
+        cfg = from_dict({k: v for k, v in values.items() if v is not None})
+    except ConfigError as exc:
+        problems.append(str(exc).removeprefix("invalid epi_vo parameters: "))
+    declared = {k: v for k, v in node_values.items() if v is not None}
+    problems += node_option_problems(declared)
+    if problems:
+        raise ConfigError("invalid vo_node parameters: " + "; ".join(problems))
+    return cfg, make_node_options(declared)
+
+
+def _declare(node: Any, name: str, default: Any, desc: ParameterDescriptor, problems: list[str]) -> Any:
+    try:
+        return node.declare_parameter(name, default, desc).value
+    except Exception as exc:  # rclpy raises several exception types for a bad override
+        problems.append(f"{name}: {exc}")
+        return None
+
+
+def check_change(cfg: VoConfig, opts: NodeOptions, parameters: list[Any]
+                 ) -> tuple[SetParametersResult, VoConfig, NodeOptions]:
+    """The answer to a set-parameters request (rclpy Parameter objects) and the config it leads to.
+
+    Refused (``successful`` false, ``reason`` naming every problem) when a value fails the start-up
+    validation; the config and options are then returned unchanged.
+    """
+    changes = {p.name: p.value for p in parameters}
+    try:
+        new_cfg, new_opts = apply_changes(cfg, opts, changes)
+    except ConfigError as exc:
+        return SetParametersResult(successful=False, reason=f"refused: {exc}"), cfg, opts
+    return SetParametersResult(successful=True, reason=""), new_cfg, new_opts

@@ -1,0 +1,59 @@
+"""core/status.py: the frame status's pose convention (position_frame) and the summary status."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from epi_vo.core.diagnostics import DiagnosticLevel
+from epi_vo.core.errors import EpiVoError
+from epi_vo.core.frame import FrameResult
+from epi_vo.core.odometry import OdometryConverter
+from epi_vo.core.pipeline import VoPipeline
+from epi_vo.core.status import CAMERA_POSITION_FRAME, StatusPose, frame_status, summary_status
+from epi_vo.core.transforms import make_T
+
+
+def _result() -> FrameResult:
+    """A held-pose result whose camera stands at (1, 2, 3) in the pipeline's (optical) world frame."""
+    r = VoPipeline().reject(1_700_000_000_000_000_000, "camera_info missing")
+    return dataclasses.replace(r, T_w_c=make_T(np.eye(3), [1.0, 2.0, 3.0]),
+                               covariance=np.diag([1.0, 2.0, 3.0, 0.1, 0.2, 0.3]))
+
+
+def test_without_a_pose_the_record_pose_is_named_camera_frame() -> None:
+    values = dict(frame_status(_result(), "/vo_node", "cam").values)
+    assert values["position"] == "1 2 3"
+    assert values["position_frame"] == CAMERA_POSITION_FRAME
+    assert values["covariance_diagonal"] == "1 2 3 0.1 0.2 0.3"
+
+
+def test_with_the_odometry_pose_every_pose_key_is_in_odom_base_link() -> None:
+    """Known answer: optical (x right, y down, z forward) -> base (x forward, y left, z up): camera at
+    optical (1, 2, 3) is base (3, -1, -2); the covariance diagonal is permuted the same way."""
+    r = _result()
+    conv = OdometryConverter()
+    s = conv.convert(r.stamp_ns, r.T_w_c, r.covariance, True)
+    np.testing.assert_allclose(s.position, [3.0, -1.0, -2.0], atol=1e-12)
+    pose = StatusPose("odom", "base_link", tuple(s.position), tuple(s.quat_xyzw),  # type: ignore[arg-type]
+                      tuple(np.diag(s.pose_covariance)))
+    status = frame_status(r, "/robot1/vo_node", "camera_optical_frame", pose)
+    values = dict(status.values)
+    assert status.name == "/robot1/vo_node: tracking" and status.hardware_id == "camera_optical_frame"
+    assert values["position"] == "3 -1 -2"
+    assert values["quat_xyzw"] == "0 0 0 1"
+    assert values["covariance_diagonal"] == "3 1 2 0.3 0.1 0.2"
+    assert values["position_frame"] == "odom -> base_link"
+    keys = [k for k, _ in status.values]
+    assert keys[: len(r.to_record())] == list(r.to_record())  # the record's keys, in order, kept
+
+
+def test_summary_status() -> None:
+    st = summary_status("/robot1/vo_node", "cam", DiagnosticLevel.WARN, "waiting for TF",
+                        (("image_transport", "compressed"),))
+    assert (st.name, st.level, st.message, st.hardware_id, st.values) == (
+        "/robot1/vo_node: summary", DiagnosticLevel.WARN, "waiting for TF", "cam", (("image_transport", "compressed"),))
+    with pytest.raises(EpiVoError, match="diagnostic values must be"):
+        summary_status("/vo_node", "cam", DiagnosticLevel.OK, "ok", (("n", 3),))  # type: ignore[arg-type]
