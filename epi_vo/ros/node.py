@@ -542,7 +542,25 @@ def _bgr_image(header: Any, img: np.ndarray) -> Image:
     return msg
 
 
+HELP_TEXT = """usage: vo_node [--ros-args --params-file FILE -p NAME:=VALUE -r FROM:=TO ...]
+
+Monocular visual odometry node (epi_vo). Subscribes camera/image_raw (+ /compressed) and
+camera/camera_info; publishes vo/odometry, vo/points, vo/path, /diagnostics; service vo/reset.
+Its parameters, with their defaults (the same file as `epi-vo params` and config/epi_vo.yaml):
+
+"""
+
+
 def main(args: list[str] | None = None) -> None:
+    argv = sys.argv[1:] if args is None else list(args)
+    # --help before any --ros-args: print and exit without starting rclpy (no DDS touched).
+    user_args = argv[:argv.index("--ros-args")] if "--ros-args" in argv else argv
+    if "--help" in user_args or "-h" in user_args:
+        from epi_vo.io.node_options import NodeOptions
+        from epi_vo.io.params import to_params_yaml
+
+        sys.stdout.write(HELP_TEXT + to_params_yaml(VoConfig(), node=NodeOptions()))
+        sys.exit(0)
     rclpy.init(args=args)
     try:
         node = VoNode()

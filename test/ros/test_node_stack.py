@@ -7,6 +7,7 @@ test's rclpy context, subprocess nodes get its environment.
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -465,3 +466,16 @@ def test_watchdog_keeps_reporting_when_the_simulated_clock_stops(ros: RosSession
             assert all(s.message.startswith("stalled: no image received yet") for a in later for s in a.status)
     finally:
         probe.close()
+
+
+def test_vo_node_help_prints_the_parameters_and_never_starts_dds() -> None:
+    """``vo_node --help`` prints every parameter with its default and exits 0 before rclpy starts: run
+    with a DDS environment that would fail (an invalid domain id), it still succeeds."""
+    env = {**os.environ, "ROS_DOMAIN_ID": "not-a-domain", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    out = subprocess.run([sys.executable, "-m", "epi_vo.ros.node", "--help"], env=env, capture_output=True,
+                         text=True, timeout=120, check=False)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.startswith("usage: vo_node")
+    for line in ("    max_features:", "    image_transport: auto", "    tf_timeout_s:", "    scale_source: none"):
+        assert line in out.stdout
+    assert "rcl" not in out.stderr.lower()
