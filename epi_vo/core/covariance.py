@@ -27,18 +27,20 @@ def block(pos_var: float, rot_var: float) -> F64:
 def compose(cov_w_kf: F64, T_w_kf: F64, cov_rel: F64, t_cur_kf: F64, R_cur_kf: F64) -> F64:
     """First-order covariance of T_w_c = T_w_kf T_kf_cur (relative covariance given in the keyframe frame).
 
-    The keyframe's rotation uncertainty also moves the current position by ``delta_theta x c`` with
-    ``c`` the camera position in the keyframe frame; that lever-arm term is included.
+    Perturbations are left ones in their frame: the keyframe's (dp, dtheta) in ``w``, the relative
+    (dc, dphi) in the keyframe frame. The keyframe's rotation error also moves the current position by
+    ``dtheta x c_w`` (``c_w`` the camera's offset from the keyframe in ``w``): the Jacobian of the
+    keyframe part is ``[[I, -[c_w]x], [0, I]]``, so the position block gains the lever-arm term and the
+    position-rotation block the matching cross term; the relative part is rotated into ``w``.
     """
     R_w_kf = T_w_kf[:3, :3]
     A = np.zeros((6, 6))
     A[:3, :3] = R_w_kf
     A[3:, 3:] = R_w_kf
-    cov = cov_w_kf + A @ cov_rel @ A.T
     c_w = R_w_kf @ (-R_cur_kf.T @ t_cur_kf)
-    lever = skew(c_w)
-    cov[:3, :3] = cov[:3, :3] + lever @ cov_w_kf[3:, 3:] @ lever.T
-    return cov
+    J = np.eye(6)
+    J[:3, 3:] = -skew(c_w)
+    return J @ cov_w_kf @ J.T + A @ cov_rel @ A.T
 
 
 def floored(cov: F64) -> F64:

@@ -284,7 +284,8 @@ class MotionStage:
             trans_var = est.scale**2 * (dir_var + scale_var)
             disagree = self._map_disagrees(ctx, X, R, t0, st)
             if disagree is None:
-                return Motion(TrackingState.TRACKING, R, t0, covm.block(trans_var, rot_cov), inl)
+                return Motion(TrackingState.TRACKING, R, t0, self._essential_cov(ctx, R, t_dir, inl, X, has_depth, est,
+                                                                                 covm.block(trans_var, rot_cov)), inl)
             # E's consensus was taken by something moving: the map's points, from the previous pose, decide.
             R0, t0 = ctx.T_cur_kf_prev[:3, :3], ctx.T_cur_kf_prev[:3, 3]
             has_depth = disagree
@@ -327,6 +328,22 @@ class MotionStage:
             moving = e_inliers & ~fits
         return Motion(TrackingState.TRACKING, R_r, t_r, cov_rel, inl, moving=moving)
 
+
+    def _essential_cov(self, ctx: MotionContext, R: F64, t_dir: F64, inl: NDArray[np.bool_], X: F64,
+                       has_depth: NDArray[np.bool_], est: geo.ScaleEstimate, fallback: F64) -> F64:
+        """Covariance of E's pose scaled by the map, from its own residuals (``geometry.uncertainty``):
+        rotation and direction coupled, the scale's dependence on the direction included."""
+        cfg = self.cfg
+        X_d, xn_d = X[has_depth], ctx.xn_cur[has_depth]
+
+        def scale_of(R_: F64, t_: F64) -> float | None:
+            e = geo.scale_from_points(X_d, R_, t_, xn_d, cfg.min_scale_points)
+            return None if e is None else e.scale
+
+        cov = geo.essential_pose_covariance(R, t_dir, ctx.kf.xn[ctx.rows][inl], ctx.xn_cur[inl],
+                                            cfg.score_sigma_px / ctx.kf.camera.K[0, 0], est.scale,
+                                            est.rel_spread**2 / max(est.n_used, 1), scale_of)
+        return fallback if cov is None or not np.all(np.isfinite(cov)) else cov
 
     def _map_disagrees(self, ctx: MotionContext, X: F64, R_e: F64, t_e: F64, st: FrameStats
                        ) -> NDArray[np.bool_] | None:

@@ -315,13 +315,13 @@ def test_map_refined_pose_covariance_matches_its_errors(two_view_scene) -> None:
     assert np.all((rot > 0.5) & (rot < 2.0)), rot
 
 
-@pytest.mark.xfail(strict=True, reason="DEFECT: with E chosen and a map, cov_rel is overconfident by ~3-14x (sigma): "
-                                       "rotation_var ignores the rotation/translation-direction coupling of two "
-                                       "views, and the scale variance ignores that E's direction error biases it")
 def test_essential_pose_covariance_matches_its_errors(two_view_scene) -> None:
+    """E's pose with the map's scale: the covariance from its own residuals (rotation and direction
+    coupled, the scale's dependence on the direction) predicts the spread of the errors over 30 noisy
+    scenes within a factor 2 per axis (it was 3-14x overconfident with an isotropic rotation term)."""
     pos, rot = _error_to_sigma(two_view_scene, CFG)
-    assert np.all(pos < 2.0), pos
-    assert np.all(rot < 2.0), rot
+    assert np.all((pos > 0.5) & (pos < 2.0)), pos
+    assert np.all((rot > 0.5) & (rot < 2.0)), rot
 
 
 # --- static camera ------------------------------------------------------------------------------------

@@ -33,10 +33,12 @@ from epi_vo.core.geometry.pose import (
     rotation_from_homography,
 )
 from epi_vo.core.geometry.triangulation import ScaleEstimate, Triangulation, scale_from_points, triangulate
+from epi_vo.core.geometry.uncertainty import essential_pose_covariance
 
 __all__ = [
     "CHI2_1DOF", "CHI2_2DOF", "F64", "ROBUST_METHOD_FLAGS", "Mask", "ScaleEstimate", "Triangulation", "as_float64",
-    "epipolar_distances_sq", "essential_from_pose", "estimate_essential", "estimate_homography",
+    "epipolar_distances_sq", "essential_from_pose", "essential_pose_covariance", "estimate_essential",
+    "estimate_homography",
     "fundamental_from_essential", "homogeneous", "nearest_rotation", "parallax_deg", "pose_from_homography",
     "ray_depths", "recover_pose", "refine_pose_pnp", "rh_ratio", "rotation_from_homography", "sampson_distance_sq",
     "scale_from_points", "score_fundamental", "score_homography", "skew", "transfer_errors_sq", "triangulate",

@@ -1,0 +1,59 @@
+"""Two-view pose covariance from the residuals (epi_vo.core.geometry.uncertainty)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from epi_vo.core import geometry as geo
+from epi_vo.core.geometry.uncertainty import tangent_basis
+
+
+def _normalized(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
+    return (uv - K[:2, 2]) / np.array([K[0, 0], K[1, 1]])
+
+
+@pytest.mark.parametrize("d", [[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.3, -0.5, 0.81]])
+def test_tangent_basis_is_orthonormal_and_perpendicular(d: list[float]) -> None:
+    v = np.asarray(d) / np.linalg.norm(d)
+    B = tangent_basis(v)
+    np.testing.assert_allclose(B.T @ B, np.eye(2), atol=1e-12)
+    np.testing.assert_allclose(B.T @ v, 0.0, atol=1e-12)
+
+
+def test_covariance_predicts_the_spread_of_noisy_essential_poses(general_scene) -> None:
+    """Monte Carlo: 1 px noise on the scene's correspondences, E and recoverPose each time; the rotation
+    and direction errors spread as the covariance from the true pose's residuals says (within 2x)."""
+    s = general_scene
+    K = s.K
+    sigma_px = 1.0
+    xn_ref, xn_cur = _normalized(s.uv_ref, K), _normalized(s.uv_cur, K)
+    t_dir = s.t_cur_ref / np.linalg.norm(s.t_cur_ref)
+    cov = geo.essential_pose_covariance(s.R_cur_ref, t_dir, xn_ref, xn_cur, sigma_px / K[0, 0], 1.0, 0.0)
+    assert cov is not None
+    np.testing.assert_allclose(cov, cov.T, atol=1e-18)
+    assert np.all(np.linalg.eigvalsh(cov[3:, 3:]) > 0)
+    rng = np.random.default_rng(7)
+    rot_err, pos_err = [], []
+    c_true = -s.R_cur_ref.T @ t_dir
+    for _ in range(40):
+        uv_ref = s.uv_ref + rng.normal(0, sigma_px, s.uv_ref.shape)
+        uv_cur = s.uv_cur + rng.normal(0, sigma_px, s.uv_cur.shape)
+        E, inl = geo.estimate_essential(uv_ref, uv_cur, K)  # MAGSAC with its final polish, as the pipeline
+        R, t, _ = geo.recover_pose(E, uv_ref, uv_cur, K, inl)
+        dR = R.T @ s.R_cur_ref
+        rot_err.append(0.5 * np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]]))
+        pos_err.append(-R.T @ t - c_true)
+    rot_ratio = np.sqrt(np.mean(np.square(rot_err), axis=0) / np.diag(cov)[3:])
+    pos_ratio = np.sqrt(np.mean(np.square(pos_err), axis=0) / np.maximum(np.diag(cov)[:3], 1e-30))
+    assert np.all((rot_ratio > 0.5) & (rot_ratio < 2.0)), rot_ratio
+    # Along the direction of travel a unit vector has no error: only the two perpendicular axes count.
+    assert np.median(pos_ratio) < 2.0, pos_ratio
+
+
+def test_too_few_points_give_no_covariance(general_scene) -> None:
+    s = general_scene
+    t_dir = s.t_cur_ref / np.linalg.norm(s.t_cur_ref)
+    xn_ref, xn_cur = _normalized(s.uv_ref, s.K), _normalized(s.uv_cur, s.K)
+    assert geo.essential_pose_covariance(s.R_cur_ref, t_dir, xn_ref[:5], xn_cur[:5], 1e-3, 1.0, 0.0) is None
+    assert geo.essential_pose_covariance(s.R_cur_ref, t_dir, xn_ref, xn_cur, 1e-3, 0.0, 0.0) is None
