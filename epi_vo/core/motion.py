@@ -334,15 +334,10 @@ class MotionStage:
         """Covariance of E's pose scaled by the map, from its own residuals (``geometry.uncertainty``):
         rotation and direction coupled, the scale's dependence on the direction included."""
         cfg = self.cfg
-        X_d, xn_d = X[has_depth], ctx.xn_cur[has_depth]
-
-        def scale_of(R_: F64, t_: F64) -> float | None:
-            e = geo.scale_from_points(X_d, R_, t_, xn_d, cfg.min_scale_points)
-            return None if e is None else e.scale
-
         cov = geo.essential_pose_covariance(R, t_dir, ctx.kf.xn[ctx.rows][inl], ctx.xn_cur[inl],
                                             cfg.score_sigma_px / ctx.kf.camera.K[0, 0], est.scale,
-                                            est.rel_spread**2 / max(est.n_used, 1), scale_of)
+                                            est.rel_spread**2 / max(est.n_used, 1),
+                                            (X[has_depth], ctx.xn_cur[has_depth]))
         return fallback if cov is None or not np.all(np.isfinite(cov)) else cov
 
     def _map_disagrees(self, ctx: MotionContext, X: F64, R_e: F64, t_e: F64, st: FrameStats

@@ -16,21 +16,13 @@ plane perpendicular to it. The returned 6x6 is over (c, phi), position first, as
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import numpy as np
+from numpy.typing import NDArray
 
 from epi_vo.core.geometry.common import F64, skew
 
 FD_STEP = 1e-6  # rad: central differences of the Sampson distances (smooth: exact to ~1e-9)
-
-
-def _exp(phi: F64) -> F64:
-    angle = float(np.linalg.norm(phi))
-    K = skew(phi)
-    if angle < 1e-12:
-        return np.eye(3) + K
-    return np.eye(3) + np.sin(angle) / angle * K + (1.0 - np.cos(angle)) / angle**2 * (K @ K)
+MAX_POINTS = 120  # rows used for the Jacobians (evenly spread); the information is scaled to all of them
 
 
 def tangent_basis(d: F64) -> F64:
@@ -41,38 +33,54 @@ def tangent_basis(d: F64) -> F64:
     return np.column_stack([b1, np.cross(d, b1)])
 
 
-def _pose(R_kf_cur: F64, d: F64, B: F64, x: F64) -> tuple[F64, F64]:
-    """(R_cur_kf, unit t_cur_kf) for the 5-vector perturbation x = (phi, beta)."""
-    R = _exp(x[:3]) @ R_kf_cur
-    c = d + B @ x[3:]
-    c /= np.linalg.norm(c)
-    R_cur_kf = R.T
-    return R_cur_kf, -R_cur_kf @ c
-
-
-def _sampson(R_cur_kf: F64, t: F64, xn_kf: F64, xn_cur: F64) -> F64:
-    """Signed Sampson distances (normalised units) of the correspondences under E = [t]x R."""
-    E = skew(t) @ R_cur_kf
-    h_kf = np.column_stack([xn_kf, np.ones(xn_kf.shape[0])])
-    h_cur = np.column_stack([xn_cur, np.ones(xn_cur.shape[0])])
-    Ex = h_kf @ E.T
-    Etx = h_cur @ E
-    num = np.einsum("ij,ij->i", h_cur, Ex)
-    den = np.sqrt(Ex[:, 0] ** 2 + Ex[:, 1] ** 2 + Etx[:, 0] ** 2 + Etx[:, 1] ** 2)
+def _sampson(E: F64, h_kf: F64, h_cur: F64) -> F64:
+    """Signed Sampson distances (normalised units) under each E of the stack ``E`` (K, 3, 3): (K, N)."""
+    Ex = np.einsum("nj,kij->kni", h_kf, E)
+    Etx = np.einsum("ni,kij->knj", h_cur, E)
+    num = np.einsum("ni,kni->kn", h_cur, Ex)
+    den = np.sqrt(Ex[..., 0] ** 2 + Ex[..., 1] ** 2 + Etx[..., 0] ** 2 + Etx[..., 1] ** 2)
     return num / np.maximum(den, 1e-300)
+
+
+def _subsample(n: int, m: int) -> NDArray[np.int64]:
+    """At most ``m`` of ``n`` rows, evenly spread (deterministic)."""
+    return np.arange(n) if n <= m else np.linspace(0, n - 1, m).round().astype(np.int64)
+
+
+def _skew_stack(v: F64) -> F64:
+    """[v]x of each row of ``v`` (K, 3): (K, 3, 3)."""
+    S = np.zeros((v.shape[0], 3, 3))
+    S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    return S
+
+
+def _cross(u: F64, v: F64) -> F64:
+    """Row-wise cross product with broadcasting over leading axes (no ``np.cross`` overhead)."""
+    return np.stack([u[..., 1] * v[..., 2] - u[..., 2] * v[..., 1], u[..., 2] * v[..., 0] - u[..., 0] * v[..., 2],
+                     u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]], axis=-1)
+
+
+def _point_scales(R_cur_kf: F64, t: F64, X_kf: F64, b: F64) -> tuple[F64, F64]:
+    """Per-point scale of the unit translation(s) ``t`` (3,) or (K, 3) with rotation(s) ``R_cur_kf``
+    (3, 3) or (K, 3, 3), and the weights (see ``scale_from_points``): (..., N) each."""
+    a = _cross(b, t[..., None, :])
+    c = _cross(b, np.einsum("...ij,nj->...ni", R_cur_kf, X_kf))
+    a2 = np.einsum("...ni,...ni->...n", a, a)
+    return -np.einsum("...ni,...ni->...n", a, c) / np.maximum(a2, 1e-300), a2
 
 
 def essential_pose_covariance(R_cur_kf: F64, t_dir: F64, xn_kf: F64, xn_cur: F64, sigma_n: float,
                               scale: float, scale_rel_var: float,
-                              scale_of: Callable[[F64, F64], float | None] | None = None) -> F64 | None:
+                              map_points: tuple[F64, F64] | None = None) -> F64 | None:
     """6x6 covariance over (camera centre, rotation) in the keyframe frame of the pose (R_cur_kf,
     scale * t_dir) estimated from the inlier correspondences ``xn_kf``/``xn_cur`` (N, 2) normalised.
 
     ``sigma_n`` is the image noise in normalised units (sigma_px / fx), ``scale_rel_var`` the relative
-    variance of the scale given the direction, and ``scale_of(R_cur_kf, t_dir)`` (optional) the map's
-    scale for another rotation and direction: its derivative carries the direction's error into the
-    scale. None when the five parameters are not observable from these points (fewer than six, or a
-    singular normal matrix: no parallax).
+    variance of the scale given the direction. ``map_points`` (optional) are the map points
+    ``(X_kf (M, 3), xn_cur (M, 2))`` the scale was fitted to (``scale_from_points``): the derivative of
+    their weighted scale carries the direction's error into the scale. None when the five parameters
+    are not observable from these points (fewer than six, or a singular normal matrix: no parallax).
     """
     n = xn_kf.shape[0]
     if n < 6 or not scale > 0:
@@ -81,29 +89,49 @@ def essential_pose_covariance(R_cur_kf: F64, t_dir: F64, xn_kf: F64, xn_cur: F64
     d = -R_kf_cur @ t_dir
     d /= np.linalg.norm(d)
     B = tangent_basis(d)
-    J = np.zeros((n, 5))
-    ds = np.zeros(5)
-    for i in range(5):
-        x = np.zeros(5)
-        x[i] = FD_STEP
-        Rp, tp = _pose(R_kf_cur, d, B, x)
-        Rm, tm = _pose(R_kf_cur, d, B, -x)
-        J[:, i] = (_sampson(Rp, tp, xn_kf, xn_cur) - _sampson(Rm, tm, xn_kf, xn_cur)) / (2 * FD_STEP)
-    JtJ = J.T @ J
+    # Ten poses: each parameter one step either way (central differences), as stacks. The step is so
+    # small that exp(phi) = I + [phi]x holds to ~1e-12.
+    h = FD_STEP
+    R_kf_st = np.repeat(R_kf_cur[None], 10, axis=0)
+    c_st = np.repeat(d[None], 10, axis=0)
+    for i in range(3):
+        e = np.zeros(3)
+        e[i] = h
+        R_kf_st[2 * i] = R_kf_cur + skew(e) @ R_kf_cur
+        R_kf_st[2 * i + 1] = R_kf_cur - skew(e) @ R_kf_cur
+    for j in range(2):
+        c_st[6 + 2 * j] = d + h * B[:, j]
+        c_st[7 + 2 * j] = d - h * B[:, j]
+    c_st /= np.linalg.norm(c_st, axis=1, keepdims=True)
+    R_st = np.transpose(R_kf_st, (0, 2, 1))  # R_cur_kf
+    t_st = -np.einsum("kij,kj->ki", R_st, c_st)
+    rows = _subsample(n, MAX_POINTS)
+    h_kf = np.column_stack([xn_kf[rows], np.ones(rows.size)])
+    h_cur = np.column_stack([xn_cur[rows], np.ones(rows.size)])
+    r = _sampson(np.einsum("kij,kjl->kil", _skew_stack(t_st), R_st), h_kf, h_cur)
+    J = ((r[0::2] - r[1::2]) / (2 * FD_STEP)).T  # (m, 5)
+    JtJ = np.einsum("ni,nj->ij", J, J) * (n / rows.size)  # the subsample stands for all n inliers (no BLAS)
     if not np.all(np.isfinite(JtJ)) or np.linalg.cond(JtJ) > 1e12:
         return None
     cov5 = sigma_n**2 * np.linalg.inv(JtJ)
-    if scale_of is not None:
-        # The map's scale as the direction moves: one sigma of each parameter, both ways (the scale is a
-        # median, piecewise constant: a slope over a sigma, not an infinitesimal one).
-        step = np.sqrt(np.maximum(np.diag(cov5), 1e-18))
-        for i in range(5):
-            x = np.zeros(5)
-            x[i] = step[i]
-            sp = scale_of(*_pose(R_kf_cur, d, B, x))
-            sm = scale_of(*_pose(R_kf_cur, d, B, -x))
-            if sp is not None and sm is not None and np.isfinite(sp) and np.isfinite(sm):
-                ds[i] = (sp - sm) / (2 * step[i])
+    ds = np.zeros(5)
+    if map_points is not None and map_points[0].shape[0] >= 3:
+        # The scale is the weighted mean of the per-point scales near their median: its slope as the
+        # rotation and direction move, over the points it kept.
+        pick = _subsample(map_points[0].shape[0], MAX_POINTS)
+        X_kf, xn_map = map_points[0][pick], map_points[1][pick]
+        b = np.column_stack([xn_map, np.ones(xn_map.shape[0])])
+        b /= np.linalg.norm(b, axis=1, keepdims=True)
+        s_i, w = _point_scales(R_cur_kf, t_dir, X_kf, b)
+        med = float(np.median(s_i))
+        mad = 1.4826 * float(np.median(np.abs(s_i - med)))
+        keep = np.abs(s_i - med) <= max(3.0 * mad, 1e-9 * abs(med))
+        if np.count_nonzero(keep) >= 3:
+            s_k, _ = _point_scales(R_st, t_st, X_kf[keep], b[keep])
+            s_mean = (s_k @ w[keep]) / np.sum(w[keep])
+            ds = (s_mean[0::2] - s_mean[1::2]) / (2 * FD_STEP)
+            if not np.all(np.isfinite(ds)):
+                ds = np.zeros(5)
     # c = s(phi, beta) * d(beta): Jacobian over (phi, beta, scale noise)
     G = np.zeros((6, 6))
     G[:3, :3] = np.outer(d, ds[:3])
