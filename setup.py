@@ -28,6 +28,7 @@ setup(
         "console_scripts": [
             "epi-vo = epi_vo.cli:main",
             "vo_node = epi_vo.ros.node:main",
+            "vo_lifecycle_node = epi_vo.ros.lifecycle_node:main",
         ],
     },
 )

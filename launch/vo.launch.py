@@ -3,6 +3,11 @@
     ros2 launch epi_vo vo.launch.py
     ros2 launch epi_vo vo.launch.py namespace:=robot1 image_topic:=/front/image_raw \
         camera_info_topic:=/front/camera_info image_transport:=compressed use_sim_time:=true rviz:=true
+    ros2 launch epi_vo vo.launch.py managed:=true   # then: ros2 lifecycle set /vo_node configure; ... activate
+
+``managed:=true`` starts ``vo_lifecycle_node`` instead (same name, parameters and remappings, as a
+launch_ros LifecycleNode so launch's lifecycle events apply): it starts unconfigured and does nothing
+until a lifecycle manager or ``ros2 lifecycle set`` configures and activates it.
 
 The node subscribes ``camera/image_raw`` (sensor_msgs/Image), ``camera/image_raw/compressed``
 (sensor_msgs/CompressedImage) and ``camera/camera_info``, all relative to ``namespace``;
@@ -15,9 +20,9 @@ convention, ``<image_topic>/compressed``). Parameters come from ``params_file``;
 # ruff takes `launch` for this repository's launch/ folder (first party); these are ROS 2's launch packages.
 from launch import LaunchDescription  # noqa: I001
 from launch.actions import DeclareLaunchArgument
-from launch.conditions import IfCondition
+from launch.conditions import IfCondition, UnlessCondition
 from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
-from launch_ros.actions import Node
+from launch_ros.actions import LifecycleNode, Node
 from launch_ros.parameter_descriptions import ParameterValue
 from launch_ros.substitutions import FindPackageShare
 
@@ -39,6 +44,7 @@ def generate_launch_description() -> LaunchDescription:
     log_level = LaunchConfiguration("log_level")
     rviz = LaunchConfiguration("rviz")
     rviz_config = LaunchConfiguration("rviz_config")
+    managed = LaunchConfiguration("managed")
 
     arguments = [
         DeclareLaunchArgument("namespace", default_value="",
@@ -56,33 +62,39 @@ def generate_launch_description() -> LaunchDescription:
                               description="use /clock (bag playback with --clock); overrides the params file"),
         DeclareLaunchArgument("log_level", default_value="info", choices=["debug", "info", "warn", "error", "fatal"],
                               description="log level of vo_node"),
+        DeclareLaunchArgument("managed", default_value="false", choices=BOOLEAN,
+                              description="start vo_lifecycle_node (a managed node: unconfigured until configured "
+                                          "and activated through its lifecycle services) instead of vo_node"),
         DeclareLaunchArgument("rviz", default_value="false", choices=BOOLEAN,
                               description="also start RViz2 with the epi_vo display config"),
         DeclareLaunchArgument("rviz_config", default_value=PathJoinSubstitution([share, "config", "epi_vo.rviz"]),
                               description="RViz2 config file (used with rviz:=true)"),
     ]
 
-    vo_node = Node(
-        package=PACKAGE,
-        executable="vo_node",
-        name="vo_node",
-        namespace=namespace,
-        output="screen",
-        emulate_tty=True,
-        parameters=[
+    # The same node either way (name, parameters, remappings); managed:=true makes it a lifecycle node.
+    vo_node_settings = {
+        "package": PACKAGE,
+        "name": "vo_node",
+        "namespace": namespace,
+        "output": "screen",
+        "emulate_tty": True,
+        "parameters": [
             params_file,
             {
                 "image_transport": ParameterValue(image_transport, value_type=str),
                 "use_sim_time": ParameterValue(use_sim_time, value_type=bool),
             },
         ],
-        remappings=[
+        "remappings": [
             ("camera/image_raw", image_topic),
             ("camera/image_raw/compressed", [image_topic, "/compressed"]),
             ("camera/camera_info", camera_info_topic),
         ],
-        ros_arguments=["--log-level", log_level],
-    )
+        "ros_arguments": ["--log-level", log_level],
+    }
+    vo_node = Node(executable="vo_node", condition=UnlessCondition(managed), **vo_node_settings)
+    vo_lifecycle_node = LifecycleNode(executable="vo_lifecycle_node", condition=IfCondition(managed),
+                                      **vo_node_settings)
 
     # RViz2 runs in the same namespace; its config names absolute /vo/... topics, remapped here to the
     # relative names, so they resolve to the namespace vo_node publishes in (/robot1/vo/odometry, ...).
@@ -98,4 +110,4 @@ def generate_launch_description() -> LaunchDescription:
         condition=IfCondition(rviz),
     )
 
-    return LaunchDescription([*arguments, vo_node, rviz_node])
+    return LaunchDescription([*arguments, vo_node, vo_lifecycle_node, rviz_node])

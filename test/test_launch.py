@@ -10,6 +10,7 @@ What ``ros2 launch`` does with the result (starting processes) is not run here.
 from __future__ import annotations
 
 import ast
+import dataclasses
 import importlib.util
 import json
 import os
@@ -67,6 +68,11 @@ class IfCondition(Recorded):
         super().__init__(predicate_expression)
 
 
+class UnlessCondition(Recorded):
+    def __init__(self, predicate_expression: Any) -> None:
+        super().__init__(predicate_expression)
+
+
 class LaunchConfiguration(Recorded):
     def __init__(self, variable_name: str, *, default: Any = None) -> None:
         super().__init__(default=default)
@@ -109,15 +115,22 @@ class Node(Recorded):
         super().__init__(**kwargs)
 
 
+class LifecycleNode(Node):
+    """launch_ros.actions.LifecycleNode: a Node whose name and namespace are required keywords."""
+
+    def __init__(self, *, name: Any, namespace: Any, **kwargs: Any) -> None:
+        super().__init__(name=name, namespace=namespace, **kwargs)
+
+
 def _stub_modules() -> dict[str, types.ModuleType]:
     names = {
         "launch": {"LaunchDescription": LaunchDescription},
         "launch.actions": {"DeclareLaunchArgument": DeclareLaunchArgument},
-        "launch.conditions": {"IfCondition": IfCondition},
+        "launch.conditions": {"IfCondition": IfCondition, "UnlessCondition": UnlessCondition},
         "launch.substitutions": {"LaunchConfiguration": LaunchConfiguration,
                                  "PathJoinSubstitution": PathJoinSubstitution},
         "launch_ros": {},
-        "launch_ros.actions": {"Node": Node},
+        "launch_ros.actions": {"Node": Node, "LifecycleNode": LifecycleNode},
         "launch_ros.parameter_descriptions": {"ParameterValue": ParameterValue},
         "launch_ros.substitutions": {"FindPackageShare": FindPackageShare},
     }
@@ -164,6 +177,7 @@ class LaunchedNode:
     remappings: list[tuple[str, str]]
     arguments: list[str]
     ros_arguments: list[str]
+    lifecycle: bool = False  # a launch_ros LifecycleNode (a managed node)
 
 
 def _resolve(value: Any, configs: Mapping[str, str], share: Mapping[str, str]) -> Any:
@@ -204,12 +218,12 @@ def _parameter(value: Any, configs: Mapping[str, str], share: Mapping[str, str])
 def _condition_holds(condition: Any, configs: Mapping[str, str], share: Mapping[str, str]) -> bool:
     if condition is None:
         return True
-    assert isinstance(condition, IfCondition)
+    assert isinstance(condition, IfCondition | UnlessCondition)
     text = _resolve(condition.args[0], configs, share).strip().lower()
     if text not in ("true", "false", "1", "0"):  # launch.conditions.evaluate_condition_expression
-        msg = f"IfCondition: {text!r} is not a boolean"
+        msg = f"{type(condition).__name__}: {text!r} is not a boolean"
         raise ValueError(msg)
-    return text in ("true", "1")
+    return (text in ("true", "1")) is isinstance(condition, IfCondition)
 
 
 def declared_arguments(description: LaunchDescription) -> dict[str, DeclareLaunchArgument]:
@@ -254,6 +268,7 @@ def evaluate(description: LaunchDescription, overrides: Mapping[str, str] | None
                         for a, b in kw.get("remappings", [])],
             arguments=[_resolve(a, configs, share) for a in kw.get("arguments", [])],
             ros_arguments=[_resolve(a, configs, share) for a in kw.get("ros_arguments", [])],
+            lifecycle=isinstance(entity, LifecycleNode),
         ))
     return nodes
 
@@ -303,11 +318,11 @@ def installed_executables() -> set[str]:
     return {spec.split("=")[0].strip() for spec in setup_kwargs()["entry_points"]["console_scripts"]}
 
 
-def _node_string_calls(method: str) -> set[str]:
+def _node_string_calls(*methods: str) -> set[str]:
     """String literals passed as the topic (2nd positional argument) to ``self.<method>(...)`` in node.py."""
     out = set()
     for call in ast.walk(ast.parse(NODE_SOURCE.read_text())):
-        if (isinstance(call, ast.Call) and isinstance(call.func, ast.Attribute) and call.func.attr == method
+        if (isinstance(call, ast.Call) and isinstance(call.func, ast.Attribute) and call.func.attr in methods
                 and len(call.args) >= 2 and isinstance(call.args[1], ast.Constant)
                 and isinstance(call.args[1].value, str)):
             out.add(call.args[1].value)
@@ -315,7 +330,8 @@ def _node_string_calls(method: str) -> set[str]:
 
 
 def node_published_topics() -> set[str]:
-    return _node_string_calls("create_publisher")
+    # the VO outputs are made through a hook (lifecycle publishers in vo_lifecycle_node), /diagnostics directly
+    return _node_string_calls("create_publisher", "_create_output_publisher")
 
 
 def node_input_topics() -> set[str]:
@@ -357,7 +373,7 @@ def test_launch_file_imports_only_launch_and_launch_ros() -> None:
 def test_declares_the_arguments_with_descriptions(description: LaunchDescription) -> None:
     declared = declared_arguments(description)
     assert set(declared) >= {"namespace", "params_file", "image_topic", "camera_info_topic", "image_transport",
-                             "use_sim_time", "rviz"}
+                             "use_sim_time", "rviz", "managed"}
     assert all(arg.description for arg in declared.values()), [n for n, a in declared.items() if not a.description]
     assert declared["rviz"].choices == ["true", "false"]
     assert declared["use_sim_time"].choices == ["true", "false"]
@@ -394,6 +410,21 @@ def test_defaults_start_only_vo_node_with_the_installed_params_file(description:
                              ("camera/image_raw/compressed", "camera/image_raw/compressed"),
                              ("camera/camera_info", "camera/camera_info")]
     assert vo.ros_arguments == ["--log-level", "info"]
+
+
+def test_managed_true_starts_the_lifecycle_node_instead_with_the_same_settings(
+        description: LaunchDescription) -> None:
+    overrides = {"namespace": "robot1", "image_topic": "/front/image_raw", "use_sim_time": "true"}
+    plain = _by_executable(evaluate(description, overrides), "vo_node")
+    nodes = evaluate(description, {**overrides, "managed": "true"})
+    assert [n.executable for n in nodes] == ["vo_lifecycle_node"]
+    managed = nodes[0]
+    assert managed.lifecycle and not plain.lifecycle
+    assert managed.executable in installed_executables()
+    assert dataclasses.replace(managed, executable="vo_node", lifecycle=False) == plain
+    assert declared_arguments(description)["managed"].default_value == "false"
+    with pytest.raises(ValueError, match="managed:=yes is not one of"):
+        evaluate(description, {"managed": "yes"})
 
 
 def test_arguments_reach_the_node(description: LaunchDescription) -> None:

@@ -21,6 +21,9 @@ and applied at the next frame (a new map from the last pose), a parameter that n
 read-only. Diagnostics: every DiagnosticArray is stamped with the node's clock (ROS time, simulated
 under use_sim_time); ages (image staleness, the watchdog) are measured on the steady clock, and the
 watchdog and summary timers run on it, so they keep reporting when a simulated clock stops.
+
+The wiring is :class:`VoNodeBase`, shared with the managed variant ``vo_lifecycle_node``
+(``epi_vo.ros.lifecycle_node``), which runs the same session between configure and cleanup.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ import math
 import sys
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -50,7 +54,7 @@ from std_srvs.srv import Trigger
 
 from epi_vo.core import covariance as covm
 from epi_vo.core.camera import CameraModelCache
-from epi_vo.core.config import VoConfig, config_fields, unknown_names_text
+from epi_vo.core.config import VoConfig
 from epi_vo.core.debug_image import draw_matches
 from epi_vo.core.diagnostics import DiagnosticLevel, DiagnosticStatusRecord
 from epi_vo.core.errors import CameraModelError, ConfigError, EpiVoError
@@ -62,7 +66,7 @@ from epi_vo.core.transforms import invert_T
 from epi_vo.io import msgconv
 from epi_vo.io.association import CameraInfoAssociator, Ready
 from epi_vo.io.node_options import NodeOptions, changed_names
-from epi_vo.ros.node_params import check_change, declare_all
+from epi_vo.ros.node_params import check_change, declare_all, effective_parameters_text, warn_undeclared_overrides
 from epi_vo.ros.node_tf import Extrinsic, ExtrinsicResolver, TransformLookup, make_tf2_lookup, make_tf_broadcaster
 
 __all__ = ["NodeOptions", "VoNode", "main"]
@@ -70,20 +74,23 @@ __all__ = ["NodeOptions", "VoNode", "main"]
 RAW_TOPIC, COMPRESSED_TOPIC = "camera/image_raw", "camera/image_raw/compressed"
 
 
-class VoNode(Node):
-    """Subscribes to a camera, runs the VO pipeline on a worker thread, publishes its results.
+class VoNodeBase:
+    """The VO wiring shared by ``vo_node`` (:class:`VoNode`) and ``vo_lifecycle_node``
+    (``epi_vo.ros.lifecycle_node``): mixed into an rclpy Node (it calls the node's own methods).
 
-    ``tf_lookup`` replaces the tf2_ros lookup of the camera extrinsic (tests give a fake buffer); by
-    default one is made when tf2_ros is importable.
+    One *session* is one configured life: :meth:`_start_session` makes the pipeline, the subscriptions,
+    publishers, service and timers and starts the worker thread; :meth:`_stop_session` stops the worker
+    and destroys what the session made, so a new session starts from nothing (a new map at the origin).
+    While the session is not active (:meth:`_pause`), images are counted and ignored and the watchdog is
+    silent; :meth:`_resume` takes images again, tracking restarting from the last pose.
     """
 
-    def __init__(self, *, tf_lookup: TransformLookup | None = None, **kwargs: Any) -> None:
-        super().__init__("vo_node", **kwargs)
-        self.cfg, self.opts = declare_all(self)
+    def _start_session(self, cfg: VoConfig, opts: NodeOptions, tf_lookup: TransformLookup | None = None, *,
+                       active: bool = True, announce: str = "") -> None:
+        """Everything one configured life needs; ``announce`` is told in the first frame's reason."""
+        self.cfg, self.opts = cfg, opts
         self._cfg_wanted = self.cfg  # the latest accepted config; the worker applies it at the next frame
-        self._warn_undeclared_overrides()
-        self._log_effective_parameters()
-        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self._entities_before = self._entities()
         self._status_name = self.get_fully_qualified_name()
         self._pipeline = VoPipeline(self.cfg)
         T_params = T_base_cam_from_params(self.opts.camera_xyz, self.opts.camera_rpy)
@@ -94,13 +101,15 @@ class VoNode(Node):
             f"camera_xyz={list(self.opts.camera_xyz)} camera_rpy={list(self.opts.camera_rpy)} parameters")
         self._extrinsic: Extrinsic | None = None
         self._waiting = ""  # what the worker waits for before the first frame ('' when nothing)
-        self._assoc = CameraInfoAssociator(max_pending=5, max_wait_ns=int(self.opts.camera_info_wait_s * 1e9))
+        self._assoc = self._new_associator()
         self._lock = threading.Lock()  # guards the association, the queue and the counters
         self._cv = threading.Condition(self._lock)
         self._queue: collections.deque[Ready] = collections.deque()
-        self._reset_requested = False
+        self._reset_reason = ""  # a restart asked for (vo/reset, a re-activation), done by the worker
         self._running = True
-        self._n_received = self._n_dropped = self._n_processed = 0
+        self._active = active  # images are processed only while active (always, in vo_node)
+        self._busy = False  # the worker is processing a frame
+        self._n_received = self._n_dropped = self._n_processed = self._n_ignored = 0
         self._arrivals: collections.deque[float] = collections.deque(maxlen=30)
         self._last_image_wall: float | None = None  # steady clock (time.monotonic) of the last image
         self._path: collections.deque[PoseStamped] = collections.deque(maxlen=self.opts.path_max_length)
@@ -115,7 +124,7 @@ class VoNode(Node):
         self._anchor: tuple[np.ndarray, np.ndarray, int] | None = None  # T_w_a, cov_w_a, index offset
         self._last_pose = (np.eye(4), np.zeros((6, 6)), -1)  # the last published T_w_c, covariance, index
         self._changes: list[str] = []  # runtime changes applied, for the summary
-        self._announce_change = ""  # told in the reason of the first frame after a change
+        self._announce_change = announce  # told in the reason of the first frame after a change
 
         in_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=self.opts.qos_depth,
                             reliability=ReliabilityPolicy.RELIABLE if self.opts.qos_reliability == "reliable"
@@ -133,11 +142,13 @@ class VoNode(Node):
             self.create_subscription(Odometry, self.cfg.wheel_odometry_topic, self._on_wheel_odometry,
                                      QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100))
             self.get_logger().info(f"metric scale from wheel odometry on {self.cfg.wheel_odometry_topic}")
-        self._pub_odom = self.create_publisher(Odometry, "vo/odometry", 10)
-        self._pub_points = self.create_publisher(PointCloud2, "vo/points", 10)
-        self._pub_path = self.create_publisher(Path, "vo/path", 10)
-        self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self._pub_debug = self.create_publisher(Image, "vo/debug_image", 2) if self.opts.publish_debug_image else None
+        self._pub_odom = self._create_output_publisher(Odometry, "vo/odometry", 10)
+        self._pub_points = self._create_output_publisher(PointCloud2, "vo/points", 10)
+        self._pub_path = self._create_output_publisher(Path, "vo/path", 10)
+        if getattr(self, "_pub_diag", None) is None:  # the managed node has one of its own, for every state
+            self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self._pub_debug = self._create_output_publisher(Image, "vo/debug_image", 2) \
+            if self.opts.publish_debug_image else None
         self.create_service(Trigger, "vo/reset", self._on_reset)
         self._tf = None
         if self.opts.publish_tf:
@@ -153,6 +164,62 @@ class VoNode(Node):
         self._worker = threading.Thread(target=self._work, name="vo_worker", daemon=True)
         self._worker.start()
 
+    def _new_associator(self) -> CameraInfoAssociator:
+        return CameraInfoAssociator(max_pending=5, max_wait_ns=int(self.opts.camera_info_wait_s * 1e9))
+
+    def _create_output_publisher(self, msg_type: Any, topic: str, depth: int) -> Any:
+        """A publisher of the VO outputs (odometry, points, path, debug image): a plain one here, a lifecycle
+        publisher (silent unless active) in the managed node."""
+        return self.create_publisher(msg_type, topic, depth)
+
+    def _destroy_output_publisher(self, publisher: Any) -> None:
+        self.destroy_publisher(publisher)
+
+    def _entities(self) -> dict[str, set[Any]]:
+        return {"subscriptions": set(self.subscriptions), "publishers": set(self.publishers),
+                "services": set(self.services), "timers": set(self.timers)}
+
+    def _stop_worker(self, timeout_s: float) -> None:
+        with self._cv:
+            self._running = False
+            self._cv.notify_all()
+        self._worker.join(timeout=timeout_s)
+
+    def _stop_session(self, timeout_s: float = 10.0) -> None:
+        """Stop the worker (bounded wait for a frame in flight) and destroy what the session made (its
+        subscriptions, publishers, service, timers, the TF listener's): the node is as before the session."""
+        self._stop_worker(timeout_s)
+        now, before = self._entities(), self._entities_before
+        for sub in now["subscriptions"] - before["subscriptions"]:
+            self.destroy_subscription(sub)
+        for pub in now["publishers"] - before["publishers"]:
+            self._destroy_output_publisher(pub)
+        for srv in now["services"] - before["services"]:
+            self.destroy_service(srv)
+        for timer in now["timers"] - before["timers"]:
+            self.destroy_timer(timer)
+
+    def _pause(self, timeout_s: float = 10.0) -> int:
+        """Stop taking images: queued frames are dropped (counted as ignored) and the frame in flight, if any,
+        is finished (bounded wait), so nothing is published after this returns. The frames dropped."""
+        with self._cv:
+            self._active = False
+            dropped = len(self._queue)
+            self._queue.clear()
+            self._n_ignored += dropped + self._assoc.pending
+            self._assoc = self._new_associator()  # images waiting for their camera_info are dropped too
+            deadline = time.monotonic() + timeout_s
+            while self._busy and time.monotonic() < deadline:
+                self._cv.wait(timeout=0.05)
+        return dropped
+
+    def _resume(self) -> None:
+        """Take images again; after a pause, tracking restarts from the last pose (a new map, no jump)."""
+        with self._cv:
+            self._active = True
+            if self._n_processed:
+                self._reset_reason = "reactivated: tracking restarted from the last pose"
+
     # -- parameters ---------------------------------------------------------------------------------
     def _on_set_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
         """A runtime change: validated as at start-up; pipeline knobs are applied at the next frame."""
@@ -167,25 +234,12 @@ class VoNode(Node):
             self.get_logger().warning(f"parameters {result.reason}")
         return result
 
-    def _warn_undeclared_overrides(self) -> None:
-        """ROS's rule stays (an override of a parameter the node does not declare is ignored), but a
-        misspelt name must not pass unnoticed: warn once, naming them and the closest parameter."""
-        # rclpy has no public accessor for the overrides it was given (--params-file, -p): read its
-        # attribute, and say nothing when a future rclpy renames it.
-        overrides = getattr(self, "_parameter_overrides", None) or {}
-        unknown = sorted(n for n in overrides if not self.has_parameter(n) and not n.startswith("qos_overrides."))
-        if not unknown:
-            return
-        self.get_logger().warning("ignoring parameter overrides that vo_node does not declare: "
-                                  + unknown_names_text(unknown))
-
-    def _log_effective_parameters(self) -> None:
-        lines = [f"{f.name}={getattr(self.cfg, f.name)!r}" for f in config_fields()]
-        lines += [f"{k}={v!r}" for k, v in self.opts.__dict__.items()]
-        self.get_logger().info("epi_vo parameters: " + ", ".join(lines))
-
     # -- input ----------------------------------------------------------------------------------------
     def _on_image(self, msg: Image | CompressedImage) -> None:
+        if not self._active:  # a managed node that is not active: counted, not processed
+            with self._lock:
+                self._n_ignored += 1
+            return
         transport = "compressed" if isinstance(msg, CompressedImage) else "raw"
         if transport != self._transport and not self._choose_transport(transport):
             return
@@ -216,10 +270,14 @@ class VoNode(Node):
         return True
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
+        if not self._active:  # not listening (managed node): the association starts afresh at activation
+            return
         with self._cv:
             self._enqueue(self._assoc.add_info(msgconv.stamp_to_ns(msg.header.stamp), msg))
 
     def _on_wheel_odometry(self, msg: Odometry) -> None:
+        if not self._active:
+            return
         problem = msgconv.stamp_problem(msg.header.stamp)
         if problem is not None:
             self.get_logger().warning(f"wheel odometry message ignored: {problem}", throttle_duration_sec=5.0)
@@ -243,7 +301,7 @@ class VoNode(Node):
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         with self._cv:
-            self._reset_requested = True
+            self._reset_reason = "reset service called: tracking restarted from the last pose"
         response.success = True
         response.message = "tracking restarts at the next frame, from the last pose"
         return response
@@ -262,7 +320,8 @@ class VoNode(Node):
                     item = None
                 else:
                     item = self._queue.popleft()
-                    reset, self._reset_requested = self._reset_requested, False
+                    self._busy = True
+                    reset, self._reset_reason = self._reset_reason, ""
                     wheel, self._wheel_pending = self._wheel_pending, []
                     wanted = self._cfg_wanted
             if item is None:
@@ -273,7 +332,7 @@ class VoNode(Node):
             for stamp_ns, xyz in wheel:  # the pipeline is only touched by this thread
                 self._pipeline.add_wheel_odometry(stamp_ns, xyz)
             if reset:
-                self._pipeline.reset("reset service called: tracking restarted from the last pose")
+                self._pipeline.reset(reset)
             try:
                 self._process(item)
             except EpiVoError as exc:
@@ -289,6 +348,10 @@ class VoNode(Node):
                                      "restarted from the last pose")
                 r = self._anchored(self._pipeline.reject(item.stamp_ns, f"internal error: {exc!r}"))
                 self._publish(r, _stamp_msg(r.stamp_ns), None)
+            finally:
+                with self._cv:
+                    self._busy = False
+                    self._cv.notify_all()
 
     def _resolve_extrinsic(self, frame_id: str) -> None:
         """One poll of the extrinsic (worker thread); while TF is awaited, frames queue (or are dropped as
@@ -326,17 +389,17 @@ class VoNode(Node):
 
     def _anchored(self, r: FrameResult) -> FrameResult:
         """A result of the current pipeline in the odometry's world frame (after a runtime change)."""
+        reason = r.reason
+        if self._announce_change:
+            reason = f"{self._announce_change}; {reason}" if reason else self._announce_change
+            self._announce_change = ""
         if self._anchor is None:
-            return r
+            return r if reason == r.reason else dataclasses.replace(r, reason=reason)
         T_w_a, cov_w_a, offset = self._anchor
         T_a_c = r.T_w_c
         T_c_a = invert_T(T_a_c)
         cov = covm.compose(cov_w_a, T_w_a, r.covariance, T_c_a[:3, 3], T_c_a[:3, :3])
         points = r.points_w @ T_w_a[:3, :3].T + T_w_a[:3, 3] if r.points_w.shape[0] else r.points_w
-        reason = r.reason
-        if self._announce_change:
-            reason = f"{self._announce_change}; {reason}" if reason else self._announce_change
-            self._announce_change = ""
         return dataclasses.replace(r, index=r.index + offset, T_w_c=T_w_a @ T_a_c, covariance=covm.floored(cov),
                                    points_w=points, reason=reason)
 
@@ -475,6 +538,8 @@ class VoNode(Node):
         return level, f"stalled: {what}"
 
     def _watchdog(self) -> None:
+        if not self._active:  # not taking images on purpose: the summary says so
+            return
         stall = self._stall()
         if stall is not None:
             self._publish_status(DiagnosticStatusRecord(stall[0], f"{self._status_name}: tracking", stall[1],
@@ -484,7 +549,9 @@ class VoNode(Node):
         """Once a second, as diagnostic_updater would: the worst of waiting / stalled / the last frame."""
         stall, frame = self._stall(), self._last_frame_status
         waiting = self._waiting
-        if waiting:
+        if not self._active:
+            level, message = DiagnosticLevel.OK, f"inactive: {self._n_ignored} images ignored (activate to track)"
+        elif waiting:
             level, message = DiagnosticLevel.WARN, waiting
         elif stall is not None:
             level, message = stall
@@ -502,15 +569,33 @@ class VoNode(Node):
             ("camera_xyz", " ".join(f"{v:.4g}" for v in T[:3, 3])),
             ("frames_processed", str(self._n_processed)),
             ("parameter_changes", "; ".join(self._changes[-3:]) or "none"),  # the latest applied
+            *self._summary_extra_values(),
         )
         self._publish_status(summary_status(self._status_name, self._hardware_id(), level, message, values),
                              self._diagnostics_stamp())
 
+    def _summary_extra_values(self) -> tuple[tuple[str, str], ...]:
+        """Further key/values of the summary (the managed node's state)."""
+        return ()
+
+
+class VoNode(VoNodeBase, Node):
+    """Subscribes to a camera, runs the VO pipeline on a worker thread, publishes its results.
+
+    ``tf_lookup`` replaces the tf2_ros lookup of the camera extrinsic (tests give a fake buffer); by
+    default one is made when tf2_ros is importable.
+    """
+
+    def __init__(self, *, tf_lookup: TransformLookup | None = None, **kwargs: Any) -> None:
+        super().__init__("vo_node", **kwargs)
+        cfg, opts = declare_all(self)
+        warn_undeclared_overrides(self)
+        self.get_logger().info(effective_parameters_text(cfg, opts))
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self._start_session(cfg, opts, tf_lookup)
+
     def destroy_node(self) -> None:
-        with self._cv:
-            self._running = False
-            self._cv.notify_all()
-        self._worker.join(timeout=2.0)
+        self._stop_worker(timeout_s=2.0)
         super().destroy_node()
 
 
@@ -551,21 +636,27 @@ Its parameters, with their defaults (the same file as `epi-vo params` and config
 """
 
 
-def main(args: list[str] | None = None) -> None:
-    argv = sys.argv[1:] if args is None else list(args)
-    # --help before any --ros-args: print and exit without starting rclpy (no DDS touched).
+def help_requested(argv: list[str]) -> bool:
+    """``--help`` / ``-h`` before any ``--ros-args`` (after it, the arguments are ROS's)."""
     user_args = argv[:argv.index("--ros-args")] if "--ros-args" in argv else argv
-    if "--help" in user_args or "-h" in user_args:
-        from epi_vo.io.node_options import NodeOptions
+    return "--help" in user_args or "-h" in user_args
+
+
+def run_node(make_node: Callable[[], Node], program: str, help_text: str, args: list[str] | None) -> None:
+    """The entry point of vo_node and vo_lifecycle_node: ``--help`` prints ``help_text`` and the parameters
+    and exits 0 before rclpy starts (no DDS touched); bad parameters exit 2 naming every one; else spin
+    until Ctrl-C or an external shutdown."""
+    argv = sys.argv[1:] if args is None else list(args)
+    if help_requested(argv):
         from epi_vo.io.params import to_params_yaml
 
-        sys.stdout.write(HELP_TEXT + to_params_yaml(VoConfig(), node=NodeOptions()))
+        sys.stdout.write(help_text + to_params_yaml(VoConfig(), node=NodeOptions()))
         sys.exit(0)
     rclpy.init(args=args)
     try:
-        node = VoNode()
+        node = make_node()
     except ConfigError as exc:
-        print(f"vo_node: error: {exc}", file=sys.stderr)
+        print(f"{program}: error: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
         sys.exit(2)
     try:
@@ -575,6 +666,10 @@ def main(args: list[str] | None = None) -> None:
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
+
+
+def main(args: list[str] | None = None) -> None:
+    run_node(VoNode, "vo_node", HELP_TEXT, args)
 
 
 if __name__ == "__main__":

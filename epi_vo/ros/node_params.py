@@ -1,5 +1,5 @@
 """``vo_node``'s ROS parameters: declared from one table (VoConfig's fields, then NodeOptions'), with
-descriptors (doc, range, choices, read-only), and the check of a runtime change.
+descriptors (doc, range, choices, read-only), the check of a runtime change, and what is logged about them.
 
 Start-up and runtime changes go through the same validation (``epi_vo.core.config.from_dict`` and
 ``epi_vo.io.node_options``). Parameters that need a restart are declared read-only, so ROS itself
@@ -13,7 +13,7 @@ from typing import Any
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 
-from epi_vo.core.config import VoConfig, config_fields, field_doc, from_dict
+from epi_vo.core.config import VoConfig, config_fields, field_doc, from_dict, unknown_names_text
 from epi_vo.core.errors import ConfigError
 from epi_vo.io.node_options import (
     NODE_CHOICES,
@@ -45,7 +45,10 @@ def descriptor(name: str, doc: str, lo: float | None, hi: float | None, choices:
 
 
 def declare_all(node: Any) -> tuple[VoConfig, NodeOptions]:
-    """Declare every pipeline and node parameter on ``node``; ConfigError naming every bad one at once."""
+    """Declare every pipeline and node parameter on ``node``; ConfigError naming every bad one at once.
+
+    A parameter already declared (a managed node configured again, or whose first configure failed) is
+    not declared again: its current value is read and checked like the others."""
     problems: list[str] = []
     values: dict[str, Any] = {}
     for f in config_fields():
@@ -74,11 +77,33 @@ def declare_all(node: Any) -> tuple[VoConfig, NodeOptions]:
 
 
 def _declare(node: Any, name: str, default: Any, desc: ParameterDescriptor, problems: list[str]) -> Any:
+    if node.has_parameter(name):  # the managed node's second configure: read the value it has now
+        return node.get_parameter(name).value
     try:
         return node.declare_parameter(name, default, desc).value
     except Exception as exc:  # rclpy raises several exception types for a bad override
         problems.append(f"{name}: {exc}")
         return None
+
+
+def warn_undeclared_overrides(node: Any) -> None:
+    """ROS's rule stays (an override of a parameter the node does not declare is ignored), but a
+    misspelt name must not pass unnoticed: warn once, naming them and the closest parameter."""
+    # rclpy has no public accessor for the overrides it was given (--params-file, -p): read its
+    # attribute, and say nothing when a future rclpy renames it.
+    overrides = getattr(node, "_parameter_overrides", None) or {}
+    unknown = sorted(n for n in overrides if not node.has_parameter(n) and not n.startswith("qos_overrides."))
+    if not unknown:
+        return
+    node.get_logger().warning("ignoring parameter overrides that vo_node does not declare: "
+                              + unknown_names_text(unknown))
+
+
+def effective_parameters_text(cfg: VoConfig, opts: NodeOptions) -> str:
+    """The line logged at start-up (and at each configure): every parameter's effective value."""
+    lines = [f"{f.name}={getattr(cfg, f.name)!r}" for f in config_fields()]
+    lines += [f"{k}={v!r}" for k, v in opts.__dict__.items()]
+    return "epi_vo parameters: " + ", ".join(lines)
 
 
 def check_change(cfg: VoConfig, opts: NodeOptions, parameters: list[Any]

@@ -1,0 +1,402 @@
+"""vo_lifecycle_node end to end: a real node process driven through the lifecycle_msgs services
+(/vo_node/change_state, /vo_node/get_state), bags played into it with ``epi-vo play``, over real DDS on
+loopback.
+
+Every process here gets ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and this test's own ROS_DOMAIN_ID
+(test/ros_fixtures.py) before rclpy starts. "Nothing arrives" is checked after a condition that proves
+the node had the chance: it counted the frames it ignored (its summary says how many), and a further
+summary came after that.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from ros_fixtures import RosSession, rclpy_session, spin_until
+
+from epi_vo.tools.replay import run_replay
+
+REPO = Path(__file__).resolve().parents[2]
+BAG = REPO / "bags" / "general_motion" / "bag"
+PLAYBACK_ARGS = ["-p", "image_transport:=compressed", "-p", "process_every_frame:=true",
+                 "-p", "qos_reliability:=reliable", "-p", "qos_depth:=100"]
+WAIT_S = 120.0  # bound on a wait for another process or DDS; it matters only when the condition never comes
+NEW_MAP = "configured again after cleanup: new map from the origin"
+
+
+@pytest.fixture(scope="module")
+def ros() -> Iterator[RosSession]:
+    with rclpy_session() as session:
+        yield session
+
+
+class LifecycleProcess:
+    """``vo_lifecycle_node`` as a child process; stopped (SIGINT, then kill) when the block ends; ``stderr``
+    and ``returncode`` after."""
+
+    def __init__(self, env: dict[str, str], *ros_args: str) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-m", "epi_vo.ros.lifecycle_node", "--ros-args", *ros_args],
+                                     env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self.stderr = ""
+
+    def __enter__(self) -> LifecycleProcess:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(2)
+            try:
+                self.proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+        self.stderr = self.proc.communicate()[1]
+
+
+class Probe:
+    """The test side: lifecycle and parameter clients of /vo_node, subscriptions to its outputs, camera
+    publishers (reliable, deep queues: nothing may be lost)."""
+
+    def __init__(self, ros: RosSession, name: str) -> None:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from lifecycle_msgs.srv import ChangeState, GetState
+        from nav_msgs.msg import Odometry
+        from rcl_interfaces.srv import SetParameters
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import CameraInfo, CompressedImage
+
+        self.node = rclpy.create_node(name, context=ros.context)
+        self.executor = SingleThreadedExecutor(context=ros.context)
+        self.executor.add_node(self.node)
+        qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        self.odom: list[Any] = []
+        self.diag: list[Any] = []
+        self.node.create_subscription(Odometry, "vo/odometry", self.odom.append, qos)
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self.diag.append, qos)
+        self.pub_img = self.node.create_publisher(CompressedImage, "camera/image_raw/compressed", qos)
+        self.pub_info = self.node.create_publisher(CameraInfo, "camera/camera_info", qos)
+        self.change_client = self.node.create_client(ChangeState, "/vo_node/change_state")
+        self.get_client = self.node.create_client(GetState, "/vo_node/get_state")
+        self.set_client = self.node.create_client(SetParameters, "/vo_node/set_parameters")
+
+    def spin_until(self, predicate: Callable[[], bool], timeout_s: float = WAIT_S) -> bool:
+        return spin_until(self.executor, predicate, timeout_s)
+
+    def call(self, client: Any, request: Any) -> Any:
+        assert client.wait_for_service(timeout_sec=WAIT_S), client.srv_name
+        future = client.call_async(request)
+        assert self.spin_until(future.done), client.srv_name
+        return future.result()
+
+    def change(self, transition_id: int) -> bool:
+        """One lifecycle transition through /vo_node/change_state: its success."""
+        from lifecycle_msgs.srv import ChangeState
+
+        request = ChangeState.Request()
+        request.transition.id = transition_id
+        return bool(self.call(self.change_client, request).success)
+
+    def state(self) -> str:
+        from lifecycle_msgs.srv import GetState
+
+        return str(self.call(self.get_client, GetState.Request()).current_state.label)
+
+    def statuses(self, suffix: str) -> list[Any]:
+        return [s for a in self.diag for s in a.status if s.name.endswith(suffix)]
+
+    def frame_statuses(self) -> list[Any]:
+        return [s for s in self.statuses(": tracking") if not s.message.startswith("stalled")]
+
+    def summaries(self) -> list[dict[str, Any]]:
+        return [{"message": s.message, "level": _level(s), **{kv.key: kv.value for kv in s.values}}
+                for s in self.statuses(": summary")]
+
+    def ignored(self) -> int:
+        """The latest count of images the node ignored while inactive (its summary), -1 before any."""
+        counts = [int(s["frames_ignored_inactive"]) for s in self.summaries() if "frames_ignored_inactive" in s]
+        return counts[-1] if counts else -1
+
+    def wait_further_summaries(self, k: int = 2) -> None:
+        n = len(self.summaries())
+        assert self.spin_until(lambda: len(self.summaries()) >= n + k)
+
+    def send_until(self, frames: list[tuple[Any, Any]], predicate: Callable[[], bool]) -> None:
+        """Publish (camera_info, image) pairs, cycling, until ``predicate`` holds (e.g. the node counted them)."""
+        i = 0
+
+        def publish_and_check() -> bool:
+            nonlocal i
+            info, img = frames[i % len(frames)][1], frames[i % len(frames)][0]
+            self.pub_info.publish(info)
+            self.pub_img.publish(img)
+            i += 1
+            self.executor.spin_once(timeout_sec=0.03)
+            return predicate()
+
+        assert self.spin_until(publish_and_check), i
+
+    def send(self, frames: list[tuple[Any, Any]]) -> None:
+        """Publish (camera_info, image) pairs once each."""
+        for img, info in frames:
+            self.pub_info.publish(info)
+            self.pub_img.publish(img)
+            self.executor.spin_once(timeout_sec=0.03)
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+
+
+def _level(status: Any) -> int:
+    return status.level[0] if isinstance(status.level, bytes) else int(status.level)
+
+
+def _play(env: dict[str, str], *args: str) -> None:
+    played = subprocess.run([sys.executable, "-m", "epi_vo.cli", "play", str(BAG), "--rate", "1.0", *args], env=env,
+                            capture_output=True, text=True, timeout=2 * WAIT_S)
+    assert played.returncode == 0, played.stderr
+
+
+def _bag_frames() -> int:
+    from epi_vo.io import bagio
+
+    with bagio.open_camera_bag(BAG) as bag:
+        return bag.frame_count
+
+
+def _frames(n: int, shift_s: int = 0) -> list[tuple[Any, Any]]:
+    """The first n (CompressedImage, CameraInfo) pairs of the bag as rclpy messages, stamps shifted by shift_s."""
+    from rclpy.serialization import deserialize_message
+    from rosbags.typesys import Stores, get_typestore
+    from sensor_msgs.msg import CameraInfo, CompressedImage
+
+    from epi_vo.io import bagio
+
+    ts = get_typestore(Stores.ROS2_JAZZY)
+
+    def conv(msg: Any, kind: Any) -> Any:
+        out = deserialize_message(bytes(ts.serialize_cdr(msg, msg.__msgtype__)), kind)
+        out.header.stamp.sec += shift_s
+        return out
+
+    out = []
+    with bagio.open_camera_bag(BAG) as bag:
+        for f in bag.iter_frames():
+            if f.index >= n:
+                break
+            out.append((conv(f.image_msg, CompressedImage), conv(f.camera_info_msg, CameraInfo)))
+    return out
+
+
+def _stamp_ns(stamp: Any) -> int:
+    return int(stamp.sec) * 10**9 + int(stamp.nanosec)
+
+
+def _odom_pose(msg: Any) -> np.ndarray:
+    p, q = msg.pose.pose.position, msg.pose.pose.orientation
+    return np.array([p.x, p.y, p.z, q.x, q.y, q.z, q.w])
+
+
+@pytest.fixture(scope="module")
+def offline(tmp_path_factory: pytest.TempPathFactory) -> dict[int, np.ndarray]:
+    """Odometry of the offline replay of the same bag, by stamp."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    out = tmp_path_factory.mktemp("offline")
+    run_replay(BAG, out)
+    poses = {}
+    with AnyReader([out / "output.mcap"], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        for con, _, raw in reader.messages():
+            if con.topic == "/vo/odometry":
+                m = reader.deserialize(raw, con.msgtype)
+                poses[_stamp_ns(m.header.stamp)] = _odom_pose(m)
+    return poses
+
+
+def _assert_equals_offline(odom: list[Any], offline: dict[int, np.ndarray], n: int) -> None:
+    """The live odometry of one play of the bag is the offline replay's, frame by frame, from its origin."""
+    assert len(odom) == n
+    assert [_stamp_ns(m.header.stamp) for m in odom] == sorted(offline)
+    for m in odom:
+        pose = _odom_pose(m)
+        assert np.all(np.isfinite(pose))
+        np.testing.assert_allclose(pose, offline[_stamp_ns(m.header.stamp)], atol=1e-6)
+    assert np.linalg.norm(_odom_pose(odom[-1])[:3] - _odom_pose(odom[0])[:3]) > 1.0  # it moved
+
+
+def test_configure_activate_deactivate_cleanup_shutdown(ros: RosSession, offline: dict[int, np.ndarray]) -> None:
+    from lifecycle_msgs.msg import Transition
+
+    n = _bag_frames()
+    probe = Probe(ros, "probe_lifecycle")
+    still = _frames(10)  # published by the probe while the node is inactive
+    later = _frames(20, shift_s=100)  # after a deactivate / activate: the same scene 100 s later
+    try:
+        with LifecycleProcess(ros.env, *PLAYBACK_ARGS) as node:
+            # Unconfigured: the lifecycle services and a summary, no VO endpoints.
+            assert probe.state() == "unconfigured", node.proc.stderr
+            assert probe.spin_until(lambda: any(s["lifecycle_state"] == "unconfigured" for s in probe.summaries()))
+            assert probe.node.count_publishers("/vo/odometry") == 0
+            assert probe.node.count_subscribers("/camera/camera_info") == 0
+
+            # Configure: inactive; the endpoints exist, images are counted and ignored.
+            assert probe.change(Transition.TRANSITION_CONFIGURE)
+            assert probe.state() == "inactive"
+            assert probe.spin_until(lambda: probe.node.count_publishers("/vo/odometry") == 1
+                                    and probe.pub_img.get_subscription_count() >= 1)
+            probe.send_until(still, lambda: probe.ignored() >= len(still))
+            probe.wait_further_summaries()
+            assert not probe.odom and not probe.frame_statuses()
+            inactive = probe.summaries()[-1]
+            assert inactive["lifecycle_state"] == "inactive" and inactive["message"].startswith("inactive: ")
+
+            # Activate: the whole bag, as the plain node and the offline replay give it.
+            assert probe.change(Transition.TRANSITION_ACTIVATE)
+            assert probe.state() == "active"
+            _play(ros.env)
+            assert probe.spin_until(lambda: len(probe.odom) >= n and len(probe.frame_statuses()) >= n), \
+                len(probe.odom)
+            _assert_equals_offline(probe.odom, offline, n)
+            assert [int(dict((kv.key, kv.value) for kv in s.values)["index"]) for s in probe.frame_statuses()] == \
+                list(range(n))
+
+            # Deactivate: the bag again, every frame reaches the node and is ignored; nothing comes out.
+            assert probe.change(Transition.TRANSITION_DEACTIVATE)
+            assert probe.state() == "inactive"
+            ignored = probe.ignored()
+            _play(ros.env)
+            assert probe.spin_until(lambda: probe.ignored() >= ignored + n), (probe.ignored(), ignored)
+            probe.wait_further_summaries()
+            assert len(probe.odom) == n and len(probe.frame_statuses()) == n
+
+            # Activate again (no cleanup): tracking restarts from the last pose, odometry continuous.
+            assert probe.change(Transition.TRANSITION_ACTIVATE)
+            last = _odom_pose(probe.odom[-1])
+            probe.send(later)  # each once (the subscription matched long ago, reliable): one odometry each
+            assert probe.spin_until(lambda: len(probe.odom) >= n + len(later)), len(probe.odom)
+            assert probe.spin_until(lambda: len(probe.frame_statuses()) >= n + len(later))
+            resumed = probe.odom[n:]
+            assert len(resumed) == len(later)
+            first_status = probe.frame_statuses()[n]
+            assert "reactivated: tracking restarted from the last pose" in first_status.message
+            assert _stamp_ns(resumed[0].header.stamp) == _stamp_ns(later[0][0].header.stamp)
+            np.testing.assert_allclose(_odom_pose(resumed[0])[:3], last[:3], atol=1e-6)
+            assert np.linalg.norm(last[:3]) > 1.0  # held at the last pose, far from the origin
+            assert all(np.all(np.isfinite(_odom_pose(m))) for m in resumed)
+
+            # Cleanup: the session is gone; configure + activate starts a new map from the origin.
+            assert probe.change(Transition.TRANSITION_DEACTIVATE)
+            assert probe.change(Transition.TRANSITION_CLEANUP)
+            assert probe.state() == "unconfigured"
+            assert probe.spin_until(lambda: probe.node.count_publishers("/vo/odometry") == 0
+                                    and probe.node.count_subscribers("/camera/camera_info") == 0)
+            assert probe.change(Transition.TRANSITION_CONFIGURE)
+            assert probe.change(Transition.TRANSITION_ACTIVATE)
+            before, statuses_before = len(probe.odom), len(probe.frame_statuses())
+            assert probe.spin_until(lambda: probe.node.count_publishers("/vo/odometry") == 1)
+            _play(ros.env)
+            assert probe.spin_until(lambda: len(probe.odom) >= before + n
+                                    and len(probe.frame_statuses()) >= statuses_before + n), len(probe.odom)
+            _assert_equals_offline(probe.odom[before:], offline, n)
+            first = probe.frame_statuses()[statuses_before]
+            assert NEW_MAP in first.message
+            assert dict((kv.key, kv.value) for kv in first.values)["index"] == "0"
+            assert probe.spin_until(lambda: probe.summaries()[-1]["configurations"] == "2")
+
+            # Shutdown from active: finalized, the VO endpoints gone, the process still answers get_state.
+            assert probe.change(Transition.TRANSITION_ACTIVE_SHUTDOWN)
+            assert probe.state() == "finalized"
+            assert probe.spin_until(lambda: probe.summaries()[-1]["message"].startswith("finalized"))
+            assert probe.spin_until(lambda: probe.node.count_publishers("/vo/odometry") == 0
+                                    and probe.node.count_subscribers("/camera/camera_info") == 0)
+            assert len(probe.odom) == before + n
+            assert not probe.change(Transition.TRANSITION_CONFIGURE)  # finalized is terminal
+            assert node.proc.poll() is None
+        assert node.proc.returncode == 0, node.stderr
+        assert "Traceback" not in node.stderr
+    finally:
+        probe.close()
+
+
+def test_bad_parameter_fails_configure_with_the_reason_and_can_be_fixed(ros: RosSession) -> None:
+    from lifecycle_msgs.msg import Transition
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.parameter import Parameter
+
+    probe = Probe(ros, "probe_lifecycle_bad")
+    reason = "frontend='sift' (choose one of klt, orb)"
+    try:
+        with LifecycleProcess(ros.env, "-p", "frontend:=sift", "-p", "hardware_id:=front_cam") as node:
+            assert not probe.change(Transition.TRANSITION_CONFIGURE), node.proc.stderr
+            assert probe.state() == "unconfigured"
+            assert probe.spin_until(lambda: any(reason in s["message"] for s in probe.summaries()))
+            failed = next(s for s in probe.summaries() if reason in s["message"])
+            assert failed["level"] == 2 and failed["message"].startswith("unconfigured: configure failed:")
+            assert failed["lifecycle_state"] == "unconfigured" and failed["configurations"] == "0"
+            assert probe.node.count_publishers("/vo/odometry") == 0
+
+            # Unconfigured, the value can be fixed; configure checks it again and succeeds.
+            request = SetParameters.Request(parameters=[Parameter("frontend", value="klt").to_parameter_msg()])
+            (result,) = probe.call(probe.set_client, request).results
+            assert result.successful, result.reason
+            assert probe.change(Transition.TRANSITION_CONFIGURE)
+            assert probe.state() == "inactive"
+            assert probe.spin_until(lambda: probe.summaries()[-1]["lifecycle_state"] == "inactive"
+                                    and probe.summaries()[-1]["configurations"] == "1")
+            assert probe.summaries()[-1]["level"] == 0
+
+            # Configured, a runtime change is checked as vo_node checks it.
+            request = SetParameters.Request(parameters=[Parameter("frontend", value="sift").to_parameter_msg()])
+            (refused,) = probe.call(probe.set_client, request).results
+            assert not refused.successful and reason in refused.reason
+
+            assert probe.change(Transition.TRANSITION_INACTIVE_SHUTDOWN)
+            assert probe.state() == "finalized"
+        errors = [line for line in node.stderr.splitlines() if "configure failed" in line]
+        assert len(errors) == 1 and errors[0].startswith("[ERROR]") and reason in errors[0]
+        assert "Traceback" not in node.stderr
+    finally:
+        probe.close()
+
+
+def test_a_transition_the_state_has_not_is_refused_and_shutdown_from_unconfigured_finalizes(ros: RosSession) -> None:
+    from lifecycle_msgs.msg import Transition
+
+    probe = Probe(ros, "probe_lifecycle_shutdown")
+    try:
+        with LifecycleProcess(ros.env) as node:
+            assert probe.state() == "unconfigured", node.proc.stderr
+            # rclpy's own service would raise (and the node die): the node answers success false instead.
+            assert not probe.change(Transition.TRANSITION_ACTIVATE)
+            assert probe.state() == "unconfigured"
+            assert probe.change(Transition.TRANSITION_UNCONFIGURED_SHUTDOWN)
+            assert probe.state() == "finalized"
+            assert probe.spin_until(lambda: bool(probe.summaries())
+                                    and probe.summaries()[-1]["lifecycle_state"] == "finalized")
+        assert node.proc.returncode == 0, node.stderr
+        refused = [line for line in node.stderr.splitlines() if "refused in state unconfigured" in line]
+        assert len(refused) == 1 and refused[0].startswith("[WARN]")
+    finally:
+        probe.close()
+
+
+def test_vo_lifecycle_node_help_prints_the_parameters_and_never_starts_dds() -> None:
+    """As vo_node's: run with a DDS environment that would fail (an invalid domain id), it still succeeds."""
+    env = {**os.environ, "ROS_DOMAIN_ID": "not-a-domain", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    out = subprocess.run([sys.executable, "-m", "epi_vo.ros.lifecycle_node", "--help"], env=env, capture_output=True,
+                         text=True, timeout=120, check=False)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.startswith("usage: vo_lifecycle_node")
+    assert "/vo_node/change_state" in out.stdout
+    for line in ("    max_features:", "    image_transport: auto", "    frontend: klt", "    tf_timeout_s:"):
+        assert line in out.stdout
+    assert "rcl" not in out.stderr.lower()
