@@ -158,6 +158,7 @@ def test_colcon_build_installs_scripts_into_lib(tmp_path: Path) -> None:
     install = tmp_path / "ws" / "install" / "epi_vo"
     assert (install / "lib" / "epi_vo" / "epi-vo").is_file()
     assert (install / "lib" / "epi_vo" / "vo_node").is_file()
+    assert (install / "lib" / "epi_vo" / "vo_lifecycle_node").is_file()
     assert (install / "share" / "ament_index" / "resource_index" / "packages" / "epi_vo").is_file()
     share = install / "share" / "epi_vo"
     for rel in ("config/epi_vo.yaml", "config/epi_vo.rviz", "config/foxglove_layout.json", "launch/vo.launch.py",
