@@ -65,6 +65,8 @@ class MotionContext:
 
 
 E_MAP_MAX_DIRECTION_DIFF_DEG = 20.0  # E's direction of travel this far from the map's: a mover took E
+E_MAP_AGREE_PX = 1.0  # map points this close to where E's pose puts them ...
+E_MAP_AGREE_FRACTION = 0.8  # ... this share of them: E agrees with the map, no check of its own needed
 MIN_OFF_PLANE_FOR_E_HINT = 5  # E inliers off H's plane needed before E may pick among H's decompositions
 STATIC_KEEP = 0.6  # a static camera stays static down to this share of static_min_fraction
 
@@ -353,8 +355,17 @@ class MotionStage:
         depth = np.isfinite(X[:, 0])
         if np.count_nonzero(depth) < max(cfg.min_scale_points, 6):
             return None
+        K = ctx.kf.camera.K
+        # Cheap first: when E's pose (with the map's scale) already puts nearly all map points where they
+        # are seen, the map agrees with it and its own pose need not be computed.
+        Xc = np.einsum("ij,nj->ni", R_e, X[depth]) + t_e
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = np.einsum("ij,nj->ni", K[:2, :2], Xc[:, :2] / Xc[:, 2:3]) + K[:2, 2]
+        err = np.linalg.norm(uv - ctx.uv_cur[depth], axis=1)
+        if np.count_nonzero((Xc[:, 2] > 0) & (err <= E_MAP_AGREE_PX)) >= E_MAP_AGREE_FRACTION * err.shape[0]:
+            return None
         prev = ctx.T_cur_kf_prev
-        refined = geo.refine_pose_pnp(X[depth], ctx.uv_cur[depth], ctx.kf.camera.K, prev[:3, :3], prev[:3, 3],
+        refined = geo.refine_pose_pnp(X[depth], ctx.uv_cur[depth], K, prev[:3, :3], prev[:3, 3],
                                       cfg.max_reprojection_error_px)
         if refined is None or np.count_nonzero(refined[2]) < cfg.min_scale_points:
             return None

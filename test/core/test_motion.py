@@ -397,3 +397,22 @@ def test_grid_spread_counts_the_occupied_cells_the_mask_reaches() -> None:
     assert grid_spread(uv, mask, 640, 480) == pytest.approx(0.25)
     assert grid_spread(uv[:8], mask[:8], 640, 480) == pytest.approx(0.5)  # only the top half holds features
     assert grid_spread(np.zeros((0, 2)), np.zeros(0, bool), 640, 480) == 0.0
+
+
+def test_e_agreeing_with_the_map_needs_no_pose_of_its_own(general_scene, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A clean scene: E's pose with the map's scale puts the map points where they are seen, so the
+    map's own pose (a PnP refinement) is not computed for the check; E's pose is taken."""
+    import epi_vo.core.motion as motion_module
+
+    calls: list[int] = []
+    real = motion_module.geo.refine_pose_pnp
+
+    def counting(*args: Any, **kwargs: Any) -> Any:
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(motion_module.geo, "refine_pose_pnp", counting)
+    m, st, _ = _estimate(general_scene, _true_map(general_scene))
+    assert m is not None and m.state is TrackingState.TRACKING and st.model is Model.ESSENTIAL
+    assert calls == [] and m.moving is None
+    assert not any("disagrees" in r for r in st.reasons)
