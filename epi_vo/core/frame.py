@@ -136,6 +136,9 @@ class FrameResult:
     moving_fraction: float = 0.0  # of the tracked features
     moving_region: tuple[int, int, int, int] | None = None  # x0, y0, x1, y1 (px) of the movers, None: none
     static_score: float = math.nan  # fraction of tracked features the "no camera motion" hypothesis explains
+    # 6x6 covariance (odometry frame, position first) of the motion since the previous frame, for the
+    # twist; None when the frame has no pose or no previous frame with one
+    step_covariance: F64 | None = None
 
     @property
     def rejected(self) -> bool:

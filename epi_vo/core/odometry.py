@@ -84,7 +84,11 @@ class OdometryConverter:
     def base_pose(self, T_w_c: F64) -> F64:
         return self.T_base_cam @ T_w_c @ self._T_cam_base
 
-    def convert(self, stamp_ns: int, T_w_c: F64, cov_w: F64, has_pose: bool) -> OdometrySample:
+    def convert(self, stamp_ns: int, T_w_c: F64, cov_w: F64, has_pose: bool,
+                step_cov_w: F64 | None = None) -> OdometrySample:
+        """One odometry sample. ``step_cov_w`` (the frame's ``step_covariance``, odometry frame of the
+        pipeline) is the covariance of the motion since the previous frame: the twist's covariance is
+        it over dt^2, in the child frame. Without it, the pose covariance gained over the step is used."""
         T_odom_base = self.base_pose(T_w_c)
         R_ob = T_odom_base[:3, :3]
         cov_odom = rotate_covariance(cov_w, self.T_base_cam[:3, :3])
@@ -92,6 +96,12 @@ class OdometryConverter:
         twist_cov = np.eye(6) * _UNKNOWN_TWIST_VARIANCE
         if has_pose and self._prev is not None and stamp_ns > self._prev[0]:
             lin, ang, twist_cov = self._twist(stamp_ns, T_odom_base, cov_odom)
+            dt = (stamp_ns - self._prev[0]) * 1e-9
+            if step_cov_w is not None and np.all(np.isfinite(twist_cov)) and twist_cov[0, 0] < _UNKNOWN_TWIST_VARIANCE:
+                step_base = rotate_covariance(rotate_covariance(step_cov_w, self.T_base_cam[:3, :3]), R_ob.T)
+                step_twist = step_base / (dt * dt)
+                if np.all(np.isfinite(step_twist)):
+                    twist_cov = step_twist
         if has_pose:
             self._prev = (stamp_ns, T_odom_base, cov_odom)
         return OdometrySample(stamp_ns, T_odom_base[:3, 3].copy(), quat_xyzw_from_rotation(R_ob), cov_odom, lin,

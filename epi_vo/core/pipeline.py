@@ -87,6 +87,10 @@ class VoPipeline:
         self._next_id = 0  # the next feature track id
         self._mover_ids = np.zeros(0, np.int64)  # sorted ids of tracks judged to move on their own
         self._anchor: sc.WindowAnchor | None = None  # the scale source's anchor of the newest keyframe step
+        self._rel_prev: tuple[int, F64] | None = None  # keyframe stamp and relative covariance of the last pose
+        self._last_pos_w = np.zeros(3)  # position of the last frame with a pose (for the step's scale error)
+        self._map_kf0 = 0  # keyframe count when the current map began
+        self._jumped = False  # this frame's position jumped to metres (metric scale just established)
         self._T_w_c = np.eye(4)
         self._cov_w_c = np.zeros((6, 6))
         # The last pose that had a map behind it (tracking): its stamp, pose and covariance, and the
@@ -280,8 +284,10 @@ class VoPipeline:
                              st.F, st.H, moving)
         t0 = time.perf_counter()
         is_kf = False
+        step_cov: F64 | None = None
         if motion is None:
             state, has_pose = TrackingState.LOST, False
+            self._rel_prev = None
             if self._on_failure(st):
                 self._restart_here(gray, camera, stamp_ns, orb_cur)
                 is_kf = True
@@ -296,6 +302,8 @@ class VoPipeline:
             self._T_w_c = T_w_c
             self._cov_w_c = covm.compose(kf.cov_w_kf, kf.T_w_kf, motion.cov_rel, motion.t_cur_kf,
                                          motion.R_cur_kf)
+            step_cov = self._step_covariance(kf, motion.cov_rel, T_w_c[:3, 3] - self._last_pos_w)
+            self._last_pos_w = T_w_c[:3, 3].copy()
             self._T_cur_kf_prev = T_cur_kf
             if state is TrackingState.TRACKING:
                 self._book_good(stamp_ns)
@@ -308,7 +316,34 @@ class VoPipeline:
             is_kf = self._maybe_keyframe(motion, kf, rows, pts_cur, xn_cur, gray, camera, stamp_ns, orb_cur, st)
         st.timings["mapping"] = _ms(t0)
         self._gray_prev = gray
-        return self._result(stamp_ns, state, has_pose, is_kf, st, t_start)
+        if step_cov is not None and self._scale.metric_source and (not self._scale.established or self._jumped):
+            # Metres asked for: while the position is held (scale unknown), and at the frame where the
+            # map first becomes metric (the position jumps to metres), the step is not known.
+            step_cov = covm.block(self.cfg.lost_position_variance, self.cfg.lost_rotation_variance)
+        self._jumped = False
+        return dataclasses.replace(self._result(stamp_ns, state, has_pose, is_kf, st, t_start),
+                                   step_covariance=None if step_cov is None else frozen(covm.floored(step_cov)))
+
+    def _step_covariance(self, kf: Keyframe, cov_rel: F64, step_w: F64) -> F64:
+        """Covariance of the motion since the previous frame (odometry frame): both frames' poses are
+        measured against the same keyframe with their own image noise, so the keyframe's uncertainty
+        cancels and their relative ones add; against a new keyframe (the previous frame) only this
+        frame's counts."""
+        A = np.zeros((6, 6))
+        A[:3, :3] = kf.T_w_kf[:3, :3]
+        A[3:, 3:] = kf.T_w_kf[:3, :3]
+        cov = A @ cov_rel @ A.T
+        prev = self._rel_prev
+        self._rel_prev = (kf.stamp_ns, cov)
+        if prev is not None and prev[0] == kf.stamp_ns:
+            cov = cov + prev[1]
+        # The step's length carries the map's scale error: the scale source's uncertainty once metric,
+        # else the drift accumulated over the map's keyframes (a random walk of scale_drift_per_keyframe).
+        if self._scale.established:
+            rel = self._scale.filter.rel_std
+        else:
+            rel = self.cfg.scale_drift_per_keyframe * math.sqrt(max(self._n_keyframes - self._map_kf0, 1))
+        return cov + np.pad(np.outer(step_w, step_w) * rel**2, (0, 3))
 
     # ---------------------------------------------------------------------------------------------
     def _maybe_keyframe(self, motion: mo.Motion, kf: Keyframe, rows: NDArray[np.int64], pts_cur: F32,
@@ -364,6 +399,7 @@ class VoPipeline:
         t = motion.t_cur_kf
         if motion.new_map is not None:
             self._map_origin_w = kf.T_w_kf[:3, 3].copy()
+            self._map_kf0 = self._n_keyframes
             self._scale.on_new_map()
         was_metric = self._scale.established
         step = sc.KeyframeStep(X_cur, float(np.linalg.norm(t)), kf.stamp_ns, stamp_ns)
@@ -375,6 +411,7 @@ class VoPipeline:
         if was_metric:
             self._T_w_c = kf.T_w_kf @ invert_T(make_T(motion.R_cur_kf, t))
         else:  # metric from now on: the whole map so far was in VO units
+            self._jumped = True
             self._window.clear()
             self._T_w_c = self._T_w_c.copy()
             self._T_w_c[:3, 3] = self._map_origin_w + factor * (self._T_w_c[:3, 3] - self._map_origin_w)
@@ -409,6 +446,8 @@ class VoPipeline:
         self._set_keyframe(gray, camera, stamp_ns, cov, np.zeros((0, 2), np.float32), np.zeros((0, 3)),
                            None)
         self._map_origin_w = self._T_w_c[:3, 3].copy()
+        self._map_kf0 = self._n_keyframes
+        self._last_pos_w = self._T_w_c[:3, 3].copy()
         st.timings["frontend"] = _ms(t0)
         self._cov_w_c = cov
         st.reasons.append("first frame: reference keyframe set" if first else "new reference keyframe, no map yet")
@@ -422,6 +461,8 @@ class VoPipeline:
         self._set_keyframe(gray, camera, stamp_ns, cov, np.zeros((0, 2), np.float32), np.zeros((0, 3)),
                            orb_cur)
         self._map_origin_w = self._T_w_c[:3, 3].copy()
+        self._map_kf0 = self._n_keyframes
+        self._last_pos_w = self._T_w_c[:3, 3].copy()
         self._fail_count = 0
 
     def _movers_among(self, kf: Keyframe, rows: NDArray[np.int64]) -> NDArray[np.bool_]:

@@ -33,7 +33,8 @@ class OdometryTrack(NamedTuple):
 
     ``positions`` (N, 3) and ``quats_xyzw`` (N, 4): pose of ``child_frame_id`` in ``frame_id``;
     ``pose_covariance`` (N, 6, 6) over (x, y, z, rot_x, rot_y, rot_z) in ``frame_id``;
-    ``twist_covariance`` (N, 6, 6) in ``child_frame_id``; ``stamps_ns`` (N,) header stamps.
+    ``twist_covariance`` (N, 6, 6) in ``child_frame_id``; ``stamps_ns`` (N,) header stamps;
+    ``linear_velocity`` / ``angular_velocity`` (N, 3) the twist in ``child_frame_id``.
     """
 
     stamps_ns: NDArray[np.int64]
@@ -43,6 +44,8 @@ class OdometryTrack(NamedTuple):
     twist_covariance: NDArray[np.float64]
     frame_id: str
     child_frame_id: str
+    linear_velocity: NDArray[np.float64] = np.zeros((0, 3))
+    angular_velocity: NDArray[np.float64] = np.zeros((0, 3))
 
 
 def read_odometry(path: str | Path, topic: str = VO_ODOMETRY_TOPIC) -> OdometryTrack:
@@ -61,6 +64,8 @@ def read_odometry(path: str | Path, topic: str = VO_ODOMETRY_TOPIC) -> OdometryT
     quat: list[list[float]] = []
     pcov: list[NDArray[np.float64]] = []
     tcov: list[NDArray[np.float64]] = []
+    lin: list[list[float]] = []
+    ang: list[list[float]] = []
     frame_id = child = ""
     try:
         with AnyReader([p], default_typestore=_TYPESTORE) as reader:
@@ -82,6 +87,9 @@ def read_odometry(path: str | Path, topic: str = VO_ODOMETRY_TOPIC) -> OdometryT
                 quat.append([float(q.x), float(q.y), float(q.z), float(q.w)])
                 pcov.append(np.asarray(m.pose.covariance, dtype=np.float64).reshape(6, 6))
                 tcov.append(np.asarray(m.twist.covariance, dtype=np.float64).reshape(6, 6))
+                v, w = m.twist.twist.linear, m.twist.twist.angular
+                lin.append([float(v.x), float(v.y), float(v.z)])
+                ang.append([float(w.x), float(w.y), float(w.z)])
     except BagError:
         raise
     except _ERRORS as exc:
@@ -90,4 +98,5 @@ def read_odometry(path: str | Path, topic: str = VO_ODOMETRY_TOPIC) -> OdometryT
     n = len(stamps)
     return OdometryTrack(np.asarray(stamps, dtype=np.int64).reshape(n), np.asarray(pos, np.float64).reshape(n, 3),
                          np.asarray(quat, np.float64).reshape(n, 4), np.asarray(pcov, np.float64).reshape(n, 6, 6),
-                         np.asarray(tcov, np.float64).reshape(n, 6, 6), frame_id, child)
+                         np.asarray(tcov, np.float64).reshape(n, 6, 6), frame_id, child,
+                         np.asarray(lin, np.float64).reshape(n, 3), np.asarray(ang, np.float64).reshape(n, 3))

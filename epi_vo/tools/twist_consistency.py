@@ -1,0 +1,92 @@
+"""Twist covariance consistency: the published velocity against the ground truth's, per frame.
+
+robot_localization fuses a visual odometry's twist (differential mode); its covariance must say how far
+the velocity can be off. For each pair of consecutive odometry messages of tracking frames, the true
+body velocity is the ground truth's motion between the two stamps, expressed in the child (base)
+frame of the later one, over the time between them; the error against the published twist is
+normalised by the published twist covariance (NEES, 3 dof each for linear and angular velocity).
+
+Linear velocity in VO units is compared after the one global scale that fits best (least squares),
+metres as they are. The twist of a frame whose covariance says "unknown" (lost, the frame the scale
+jumped to metres, ...) is not evaluated.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from epi_vo.core.transforms import invert_T
+from epi_vo.io.odometry_bag import OdometryTrack
+from epi_vo.tools.evaluation import CHI2_3DOF_99, poses_from_xyz_quat, rotation_vectors
+
+UNKNOWN_VARIANCE = 1.0e6  # a twist variance at or above this says "unknown": not evaluated
+
+
+@dataclass(frozen=True)
+class TwistNees:
+    """Per evaluated frame the linear and angular twist NEES (3 dof each), and the fitted scale."""
+
+    nees_linear: NDArray[np.float64]
+    nees_angular: NDArray[np.float64]
+    scale: float
+    bound: float = CHI2_3DOF_99
+
+    @property
+    def mean_linear(self) -> float:
+        return float(np.mean(self.nees_linear)) if self.nees_linear.size else float("nan")
+
+    @property
+    def mean_angular(self) -> float:
+        return float(np.mean(self.nees_angular)) if self.nees_angular.size else float("nan")
+
+    @property
+    def inside_linear_percent(self) -> float:
+        return 100.0 * float(np.mean(self.nees_linear <= self.bound)) if self.nees_linear.size else float("nan")
+
+    @property
+    def inside_angular_percent(self) -> float:
+        return 100.0 * float(np.mean(self.nees_angular <= self.bound)) if self.nees_angular.size else float("nan")
+
+
+def twist_consistency(odometry: OdometryTrack, T_g_base_gt: NDArray[np.float64], evaluate: NDArray[np.bool_],
+                      *, metric: bool) -> TwistNees:
+    """Twist NEES of ``odometry`` against ground-truth base poses ``T_g_base_gt`` (N, 4, 4), one per
+    odometry message (same order); ``evaluate`` (N,) the messages to judge (tracking, with ground
+    truth). A message is judged with the one before it; ``metric``: no scale is fitted."""
+    n = odometry.stamps_ns.shape[0]
+    rows = [k for k in range(1, n) if evaluate[k] and evaluate[k - 1]
+            and odometry.twist_covariance[k][0, 0] < UNKNOWN_VARIANCE
+            and odometry.twist_covariance[k][3, 3] < UNKNOWN_VARIANCE
+            and odometry.stamps_ns[k] > odometry.stamps_ns[k - 1]]
+    if not rows:
+        return TwistNees(np.zeros(0), np.zeros(0), 1.0)
+    idx = np.asarray(rows)
+    dt = (odometry.stamps_ns[idx] - odometry.stamps_ns[idx - 1]) * 1e-9
+    T_rel = np.einsum("kij,kjl->kil", np.stack([invert_T(T) for T in T_g_base_gt[idx - 1]]), T_g_base_gt[idx])
+    R_t = np.transpose(T_rel[:, :3, :3], (0, 2, 1))
+    v_gt = np.einsum("kij,kj->ki", R_t, T_rel[:, :3, 3]) / dt[:, None]
+    w_gt = np.einsum("kij,kj->ki", R_t, rotation_vectors(T_rel[:, :3, :3])) / dt[:, None]
+    v, w = odometry.linear_velocity[idx], odometry.angular_velocity[idx]
+    C = odometry.twist_covariance[idx]
+    s = 1.0
+    if not metric:
+        den = float(np.sum(v * v))
+        s = float(np.sum(v * v_gt)) / den if den > 0 else 1.0
+    e_v = s * v - v_gt
+    e_w = w - w_gt
+    nees_v = np.einsum("ki,ki->k", e_v, np.linalg.solve(C[:, :3, :3] * s * s, e_v[..., None])[..., 0])
+    nees_w = np.einsum("ki,ki->k", e_w, np.linalg.solve(C[:, 3:, 3:], e_w[..., None])[..., 0])
+    return TwistNees(nees_v, nees_w, s)
+
+
+def poses_at(gt_stamps_s: NDArray[np.float64], gt_pos: NDArray[np.float64], gt_quat: NDArray[np.float64],
+             stamps_ns: NDArray[np.int64], T_cam_base: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Ground-truth base poses (N, 4, 4) at the nearest ground-truth stamp of each of ``stamps_ns``."""
+    t = stamps_ns.astype(np.float64) * 1e-9
+    j = np.clip(np.searchsorted(gt_stamps_s, t), 1, max(gt_stamps_s.size - 1, 1))
+    j = np.where(np.abs(gt_stamps_s[j - 1] - t) <= np.abs(gt_stamps_s[np.minimum(j, gt_stamps_s.size - 1)] - t),
+                 j - 1, np.minimum(j, gt_stamps_s.size - 1))
+    return poses_from_xyz_quat(gt_pos[j], gt_quat[j]) @ T_cam_base

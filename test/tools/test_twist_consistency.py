@@ -1,0 +1,95 @@
+"""Twist covariance consistency (epi_vo.tools.twist_consistency): known answer and the bundled bags."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from epi_vo.core.odometry import default_T_base_cam
+from epi_vo.core.transforms import invert_T, make_T
+from epi_vo.io import tum
+from epi_vo.io.odometry_bag import OdometryTrack, read_odometry
+from epi_vo.io.params import load_config
+from epi_vo.tools.replay import run_replay
+from epi_vo.tools.twist_consistency import poses_at, twist_consistency
+
+BAGS = Path(__file__).resolve().parents[2] / "bags"
+
+
+def _rot_z(a: float) -> np.ndarray:
+    return np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+
+
+def _synthetic(cov: np.ndarray, scale: float, seed: int = 0, n: int = 2000) -> tuple[OdometryTrack, np.ndarray]:
+    """A base driving a curve at 10 Hz; published twist = true twist / scale + noise of ``cov``."""
+    rng = np.random.default_rng(seed)
+    dt = 0.1
+    T = [np.eye(4)]
+    v_true, w_true = np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 0.2])
+    for _ in range(n - 1):
+        T.append(T[-1] @ make_T(_rot_z(w_true[2] * dt), v_true * dt))
+    T_gt = np.stack(T)
+    noise = rng.multivariate_normal(np.zeros(6), cov, n)
+    v_child = _rot_z(-w_true[2] * dt) @ v_true  # the step's translation seen from the frame it ends in
+    lin = v_child / scale + noise[:, :3] / scale
+    ang = np.tile(w_true, (n, 1)) + noise[:, 3:]
+    twist_cov = np.tile(cov, (n, 1, 1))
+    twist_cov[:, :3, :3] /= scale * scale
+    z = np.zeros((n, 3))
+    track = OdometryTrack((np.arange(n) * int(dt * 1e9)).astype(np.int64), z, np.tile([0.0, 0, 0, 1], (n, 1)),
+                          np.zeros((n, 6, 6)), twist_cov, "odom", "base_link", np.tile(lin, (1, 1)).reshape(n, 3),
+                          ang)
+    return track, T_gt
+
+
+def test_known_covariance_gives_nees_three() -> None:
+    A = np.diag([0.05, 0.02, 0.01, 0.002, 0.002, 0.01]) @ (np.eye(6) + 0.2 * np.random.default_rng(1).normal(
+        size=(6, 6)))
+    cov = A @ A.T
+    track, T_gt = _synthetic(cov, scale=4.0)
+    every = np.ones(T_gt.shape[0], bool)
+    vo = twist_consistency(track, T_gt, every, metric=False)
+    assert vo.scale == pytest.approx(4.0, rel=0.01)
+    assert vo.mean_linear == pytest.approx(3.0, abs=0.3) and vo.mean_angular == pytest.approx(3.0, abs=0.3)
+    assert vo.inside_linear_percent > 98.0 and vo.inside_angular_percent > 98.0
+    small = track._replace(twist_covariance=track.twist_covariance / 100.0)
+    assert twist_consistency(small, T_gt, every, metric=False).mean_linear == pytest.approx(300.0, rel=0.15)
+    # Metric: no scale is fitted, so a twist 4x too slow is far off whatever its covariance.
+    assert twist_consistency(track, T_gt, every, metric=True).mean_linear > 100.0
+
+
+def test_unknown_twists_and_unjudged_frames_are_not_evaluated() -> None:
+    track, T_gt = _synthetic(np.eye(6) * 1e-4, scale=1.0, n=50)
+    tcov = track.twist_covariance.copy()
+    tcov[10] = np.eye(6) * 1e9
+    every = np.ones(50, bool)
+    every[20] = False
+    r = twist_consistency(track._replace(twist_covariance=tcov), T_gt, every, metric=True)
+    assert r.nees_linear.size == 49 - 1 - 2  # frame 10 unknown; 20 and 21 need frame 20
+
+
+@pytest.mark.parametrize(("bag", "params", "max_mean"), [
+    ("general_motion", {"scale_source": "none"}, 6.0),
+    ("moving_mover", {"scale_source": "none"}, 6.0),
+    ("ground_robot", {"scale_source": "ground_plane", "camera_height_m": 0.45}, 8.0),
+])
+def test_bag_twist_covariance_matches_its_errors(bag: str, params: dict, max_mean: float, tmp_path: Path) -> None:
+    """The published twist covariance against the ground truth's velocity (it was 1e5-1e7 times too
+    small on the linear velocity between keyframes before the step covariance)."""
+    yaml = "/**:\n  ros__parameters:\n" + "".join(f"    {k}: {v}\n" for k, v in params.items())
+    (tmp_path / "p.yaml").write_text(yaml)
+    s = run_replay(BAGS / bag / "bag", tmp_path / "out", load_config(tmp_path / "p.yaml"))
+    out = tmp_path / "out"
+    odo = read_odometry(out / "output.mcap")
+    records = {int(r["stamp_ns"]): r for r in map(json.loads, (out / "frames.jsonl").read_text().splitlines())}
+    evaluate = np.array([records.get(int(t), {}).get("state") == "tracking" for t in odo.stamps_ns])
+    gt_s, gt_p, gt_q = (np.asarray(a) for a in tum.read_tum(out / "groundtruth.tum"))
+    T_gt = poses_at(gt_s, gt_p, gt_q, odo.stamps_ns, invert_T(default_T_base_cam()))
+    r = twist_consistency(odo, T_gt, evaluate, metric=s.units == "m")
+    assert r.nees_linear.size >= 0.8 * s.frames
+    assert 0.3 < r.mean_linear < max_mean, r.mean_linear
+    assert r.mean_angular < max_mean, r.mean_angular
+    assert r.inside_linear_percent >= 80.0 and r.inside_angular_percent >= 90.0
