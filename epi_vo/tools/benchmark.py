@@ -41,6 +41,7 @@ from epi_vo.io.params import load_config
 from epi_vo.tools.evaluation import NeesResult, evaluate_trajectory, replay_nees
 from epi_vo.tools.reference import ReferencePipeline
 from epi_vo.tools.replay import run_replay
+from epi_vo.tools.twist_consistency import TwistNees, replay_twist_nees
 
 
 @dataclass(frozen=True)
@@ -62,6 +63,8 @@ class BenchRow:
     nees_rot: float = math.nan  # the same for the rotation
     nees_rot_inside_percent: float = math.nan
     nees_frames: int = 0  # tracking frames evaluated
+    nees_twist_lin: float = math.nan  # mean NEES of the linear velocity against the twist covariance (3 dof)
+    nees_twist_ang: float = math.nan  # the same for the angular velocity
     e2e_fps: float = math.nan  # end-to-end frames/s of the replay (nan: not measured, reference rows)
 
 
@@ -122,6 +125,7 @@ def bench_epi_vo(name: str, bag: Path, gt_path: Path, cfg: VoConfig, label: str 
         summary = run_replay(bag, tmp, cfg)
         stamps, positions, quats = tum.read_tum(Path(tmp) / "trajectory.tum")
         nees = _nees(Path(tmp), gt)
+        twist = _twist_nees(Path(tmp), gt)
     row = _metrics_row(name, label, summary.frames, summary.frames_with_pose, summary.ms_per_frame,
                        stamps, positions, quats, gt)
     if summary.units != "m":  # VO units: the metric figures say nothing
@@ -132,7 +136,19 @@ def bench_epi_vo(name: str, bag: Path, gt_path: Path, cfg: VoConfig, label: str 
         row = dataclasses.replace(row, nees_pos=nees.mean_nees_pos, nees_pos_inside_percent=nees.inside_pos_percent,
                                   nees_rot=nees.mean_nees_rot, nees_rot_inside_percent=nees.inside_rot_percent,
                                   nees_frames=nees.evaluated)
+    if twist is not None:
+        row = dataclasses.replace(row, nees_twist_lin=twist.mean_linear, nees_twist_ang=twist.mean_angular)
     return row
+
+
+def _twist_nees(out: Path, gt: tuple[np.ndarray, np.ndarray, np.ndarray]) -> TwistNees | None:
+    """Twist covariance consistency of the replay in ``out``; None when it cannot be evaluated."""
+    try:
+        records = [json.loads(line) for line in (out / "frames.jsonl").read_text(encoding="utf-8").splitlines()
+                   if line.strip()]
+        return replay_twist_nees(records, read_odometry(out / "output.mcap"), gt)
+    except (EpiVoError, OSError, ValueError, np.linalg.LinAlgError):
+        return None
 
 
 def _nees(out: Path, gt: tuple[np.ndarray, np.ndarray, np.ndarray]) -> NeesResult | None:
@@ -179,7 +195,7 @@ def bench_reference(name: str, bag_path: Path, gt_path: Path) -> BenchRow:
 def format_table(rows: list[BenchRow]) -> str:
     head = (f"{'bag':<16} {'pipeline':<22} {'frames':>6} {'tracked%':>8} {'ATE%path':>9} {'RPErot°/f':>10} "
             f"{'tdir°':>7} {'ms/frame':>9} {'moving':>7} {'scale':>6} {'SE3ATE%':>8} {'NEES pos':>9} "
-            f"{'in 3σ pos %':>11} {'NEES rot':>9} {'in 3σ rot %':>11} {'e2e fps':>8}")
+            f"{'in 3σ pos %':>11} {'NEES rot':>9} {'in 3σ rot %':>11} {'NEES v':>8} {'NEES w':>8} {'e2e fps':>8}")
     lines = [head, "-" * len(head)]
 
     def f(x: float, nd: int = 3) -> str:
@@ -190,7 +206,8 @@ def format_table(rows: list[BenchRow]) -> str:
                      f"{f(r.rpe_rot_deg, 4):>10} {f(r.trans_dir_deg, 2):>7} {r.ms_per_frame:>9.2f} "
                      f"{r.moving_frames:>7} {f(r.step_scale):>6} {f(r.ate_se3_percent, 2):>8} "
                      f"{f(r.nees_pos, 3):>9} {f(r.nees_pos_inside_percent, 1):>11} {f(r.nees_rot, 3):>9} "
-                     f"{f(r.nees_rot_inside_percent, 1):>11} {f(r.e2e_fps, 1):>8}")
+                     f"{f(r.nees_rot_inside_percent, 1):>11} {f(r.nees_twist_lin, 2):>8} {f(r.nees_twist_ang, 2):>8} "
+                     f"{f(r.e2e_fps, 1):>8}")
     return "\n".join(lines)
 
 
@@ -229,8 +246,9 @@ def run_benchmark(bags_dir: str | None, kitti_dir: str | None, params: str | Non
           "(no scale), % of path.\nNEES pos / rot = mean normalised estimation error squared of the tracking "
           "frames against the published /vo/odometry covariance (3 dof, consistent: 3), after the global scale "
           "(Sim(3) anchored at the odometry origin; SE(3) when metric); in 3σ % = share within the chi-square "
-          "3-dof 99 % bound 11.345 (n/a: no tracking frame, e.g. a static or rotating camera); e2e fps = "
-          "end-to-end replay frames/s.")
+          "3-dof 99 % bound 11.345 (n/a: no tracking frame, e.g. a static or rotating camera); NEES v / w = "
+          "the same for the published twist (linear / angular velocity) against the ground truth's velocity; "
+          "e2e fps = end-to-end replay frames/s.")
     if out is not None:
         try:
             table = [{k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in r.__dict__.items()}

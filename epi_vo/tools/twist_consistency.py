@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from epi_vo.core.odometry import default_T_base_cam
 from epi_vo.core.transforms import invert_T
 from epi_vo.io.odometry_bag import OdometryTrack
 from epi_vo.tools.evaluation import CHI2_3DOF_99, poses_from_xyz_quat, rotation_vectors
@@ -90,3 +91,17 @@ def poses_at(gt_stamps_s: NDArray[np.float64], gt_pos: NDArray[np.float64], gt_q
     j = np.where(np.abs(gt_stamps_s[j - 1] - t) <= np.abs(gt_stamps_s[np.minimum(j, gt_stamps_s.size - 1)] - t),
                  j - 1, np.minimum(j, gt_stamps_s.size - 1))
     return poses_from_xyz_quat(gt_pos[j], gt_quat[j]) @ T_cam_base
+
+
+def replay_twist_nees(records: list[dict], odometry: OdometryTrack,
+                      gt: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]) -> TwistNees:
+    """:func:`twist_consistency` of a replay: its frame records, its /vo/odometry and the ground-truth
+    camera poses (TUM). Tracking frames are judged; metres when the run established them."""
+    by_stamp = {int(r.get("stamp_ns", -1)): r for r in records}
+    evaluate = np.array([by_stamp.get(int(t), {}).get("state") == "tracking" for t in odometry.stamps_ns], bool)
+    metric = any(bool(r.get("metric_scale")) for r in records if r.get("state") == "tracking")
+    if metric:  # frames before metric scale was established are in VO units
+        evaluate &= np.array([bool(by_stamp.get(int(t), {}).get("metric_scale")) for t in odometry.stamps_ns], bool)
+    gt_s, gt_p, gt_q = (np.asarray(a, dtype=np.float64) for a in gt)
+    T_gt = poses_at(gt_s, gt_p, gt_q, odometry.stamps_ns, invert_T(default_T_base_cam()))
+    return twist_consistency(odometry, T_gt, evaluate, metric=metric)
