@@ -26,6 +26,8 @@ module level, so the environment is set before rclpy is loaded.
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -129,3 +131,46 @@ def wait_until(predicate: Callable[[], bool], timeout_s: float, step_s: float = 
             return False
         time.sleep(step_s)
     return True
+
+
+class NodeProcess:
+    """A node (``vo_node``, or another ``module``) as a child process with ``--ros-args``; stopped (SIGINT,
+    then kill) when the block ends; ``stderr`` and ``proc.returncode`` after."""
+
+    def __init__(self, env: dict[str, str], *ros_args: str, module: str = "epi_vo.ros.node") -> None:
+        self.proc = subprocess.Popen([sys.executable, "-m", module, "--ros-args", *ros_args], env=env,
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self.stderr = ""
+
+    def __enter__(self) -> NodeProcess:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(2)
+            try:
+                self.proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+        self.stderr = self.proc.communicate()[1]
+
+
+def odom_pose(msg: Any) -> Any:
+    """x y z qx qy qz qw of a nav_msgs/Odometry message's pose."""
+    import numpy as np
+
+    p, q = msg.pose.pose.position, msg.pose.pose.orientation
+    return np.array([p.x, p.y, p.z, q.x, q.y, q.z, q.w])
+
+
+def replay_odometry(bag: Any, out: Any) -> dict[int, Any]:
+    """The offline replay's /vo/odometry poses (x y z qx qy qz qw) by header stamp (ns)."""
+    import numpy as np
+
+    from epi_vo.io.odometry_bag import read_odometry
+    from epi_vo.tools.replay import run_replay
+
+    run_replay(bag, out)
+    odo = read_odometry(out / "output.mcap")
+    return {int(t): np.concatenate([p, q]) for t, p, q in zip(odo.stamps_ns, odo.positions, odo.quats_xyzw,
+                                                             strict=True)}

@@ -60,6 +60,7 @@ from epi_vo.core.frame import (
 )
 from epi_vo.core.keyframe import Keyframe, make_keyframe
 from epi_vo.core.mapping import keyframe_map
+from epi_vo.core.odometry import rotate_covariance
 from epi_vo.core.selection import select_model
 from epi_vo.core.transforms import invert_T, make_T, rotation_angle_deg
 from epi_vo.core.window import WindowedMap
@@ -329,10 +330,7 @@ class VoPipeline:
         measured against the same keyframe with their own image noise, so the keyframe's uncertainty
         cancels and their relative ones add; against a new keyframe (the previous frame) only this
         frame's counts."""
-        A = np.zeros((6, 6))
-        A[:3, :3] = kf.T_w_kf[:3, :3]
-        A[3:, 3:] = kf.T_w_kf[:3, :3]
-        cov = A @ cov_rel @ A.T
+        cov = rotate_covariance(cov_rel, kf.T_w_kf[:3, :3])
         prev = self._rel_prev
         self._rel_prev = (kf.stamp_ns, cov)
         if prev is not None and prev[0] == kf.stamp_ns:

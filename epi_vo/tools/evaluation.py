@@ -516,6 +516,14 @@ def _nees_alignment(T_est: NDArray[np.float64], T_gt: NDArray[np.float64], mask:
     return float(s), np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64)
 
 
+def nearest_rows(sorted_stamps: NDArray[np.float64], stamps: NDArray[np.float64]) -> NDArray[np.int64]:
+    """For each of ``stamps`` the row of the nearest of ``sorted_stamps`` (ascending, not empty)."""
+    last = sorted_stamps.size - 1
+    j = np.clip(np.searchsorted(sorted_stamps, stamps), 1, max(last, 1))
+    return np.where(np.abs(sorted_stamps[j - 1] - stamps) <= np.abs(sorted_stamps[np.minimum(j, last)] - stamps),
+                    j - 1, np.minimum(j, last)).astype(np.int64)
+
+
 def poses_from_xyz_quat(positions: NDArray[np.float64], quats_xyzw: NDArray[np.float64]) -> NDArray[np.float64]:
     """(N, 3) positions and (N, 4) x, y, z, w quaternions -> (N, 4, 4) homogeneous poses."""
     n = positions.shape[0]
@@ -562,11 +570,8 @@ def replay_nees(
         msg = "no ground-truth poses"
         raise EvaluationError(msg)
     row_of_stamp = {int(s): i for i, s in enumerate(odometry.stamps_ns)}
-    # Ground truth nearest to each odometry stamp.
     odo_s = odometry.stamps_ns.astype(np.float64) * 1e-9
-    j = np.clip(np.searchsorted(gt_stamps, odo_s), 1, max(gt_stamps.size - 1, 1))
-    j = np.where(np.abs(gt_stamps[j - 1] - odo_s) <= np.abs(gt_stamps[np.minimum(j, gt_stamps.size - 1)] - odo_s),
-                 j - 1, np.minimum(j, gt_stamps.size - 1))
+    j = nearest_rows(gt_stamps, odo_s)
     has_gt = np.abs(gt_stamps[j] - odo_s) <= max_time_diff
     if not has_gt.any():
         msg = f"no odometry message has a ground-truth pose within {max_time_diff} s"

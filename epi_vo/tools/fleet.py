@@ -31,9 +31,8 @@ import multiprocessing
 import os
 import queue
 import signal
-import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -52,7 +51,7 @@ from epi_vo.tools.fleet_summary import (
     write_json_atomic,
     write_summary,
 )
-from epi_vo.tools.replay import ReplaySummary, run_replay
+from epi_vo.tools.replay import ReplaySummary, StopRequest, run_replay, stop_on_signals
 
 _log = logging.getLogger(__name__)
 
@@ -355,7 +354,7 @@ def run_fleet(bags: Sequence[Path], output_dir: str | Path, cfg: VoConfig, *, jo
     rows: dict[int, BagRow] = {}
     attempts = dict.fromkeys(range(len(todo)), 0)
     workers = max(1, min(jobs or os.cpu_count() or 1, len(todo)))
-    with _stop_on_signals() as stop, _Bars(progress, len(todo)) as bars:
+    with stop_on_signals() as stop, _Bars(progress, len(todo)) as bars:
         while todo and not stop.requested:
             broken = _run_pool(todo, workers, stop, bars, rows, on_row)
             todo = []
@@ -390,7 +389,7 @@ def _context() -> multiprocessing.context.BaseContext:
     return ctx
 
 
-def _run_pool(todo: Sequence[FleetJob], jobs: int, stop: _StopFlag, bars: _Bars, rows: dict[int, BagRow],
+def _run_pool(todo: Sequence[FleetJob], jobs: int, stop: StopRequest, bars: _Bars, rows: dict[int, BagRow],
               on_row: Callable[[BagRow], None] | None) -> list[FleetJob]:
     """Run ``todo`` in one pool; fills ``rows``; returns the jobs whose worker died (the pool broke)."""
     ctx = _context()
@@ -440,34 +439,6 @@ def _drain(events: Any, bars: _Bars) -> None:
         except (queue.Empty, OSError, ValueError):
             return
         bars.event(event)
-
-
-class _StopFlag:
-    requested = False
-    signum = signal.SIGINT
-
-
-@contextlib.contextmanager
-def _stop_on_signals() -> Iterator[_StopFlag]:
-    """SIGINT / SIGTERM / SIGHUP in the parent ask the fleet to stop (see the module doc); outside the main
-    thread nothing is installed."""
-    stop = _StopFlag()
-    if threading.current_thread() is not threading.main_thread():
-        yield stop
-        return
-
-    def request(signum: int, frame: object) -> None:
-        if not stop.requested:
-            stop.signum = signum
-        stop.requested = True
-
-    signals = [signal.SIGINT, signal.SIGTERM, *([signal.SIGHUP] if hasattr(signal, "SIGHUP") else [])]
-    saved = {sig: signal.signal(sig, request) for sig in signals}
-    try:
-        yield stop
-    finally:
-        for sig, handler in saved.items():
-            signal.signal(sig, handler)
 
 
 class _Bars:

@@ -170,7 +170,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     units = "vo"
 
     try:
-        with _interrupts_at_frame_boundaries() as stop, \
+        with stop_on_signals() as stop, \
                 bagio.open_camera_bag(bag_path, image_topic, camera_info_topic,
                                       wheel_topic=_wheel_topic(cfg)) as bag, \
                 _open_output(out / "frames.jsonl") as frames_f, _open_output(out / "trajectory.tum") as tum_f, \
@@ -406,13 +406,15 @@ def _no_camera_info(bag: bagio.CameraBag) -> str:
     return f"no camera_info on {bag.camera_info_topic}"
 
 
-class _StopRequest:
+class StopRequest:
+    """Set by :func:`stop_on_signals` when a stop was asked for, with the signal."""
+
     requested = False
     signum = signal.SIGINT
 
 
 @contextlib.contextmanager
-def _interrupts_at_frame_boundaries() -> Iterator[_StopRequest]:
+def stop_on_signals() -> Iterator[StopRequest]:
     """SIGINT / SIGTERM / SIGHUP during a replay stop it between frames, never between a frame's writes.
 
     Each frame writes a record, a trajectory line and several bag messages; an interrupt raised in the
@@ -422,7 +424,7 @@ def _interrupts_at_frame_boundaries() -> Iterator[_StopRequest]:
     every output is finalised on the way out. Outside the main thread (where signals cannot be
     handled) nothing changes.
     """
-    stop = _StopRequest()
+    stop = StopRequest()
     if threading.current_thread() is not threading.main_thread():
         yield stop
         return
@@ -432,9 +434,7 @@ def _interrupts_at_frame_boundaries() -> Iterator[_StopRequest]:
             stop.signum = signum
         stop.requested = True
 
-    signals = [signal.SIGINT, signal.SIGTERM]
-    if hasattr(signal, "SIGHUP"):
-        signals.append(signal.SIGHUP)
+    signals = [signal.SIGINT, signal.SIGTERM, *([signal.SIGHUP] if hasattr(signal, "SIGHUP") else [])]
     saved = {sig: signal.signal(sig, request) for sig in signals}
     try:
         yield stop

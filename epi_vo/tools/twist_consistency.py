@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from epi_vo.core.odometry import default_T_base_cam
 from epi_vo.core.transforms import invert_T
 from epi_vo.io.odometry_bag import OdometryTrack
-from epi_vo.tools.evaluation import CHI2_3DOF_99, poses_from_xyz_quat, rotation_vectors
+from epi_vo.tools.evaluation import CHI2_3DOF_99, nearest_rows, poses_from_xyz_quat, rotation_vectors
 
 UNKNOWN_VARIANCE = 1.0e6  # a twist variance at or above this says "unknown": not evaluated
 
@@ -86,10 +86,7 @@ def twist_consistency(odometry: OdometryTrack, T_g_base_gt: NDArray[np.float64],
 def poses_at(gt_stamps_s: NDArray[np.float64], gt_pos: NDArray[np.float64], gt_quat: NDArray[np.float64],
              stamps_ns: NDArray[np.int64], T_cam_base: NDArray[np.float64]) -> NDArray[np.float64]:
     """Ground-truth base poses (N, 4, 4) at the nearest ground-truth stamp of each of ``stamps_ns``."""
-    t = stamps_ns.astype(np.float64) * 1e-9
-    j = np.clip(np.searchsorted(gt_stamps_s, t), 1, max(gt_stamps_s.size - 1, 1))
-    j = np.where(np.abs(gt_stamps_s[j - 1] - t) <= np.abs(gt_stamps_s[np.minimum(j, gt_stamps_s.size - 1)] - t),
-                 j - 1, np.minimum(j, gt_stamps_s.size - 1))
+    j = nearest_rows(gt_stamps_s, stamps_ns.astype(np.float64) * 1e-9)
     return poses_from_xyz_quat(gt_pos[j], gt_quat[j]) @ T_cam_base
 
 

@@ -19,9 +19,9 @@ from typing import Any
 
 import numpy as np
 import pytest
-from ros_fixtures import RosSession, rclpy_session, spin_until
+from ros_fixtures import NodeProcess, RosSession, odom_pose, rclpy_session, replay_odometry, spin_until
 
-from epi_vo.tools.replay import run_replay
+from epi_vo.io.msgconv import stamp_to_ns
 
 REPO = Path(__file__).resolve().parents[2]
 BAG = REPO / "bags" / "general_motion" / "bag"
@@ -37,26 +37,7 @@ def ros() -> Iterator[RosSession]:
         yield session
 
 
-class LifecycleProcess:
-    """``vo_lifecycle_node`` as a child process; stopped (SIGINT, then kill) when the block ends; ``stderr``
-    and ``returncode`` after."""
-
-    def __init__(self, env: dict[str, str], *ros_args: str) -> None:
-        self.proc = subprocess.Popen([sys.executable, "-m", "epi_vo.ros.lifecycle_node", "--ros-args", *ros_args],
-                                     env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        self.stderr = ""
-
-    def __enter__(self) -> LifecycleProcess:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(2)
-            try:
-                self.proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-        self.stderr = self.proc.communicate()[1]
+LIFECYCLE = "epi_vo.ros.lifecycle_node"
 
 
 class Probe:
@@ -196,41 +177,22 @@ def _frames(n: int, shift_s: int = 0) -> list[tuple[Any, Any]]:
     return out
 
 
-def _stamp_ns(stamp: Any) -> int:
-    return int(stamp.sec) * 10**9 + int(stamp.nanosec)
-
-
-def _odom_pose(msg: Any) -> np.ndarray:
-    p, q = msg.pose.pose.position, msg.pose.pose.orientation
-    return np.array([p.x, p.y, p.z, q.x, q.y, q.z, q.w])
-
-
 @pytest.fixture(scope="module")
 def offline(tmp_path_factory: pytest.TempPathFactory) -> dict[int, np.ndarray]:
     """Odometry of the offline replay of the same bag, by stamp."""
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
+    return replay_odometry(BAG, tmp_path_factory.mktemp("offline"))
 
-    out = tmp_path_factory.mktemp("offline")
-    run_replay(BAG, out)
-    poses = {}
-    with AnyReader([out / "output.mcap"], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
-        for con, _, raw in reader.messages():
-            if con.topic == "/vo/odometry":
-                m = reader.deserialize(raw, con.msgtype)
-                poses[_stamp_ns(m.header.stamp)] = _odom_pose(m)
-    return poses
 
 
 def _assert_equals_offline(odom: list[Any], offline: dict[int, np.ndarray], n: int) -> None:
     """The live odometry of one play of the bag is the offline replay's, frame by frame, from its origin."""
     assert len(odom) == n
-    assert [_stamp_ns(m.header.stamp) for m in odom] == sorted(offline)
+    assert [stamp_to_ns(m.header.stamp) for m in odom] == sorted(offline)
     for m in odom:
-        pose = _odom_pose(m)
+        pose = odom_pose(m)
         assert np.all(np.isfinite(pose))
-        np.testing.assert_allclose(pose, offline[_stamp_ns(m.header.stamp)], atol=1e-6)
-    assert np.linalg.norm(_odom_pose(odom[-1])[:3] - _odom_pose(odom[0])[:3]) > 1.0  # it moved
+        np.testing.assert_allclose(pose, offline[stamp_to_ns(m.header.stamp)], atol=1e-6)
+    assert np.linalg.norm(odom_pose(odom[-1])[:3] - odom_pose(odom[0])[:3]) > 1.0  # it moved
 
 
 def test_configure_activate_deactivate_cleanup_shutdown(ros: RosSession, offline: dict[int, np.ndarray]) -> None:
@@ -241,7 +203,7 @@ def test_configure_activate_deactivate_cleanup_shutdown(ros: RosSession, offline
     still = _frames(10)  # published by the probe while the node is inactive
     later = _frames(20, shift_s=100)  # after a deactivate / activate: the same scene 100 s later
     try:
-        with LifecycleProcess(ros.env, *PLAYBACK_ARGS) as node:
+        with NodeProcess(ros.env, *PLAYBACK_ARGS, module=LIFECYCLE) as node:
             # Unconfigured: the lifecycle services and a summary, no VO endpoints.
             assert probe.state() == "unconfigured", node.proc.stderr
             assert probe.spin_until(lambda: any(s["lifecycle_state"] == "unconfigured" for s in probe.summaries()))
@@ -280,7 +242,7 @@ def test_configure_activate_deactivate_cleanup_shutdown(ros: RosSession, offline
 
             # Activate again (no cleanup): tracking restarts from the last pose, odometry continuous.
             assert probe.change(Transition.TRANSITION_ACTIVATE)
-            last = _odom_pose(probe.odom[-1])
+            last = odom_pose(probe.odom[-1])
             probe.send(later)  # each once (the subscription matched long ago, reliable): one odometry each
             assert probe.spin_until(lambda: len(probe.odom) >= n + len(later)), len(probe.odom)
             assert probe.spin_until(lambda: len(probe.frame_statuses()) >= n + len(later))
@@ -288,10 +250,10 @@ def test_configure_activate_deactivate_cleanup_shutdown(ros: RosSession, offline
             assert len(resumed) == len(later)
             first_status = probe.frame_statuses()[n]
             assert "reactivated: tracking restarted from the last pose" in first_status.message
-            assert _stamp_ns(resumed[0].header.stamp) == _stamp_ns(later[0][0].header.stamp)
-            np.testing.assert_allclose(_odom_pose(resumed[0])[:3], last[:3], atol=1e-6)
+            assert stamp_to_ns(resumed[0].header.stamp) == stamp_to_ns(later[0][0].header.stamp)
+            np.testing.assert_allclose(odom_pose(resumed[0])[:3], last[:3], atol=1e-6)
             assert np.linalg.norm(last[:3]) > 1.0  # held at the last pose, far from the origin
-            assert all(np.all(np.isfinite(_odom_pose(m))) for m in resumed)
+            assert all(np.all(np.isfinite(odom_pose(m))) for m in resumed)
 
             # Cleanup: the session is gone; configure + activate starts a new map from the origin.
             assert probe.change(Transition.TRANSITION_DEACTIVATE)
@@ -335,7 +297,7 @@ def test_bad_parameter_fails_configure_with_the_reason_and_can_be_fixed(ros: Ros
     probe = Probe(ros, "probe_lifecycle_bad")
     reason = "frontend='sift' (choose one of klt, orb)"
     try:
-        with LifecycleProcess(ros.env, "-p", "frontend:=sift", "-p", "hardware_id:=front_cam") as node:
+        with NodeProcess(ros.env, "-p", "frontend:=sift", "-p", "hardware_id:=front_cam", module=LIFECYCLE) as node:
             assert not probe.change(Transition.TRANSITION_CONFIGURE), node.proc.stderr
             assert probe.state() == "unconfigured"
             assert probe.spin_until(lambda: any(reason in s["message"] for s in probe.summaries()))
@@ -373,7 +335,7 @@ def test_a_transition_the_state_has_not_is_refused_and_shutdown_from_unconfigure
 
     probe = Probe(ros, "probe_lifecycle_shutdown")
     try:
-        with LifecycleProcess(ros.env) as node:
+        with NodeProcess(ros.env, module=LIFECYCLE) as node:
             assert probe.state() == "unconfigured", node.proc.stderr
             # rclpy's own service would raise (and the node die): the node answers success false instead.
             assert not probe.change(Transition.TRANSITION_ACTIVATE)

@@ -14,9 +14,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from ros_fixtures import RosSession, rclpy_session, spin_until
-
-from epi_vo.tools.replay import run_replay
+from ros_fixtures import NodeProcess, RosSession, odom_pose, rclpy_session, replay_odometry, spin_until
 
 REPO = Path(__file__).resolve().parents[2]
 BAG = REPO / "bags" / "general_motion" / "bag"
@@ -31,26 +29,6 @@ WAIT_S = 120.0
 def ros() -> Iterator[RosSession]:
     with rclpy_session() as session:
         yield session
-
-
-class NodeProcess:
-    """``vo_node`` as a child process; stopped (SIGINT, then kill) when the block ends."""
-
-    def __init__(self, env: dict[str, str], *ros_args: str) -> None:
-        self.proc = subprocess.Popen([sys.executable, "-m", "epi_vo.ros.node", "--ros-args", *ros_args], env=env,
-                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-
-    def __enter__(self) -> NodeProcess:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(2)
-            try:
-                self.proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
 
 
 class Probe:
@@ -105,26 +83,11 @@ def _bag_frames() -> int:
         return bag.frame_count
 
 
-def _odom_pose(msg: Any) -> np.ndarray:
-    p, q = msg.pose.pose.position, msg.pose.pose.orientation
-    return np.array([p.x, p.y, p.z, q.x, q.y, q.z, q.w])
-
-
 @pytest.fixture(scope="module")
 def offline(tmp_path_factory: pytest.TempPathFactory) -> dict[int, np.ndarray]:
     """Odometry of the offline replay of the same bag, by stamp."""
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
+    return replay_odometry(BAG, tmp_path_factory.mktemp("offline"))
 
-    out = tmp_path_factory.mktemp("offline")
-    run_replay(BAG, out)
-    poses = {}
-    with AnyReader([out / "output.mcap"], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
-        for con, _, raw in reader.messages():
-            if con.topic == "/vo/odometry":
-                m = reader.deserialize(raw, con.msgtype)
-                poses[m.header.stamp.sec * 10**9 + m.header.stamp.nanosec] = _odom_pose(m)
-    return poses
 
 
 def test_live_playback_equals_offline_replay(ros: RosSession, offline: dict[int, np.ndarray]) -> None:
@@ -142,7 +105,7 @@ def test_live_playback_equals_offline_replay(ros: RosSession, offline: dict[int,
         assert len(probe.frame_statuses()) == n
         for msg in probe.odom:
             stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
-            np.testing.assert_allclose(_odom_pose(msg), offline[stamp], atol=1e-6)
+            np.testing.assert_allclose(odom_pose(msg), offline[stamp], atol=1e-6)
             assert msg.header.frame_id == "odom" and msg.child_frame_id == "base_link"
             cov = np.asarray(msg.pose.covariance).reshape(6, 6)
             assert np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0)
@@ -152,7 +115,7 @@ def test_live_playback_equals_offline_replay(ros: RosSession, offline: dict[int,
         _assert_points_in_front(probe)
         # The path (published at keyframes and at least once a second) holds the odometry poses so far.
         assert probe.paths and len(probe.paths[-1].poses) >= 10
-        by_stamp = {(m.header.stamp.sec, m.header.stamp.nanosec): _odom_pose(m) for m in probe.odom}
+        by_stamp = {(m.header.stamp.sec, m.header.stamp.nanosec): odom_pose(m) for m in probe.odom}
         for ps in probe.paths[-1].poses:
             p, q = ps.pose.position, ps.pose.orientation
             np.testing.assert_allclose([p.x, p.y, p.z, q.x, q.y, q.z, q.w],
@@ -172,7 +135,7 @@ def _assert_points_in_front(probe: Probe) -> None:
     for cloud in probe.points:
         pts = read_points_xyz(cloud).astype(np.float64)
         assert pts.shape[0] > 0 and np.all(np.isfinite(pts))
-        pose = _odom_pose(odom_by_stamp[(cloud.header.stamp.sec, cloud.header.stamp.nanosec)])
+        pose = odom_pose(odom_by_stamp[(cloud.header.stamp.sec, cloud.header.stamp.nanosec)])
         T_odom_base = make_T(rotation_from_quat_xyzw(pose[3:]), pose[:3])
         T_cam_odom = T_cam_base @ invert_T(T_odom_base)
         z = (pts @ T_cam_odom[:3, :3].T + T_cam_odom[:3, 3])[:, 2]
@@ -214,8 +177,8 @@ def test_reset_service_mid_stream_continues_from_last_pose(ros: RosSession) -> N
         assert len(reset_statuses) == 1
         i = reset_index()
         assert i is not None and i >= n // 2
-        before = _odom_pose(probe.odom[i - 1])[:3]  # the frame processed just before the reset
-        after = _odom_pose(probe.odom[i])[:3]
+        before = odom_pose(probe.odom[i - 1])[:3]  # the frame processed just before the reset
+        after = odom_pose(probe.odom[i])[:3]
         assert np.linalg.norm(after - before) < 0.5  # held at the last pose, not back at the origin
         assert np.linalg.norm(before) > 1.0
     finally:
@@ -328,8 +291,8 @@ def test_equal_and_backward_stamps_are_reported_and_odometry_stays_continuous(ro
         assert sum("duplicate image stamp" in m for m in messages) == 1
         assert sum("time jumped backwards by 4.9" in m for m in messages) == 1
         assert len(probe.odom) == len(sequence) - 1  # the duplicate is reported, not processed
-        jump = np.linalg.norm(_odom_pose(probe.odom[20])[:3] - _odom_pose(probe.odom[19])[:3])
-        assert np.linalg.norm(_odom_pose(probe.odom[19])[:3]) > 0.3
+        jump = np.linalg.norm(odom_pose(probe.odom[20])[:3] - odom_pose(probe.odom[19])[:3])
+        assert np.linalg.norm(odom_pose(probe.odom[19])[:3]) > 0.3
         assert jump < 0.05  # tracking restarted at the held pose: odometry continuous
     finally:
         probe.close()
@@ -483,7 +446,7 @@ def test_bad_frames_and_a_stalled_camera_keep_the_node_up(ros: RosSession) -> No
         assert any("does not match camera_info size 320x240" in m for m in messages)
         assert any("K is not finite" in m for m in messages)
         for m in probe.odom:
-            pose = _odom_pose(m)
+            pose = odom_pose(m)
             assert np.all(np.isfinite(pose)) and abs(np.linalg.norm(pose[3:]) - 1.0) < 1e-6
             assert np.all(np.isfinite(np.asarray(m.pose.covariance)))
         assert n_before == len(good) + len(bad)
@@ -583,7 +546,7 @@ def test_raw_image_inputs_good_and_bad(ros: RosSession) -> None:
             else:
                 assert "rejected" not in status.message, status.message
         for m in probe.odom:
-            pose = _odom_pose(m)
+            pose = odom_pose(m)
             assert np.all(np.isfinite(pose)) and abs(np.linalg.norm(pose[3:]) - 1.0) < 1e-6
         assert statuses[12].message.startswith("tracking")  # big-endian mono16 tracked like mono8
     finally:

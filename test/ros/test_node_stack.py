@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from ros_fixtures import RosSession, rclpy_session, spin_until
+from ros_fixtures import NodeProcess, RosSession, rclpy_session, spin_until
 
 REPO = Path(__file__).resolve().parents[2]
 BAG = REPO / "bags" / "general_motion" / "bag"
@@ -308,27 +308,6 @@ def test_node_falls_back_to_the_parameters_when_tf_never_comes(ros: RosSession) 
 
 
 # -- subprocess nodes -------------------------------------------------------------------------------------------
-class NodeProcess:
-    """``vo_node`` as a child process; stopped (SIGINT, then kill) when the block ends; ``stderr`` after."""
-
-    def __init__(self, env: dict[str, str], *ros_args: str) -> None:
-        self.proc = subprocess.Popen([sys.executable, "-m", "epi_vo.ros.node", "--ros-args", *ros_args], env=env,
-                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        self.stderr = ""
-
-    def __enter__(self) -> NodeProcess:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(2)
-            try:
-                self.proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-        self.stderr = self.proc.communicate()[1]
-
-
 def test_auto_transport_namespace_extrinsic_fallback_and_warnings(ros: RosSession) -> None:
     """Defaults in a namespace: the status names the topics it waits on; compressed images are picked up
     (and said); statuses are named by the fully qualified node name with the camera frame as hardware id;
