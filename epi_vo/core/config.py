@@ -85,6 +85,9 @@ class VoConfig:
     kf_min_parallax_deg: float = _knob(1.0, "median parallax that makes a new keyframe (deg)", 0.01, 45.0)
     e_pose_min_parallax_deg: float = _knob(
         0.5, "above this median parallax the pose comes from E (scaled by the map), below from the map", 0.0, 45.0)
+    plane_e_min_parallax_deg: float = _knob(
+        1.0, "with a map and H chosen (a plane dominates), above this median parallax the pose still comes from E, "
+        "checked against the map; below, from the map points (deg)", 0.0, 45.0)
     e_map_max_rotation_diff_deg: float = _knob(
         0.3, "E's rotation further than this from the map points' pose: a mover took E's consensus, the map decides "
         "(deg)", 0.01, 45.0)

@@ -68,6 +68,7 @@ E_MAP_MAX_DIRECTION_DIFF_DEG = 20.0  # E's direction of travel this far from the
 E_MAP_AGREE_PX = 1.0  # map points this close to where E's pose puts them ...
 E_MAP_AGREE_FRACTION = 0.8  # ... this share of them: E agrees with the map, no check of its own needed
 MIN_OFF_PLANE_FOR_E_HINT = 5  # E inliers off H's plane needed before E may pick among H's decompositions
+MOVER_SUSPECT = "a moving object took its consensus?"  # why E and the map disagree, as the reason says
 STATIC_KEEP = 0.6  # a static camera stays static down to this share of static_min_fraction
 
 
@@ -143,8 +144,8 @@ class MotionStage:
         rot_cov = covm.rotation_var(cfg.score_sigma_px, K.K[0, 0], max(st.n_inliers, 1))
         return Motion(TrackingState.STATIC, np.eye(3), np.zeros(3), covm.block(1e-6, rot_cov), still)
 
-    def _from_essential(self, ctx: MotionContext, E: F64, in_e: NDArray[np.bool_], st: FrameStats
-                        ) -> Motion | None:
+    def _from_essential(self, ctx: MotionContext, E: F64, in_e: NDArray[np.bool_], st: FrameStats,
+                        suspect: str = MOVER_SUSPECT) -> Motion | None:
         cfg = self.cfg
         kf = ctx.kf
         uv_kf, xn_kf, xn_cur = kf.uv[ctx.rows], kf.xn[ctx.rows], ctx.xn_cur
@@ -158,7 +159,7 @@ class MotionStage:
         rot_cov = covm.rotation_var(cfg.score_sigma_px, K[0, 0], st.n_inliers)
         if not self.has_map(kf):
             return self._initialize(ctx, R, t_dir, inl, st, "essential matrix")
-        return self._track_with_map(ctx, R, t_dir, inl, st, rot_cov)
+        return self._track_with_map(ctx, R, t_dir, inl, st, rot_cov, suspect)
 
     def _from_homography(self, ctx: MotionContext, sel: ModelSelection, st: FrameStats) -> Motion | None:
         assert sel.H is not None and sel.inliers_h is not None
@@ -208,6 +209,16 @@ class MotionStage:
                 return Motion(TrackingState.INITIALIZING, R_p, zero, covm.block(1e-6, rot_cov), in_h)
             norm = float(np.linalg.norm(t_p))
             return self._initialize(ctx, R_p, t_p / norm, in_h, st, "homography (planar scene)")
+        if sel.E is not None and sel.inliers_e is not None and st.median_parallax_deg >= cfg.plane_e_min_parallax_deg:
+            # RH is ORB-SLAM's test for the uncalibrated 8-point F, which a plane makes degenerate. The
+            # calibrated 5-point E is not degenerate on a plane (only two-fold ambiguous), and with a map
+            # the ambiguity is settled: E's pose is checked against the map's points, which overrule it.
+            # On a floor-dominated view, chained map-point poses drift in yaw (3.2 deg over the
+            # ground-robot bag, against 1.0 from E).
+            st.model = Model.ESSENTIAL
+            st.reasons.append(f"plane-dominated view (RH {st.rh:.2f}) with parallax: E's pose, checked against "
+                              "the map")
+            return self._from_essential(ctx, sel.E, sel.inliers_e, st, suspect="E took the plane's other solution?")
         st.reasons.append(f"planar or low-parallax view (RH {st.rh:.2f}): pose from map points")
         return self._track_with_map(ctx, R_h, None, in_h, st, rot_cov)
 
@@ -255,7 +266,7 @@ class MotionStage:
         return Motion(TrackingState.TRACKING, R, t, covm.block(trans_var, rot_cov), inl, new_map=full)
 
     def _track_with_map(self, ctx: MotionContext, R: F64, t_dir: F64 | None, inl: NDArray[np.bool_],
-                        st: FrameStats, rot_cov: float) -> Motion | None:
+                        st: FrameStats, rot_cov: float, suspect: str = MOVER_SUSPECT) -> Motion | None:
         """Pose with the map's scale.
 
         E chosen with enough parallax: E's rotation and direction, scaled by the map points (robust 1-D
@@ -284,7 +295,7 @@ class MotionStage:
             dir_var = (cfg.score_sigma_px / (K[0, 0] * par_rad)) ** 2 / n
             scale_var = est.rel_spread**2 / max(est.n_used, 1)
             trans_var = est.scale**2 * (dir_var + scale_var)
-            disagree = self._map_disagrees(ctx, X, R, t0, st)
+            disagree = self._map_disagrees(ctx, X, R, t0, st, suspect)
             if disagree is None:
                 return Motion(TrackingState.TRACKING, R, t0, self._essential_cov(ctx, R, t_dir, inl, X, has_depth, est,
                                                                                  covm.block(trans_var, rot_cov)), inl)
@@ -342,8 +353,8 @@ class MotionStage:
                                             (X[has_depth], ctx.xn_cur[has_depth]))
         return fallback if cov is None or not np.all(np.isfinite(cov)) else cov
 
-    def _map_disagrees(self, ctx: MotionContext, X: F64, R_e: F64, t_e: F64, st: FrameStats
-                       ) -> NDArray[np.bool_] | None:
+    def _map_disagrees(self, ctx: MotionContext, X: F64, R_e: F64, t_e: F64, st: FrameStats,
+                       suspect: str = MOVER_SUSPECT) -> NDArray[np.bool_] | None:
         """None when the map's points agree with E's rotation and direction of travel; else the map points
         that agree with the pose they give on their own (started from the previous frame's pose), and the
         reason is noted.
@@ -376,7 +387,7 @@ class MotionStage:
         if angle <= cfg.e_map_max_rotation_diff_deg and direction <= E_MAP_MAX_DIRECTION_DIFF_DEG:
             return None
         st.reasons.append(f"E disagrees with the map's points by {angle:.2f} deg in rotation, {direction:.0f} deg "
-                          "in direction (a moving object took its consensus?): pose from the map")
+                          f"in direction ({suspect}): pose from the map")
         agree = np.zeros(depth.shape[0], bool)
         agree[np.flatnonzero(depth)[refined[2]]] = True
         return agree
