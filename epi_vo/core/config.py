@@ -123,9 +123,13 @@ class VoConfig:
         "'wheel_odometry' (reads wheel_odometry_topic)", choices=SCALE_SOURCES)
     camera_height_m: float = _knob(0.0, "height of the camera's optical centre above the floor (m; ground_plane)",
                                    0.0, 100.0)
+    camera_height_rel_sigma: float = _knob(
+        0.02, "relative uncertainty (1 sigma) of camera_height_m: common to every floor measurement, so the metric "
+        "scale is never known better (ground_plane)", 0.0, 1.0)
     wheel_odometry_topic: str = _knob("/odom", "nav_msgs/Odometry topic of the wheel odometry (wheel_odometry)")
-    wheel_odometry_rel_sigma: float = _knob(0.03, "relative error (1 sigma) of a wheel distance between keyframes",
-                                            0.001, 1.0)
+    wheel_odometry_rel_sigma: float = _knob(
+        0.03, "relative error (1 sigma) of a wheel distance between keyframes; mostly calibration (tyre radius, "
+        "slip), common to every keyframe, so the metric scale is never known better", 0.001, 1.0)
     wheel_odometry_timeout_s: float = _knob(
         0.5, "wheel messages further than this from an image stamp are stale: the last scale is held (s)", 0.01,
         60.0)

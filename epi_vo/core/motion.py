@@ -262,8 +262,15 @@ class MotionStage:
             return hold
         full = tri.expanded(idx, xn_kf.shape[0])
         st.reasons.append(f"map initialized from {how}: {n_good} points")
-        trans_var = (0.1 * float(np.linalg.norm(t))) ** 2
-        return Motion(TrackingState.TRACKING, R, t, covm.block(trans_var, rot_cov), inl, new_map=full)
+        # The first baseline is the map's unit (VO units; a scale source rescales it and adds its own
+        # uncertainty): its direction and the rotation have E's covariance; its length is as well known
+        # as the scale carried from one keyframe to the next (scale_drift_per_keyframe).
+        baseline = float(np.linalg.norm(t))
+        cov = geo.essential_pose_covariance(R, t_dir, xn_kf[inl], xn_cur[inl], cfg.score_sigma_px / K[0, 0],
+                                            baseline, cfg.scale_drift_per_keyframe**2)
+        if cov is None or not np.all(np.isfinite(cov)):
+            cov = covm.block((0.1 * baseline) ** 2, rot_cov)
+        return Motion(TrackingState.TRACKING, R, t, cov, inl, new_map=full)
 
     def _track_with_map(self, ctx: MotionContext, R: F64, t_dir: F64 | None, inl: NDArray[np.bool_],
                         st: FrameStats, rot_cov: float, suspect: str = MOVER_SUSPECT) -> Motion | None:

@@ -84,6 +84,7 @@ class VoPipeline:
         self._wheel = sc.WheelOdometry()
         self._scale = make_scale_source(self.cfg, self._wheel)
         self._map_origin_w = np.zeros(3)  # where the current map was initialised (odometry frame)
+        self._map_origin_cov = np.zeros((6, 6))  # and the pose covariance it started from
         self._window = WindowedMap(self.cfg.ba_window_keyframes, self.cfg.ba_every_keyframes, self.cfg.score_sigma_px)
         self._next_id = 0  # the next feature track id
         self._mover_ids = np.zeros(0, np.int64)  # sorted ids of tracks judged to move on their own
@@ -338,7 +339,7 @@ class VoPipeline:
         # The step's length carries the map's scale error: the scale source's uncertainty once metric,
         # else the drift accumulated over the map's keyframes (a random walk of scale_drift_per_keyframe).
         if self._scale.established:
-            rel = self._scale.filter.rel_std
+            rel = self._scale.rel_std
         else:
             rel = self.cfg.scale_drift_per_keyframe * math.sqrt(max(self._n_keyframes - self._map_kf0, 1))
         return cov + np.pad(np.outer(step_w, step_w) * rel**2, (0, 3))
@@ -397,6 +398,7 @@ class VoPipeline:
         t = motion.t_cur_kf
         if motion.new_map is not None:
             self._map_origin_w = kf.T_w_kf[:3, 3].copy()
+            self._map_origin_cov = kf.cov_w_kf.copy()
             self._map_kf0 = self._n_keyframes
             self._scale.on_new_map()
         was_metric = self._scale.established
@@ -412,8 +414,20 @@ class VoPipeline:
             self._jumped = True
             self._window.clear()
             self._T_w_c = self._T_w_c.copy()
-            self._T_w_c[:3, 3] = self._map_origin_w + factor * (self._T_w_c[:3, 3] - self._map_origin_w)
+            d = factor * (self._T_w_c[:3, 3] - self._map_origin_w)
+            self._T_w_c[:3, 3] = self._map_origin_w + d
+            self._cov_w_c = self._metric_covariance(factor, d)
         return X_cur * factor, t
+
+    def _metric_covariance(self, factor: float, d: F64) -> F64:
+        """The pose covariance when the map's VO units become metres: what the map added since its origin
+        (not the covariance of the held pose it started from) is rescaled with the positions, and the
+        scale source's own uncertainty lies along the displacement ``d`` from the map's origin."""
+        base = self._map_origin_cov
+        J = np.diag([factor] * 3 + [1.0] * 3)
+        cov = base + J @ (self._cov_w_c - base) @ J.T
+        cov[:3, :3] += np.outer(d, d) * self._scale.filter.rel_std ** 2
+        return 0.5 * (cov + cov.T)
 
     def _set_keyframe(self, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int, cov_w: F64,
                       pts_tracked: F32, X_tracked: F64, orb_cur: fe.OrbFeatures | None,
@@ -444,6 +458,7 @@ class VoPipeline:
         self._set_keyframe(gray, camera, stamp_ns, cov, np.zeros((0, 2), np.float32), np.zeros((0, 3)),
                            None)
         self._map_origin_w = self._T_w_c[:3, 3].copy()
+        self._map_origin_cov = cov.copy()
         self._map_kf0 = self._n_keyframes
         self._last_pos_w = self._T_w_c[:3, 3].copy()
         st.timings["frontend"] = _ms(t0)
@@ -459,6 +474,7 @@ class VoPipeline:
         self._set_keyframe(gray, camera, stamp_ns, cov, np.zeros((0, 2), np.float32), np.zeros((0, 3)),
                            orb_cur)
         self._map_origin_w = self._T_w_c[:3, 3].copy()
+        self._map_origin_cov = cov.copy()
         self._map_kf0 = self._n_keyframes
         self._last_pos_w = self._T_w_c[:3, 3].copy()
         self._fail_count = 0
@@ -501,6 +517,13 @@ class VoPipeline:
             self._good_rates = (step / dt, turn / dt)
         self._good = (stamp_ns, self._T_w_c.copy(), self._cov_w_c.copy())
 
+    def _systematic_scale_cov(self, p_w: F64) -> F64:
+        """Position covariance of the scale source's systematic error (``ScaleSource.systematic_rel``):
+        it scales the whole path of the current map about its origin, so it grows with the distance from
+        there, not as a random walk. Added to what is published (and handed over to the next map)."""
+        d = p_w - self._map_origin_w
+        return np.outer(d, d) * self._scale.systematic_rel**2
+
     def _handover_cov(self, stamp_ns: int) -> F64:
         """Covariance of the held pose a new map starts from (a restart, a reset, a jump back in time).
 
@@ -515,6 +538,8 @@ class VoPipeline:
         gap_s = max((stamp_ns - good[0]) * 1e-9, 0.0)
         speed, rate = self._good_rates
         cov = good[2].copy()
+        if self._scale.established:
+            cov[:3, :3] += self._systematic_scale_cov(good[1][:3, 3])
         cov[:3, :3] += np.eye(3) * (speed * gap_s) ** 2
         cov[3:, 3:] += np.eye(3) * (rate * gap_s) ** 2
         return covm.floored(cov)
@@ -553,6 +578,8 @@ class VoPipeline:
             T_out[:3, 3] = self._map_origin_w
             cov[:3, :3] += np.eye(3) * self.cfg.lost_position_variance
             st.reasons.append("metric scale not established yet: position held")
+        elif self._scale.established:
+            cov[:3, :3] += self._systematic_scale_cov(T_out[:3, 3])
         cov = covm.floored(cov)
         st.timings["total"] = _ms(t_start)
         kf = self._kf
@@ -607,7 +634,8 @@ def make_scale_source(cfg: VoConfig, wheel: sc.WheelOdometry) -> sc.ScaleSource:
     drift = cfg.scale_drift_per_keyframe
     if cfg.scale_source == "ground_plane":
         return sc.GroundPlaneScale(cfg.camera_height_m, drift, max_tilt_deg=cfg.ground_max_tilt_deg,
-                                   inlier_ratio=cfg.ground_inlier_ratio, min_points=cfg.ground_min_points)
+                                   inlier_ratio=cfg.ground_inlier_ratio, min_points=cfg.ground_min_points,
+                                   height_rel_sigma=cfg.camera_height_rel_sigma)
     if cfg.scale_source == "wheel_odometry":
         return sc.WheelOdometryScale(wheel, drift, rel_sigma=cfg.wheel_odometry_rel_sigma,
                                      timeout_s=cfg.wheel_odometry_timeout_s)

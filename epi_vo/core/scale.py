@@ -253,6 +253,15 @@ class ScaleSource:
         self.filter = ScaleFilter(drift_per_keyframe)
         self.reason = ""
         self.plane: GroundPlane | None = None
+        # The source's own error common to all its measurements (a calibration): it does not average
+        # out over keyframes; an error of the scale it gives runs along the whole metric path.
+        self.systematic_rel = 0.0
+
+    @property
+    def rel_std(self) -> float:
+        """Relative standard deviation of the current scale: the filter's, and the source's systematic
+        part (NaN while not established)."""
+        return math.hypot(self.filter.rel_std, self.systematic_rel)
 
     @property
     def established(self) -> bool:
@@ -266,7 +275,7 @@ class ScaleSource:
 
     def status(self) -> ScaleStatus:
         plane = self.plane
-        return ScaleStatus(self.name, self.established, self.filter.total, self.filter.rel_std,
+        return ScaleStatus(self.name, self.established, self.filter.total, self.rel_std,
                            plane.pitch_deg if plane is not None else math.nan,
                            plane.roll_deg if plane is not None else math.nan, self.reason)
 
@@ -324,9 +333,10 @@ class GroundPlaneScale(ScaleSource):
     metric_source = True
 
     def __init__(self, camera_height_m: float, drift_per_keyframe: float, *, max_tilt_deg: float,
-                 inlier_ratio: float, min_points: int) -> None:
+                 inlier_ratio: float, min_points: int, height_rel_sigma: float = 0.0) -> None:
         super().__init__(drift_per_keyframe)
         self.camera_height_m = camera_height_m
+        self.systematic_rel = height_rel_sigma
         self.max_tilt_deg = max_tilt_deg
         self.inlier_ratio = inlier_ratio
         self.min_points = min_points
@@ -444,6 +454,7 @@ class WheelOdometryScale(ScaleSource):
         super().__init__(drift_per_keyframe)
         self.wheel = wheel
         self.rel_sigma = rel_sigma
+        self.systematic_rel = rel_sigma
         self.timeout_ns = int(timeout_s * 1e9)
         self.window_m = window_m
         self._steps: deque[list[float]] = deque(maxlen=500)  # [kf stamp, stamp, VO step length]

@@ -107,7 +107,15 @@ def test_no_map_with_parallax_initialises_the_map(general_scene, baseline: float
     assert np.median(rel) < 0.03 and np.max(rel) < 0.15
     assert st.positive_depth_ratio == 1.0 and st.median_reproj_err_px < 1.0
     assert st.n_inliers == s.n and st.median_parallax_deg > CFG.init_min_parallax_deg
-    assert m.cov_rel[0, 0] == pytest.approx((0.1 * baseline) ** 2)
+    # Covariance from E's residuals: the baseline's length is the map's unit, known as well as one
+    # keyframe's scale transfer; its direction and the rotation as well as the image noise allows.
+    c = -m.R_cur_kf.T @ m.t_cur_kf / baseline
+    P = m.cov_rel[:3, :3]
+    assert c @ P @ c == pytest.approx((CFG.scale_drift_per_keyframe * baseline) ** 2, rel=1e-6)
+    Q = np.eye(3) - np.outer(c, c)
+    across = np.linalg.eigvalsh(Q @ P @ Q)[1:]  # the two directions across the baseline
+    assert np.all(across > 0) and np.all(np.sqrt(across) < 0.03 * baseline)
+    assert np.all(np.diag(m.cov_rel[3:, 3:]) > 0) and np.all(np.sqrt(np.diag(m.cov_rel[3:, 3:])) < math.radians(0.3))
     assert any(r.startswith("map initialized from essential matrix") for r in st.reasons)
     assert math.isnan(st.relative_scale)
 

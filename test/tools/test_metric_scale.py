@@ -106,6 +106,26 @@ def test_metric_sources_give_metres(source: str, request: pytest.FixtureRequest)
     assert all(r["covariance_diagonal"][0] < 1.0 for r in metric)
 
 
+@pytest.mark.parametrize(("source", "systematic"), [("ground", VoConfig().camera_height_rel_sigma),
+                                                    ("wheels", VoConfig().wheel_odometry_rel_sigma)])
+def test_metric_covariance_carries_the_sources_systematic_scale_error(source: str, systematic: float,
+                                                                     request: pytest.FixtureRequest) -> None:
+    # A calibration error (camera height, tyre radius) does not average out over keyframes: the scale's
+    # reported uncertainty never drops below it, and the position's grows with the distance from the
+    # map's origin along the path, not as a random walk. The published covariance is then consistent.
+    s, out = request.getfixturevalue(source)
+    metric = [r for r in _records(out) if r["metric_scale"] and r["state"] == "tracking"]
+    assert all(r["scale_rel_std"] >= systematic for r in metric)
+    for r in metric[::25]:
+        p = np.array(r["position"])
+        var = np.array(r["covariance_diagonal"][:3])  # in the frame of "position"
+        # Along each axis the systematic part alone is (systematic * p_i)^2 (the map starts at the origin).
+        assert np.all(var >= 0.99 * (systematic * p) ** 2)
+    nees = evaluation.replay_dir_nees(out)
+    assert nees is not None and nees.alignment == "se3"
+    assert 0.5 <= nees.mean_nees_pos <= 6.0 and nees.inside_pos_percent >= 90.0
+
+
 def test_ground_plane_reports_the_cameras_pitch_and_roll(ground: tuple[ReplaySummary, Path]) -> None:
     _, out = ground
     recs = [r for r in _records(out) if r["floor_pitch_deg"] is not None]
