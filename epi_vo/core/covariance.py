@@ -43,6 +43,15 @@ def compose(cov_w_kf: F64, T_w_kf: F64, cov_rel: F64, t_cur_kf: F64, R_cur_kf: F
     return J @ cov_w_kf @ J.T + A @ cov_rel @ A.T
 
 
+def chain_world(cov_w_a: F64, p_w_a: F64, p_w_b: F64, cov_w_b_given_a: F64) -> F64:
+    """First-order covariance of pose b from pose a's covariance and b's covariance relative to a, both
+    in ``w`` (left perturbations): a's rotation error moves b by ``dtheta x (p_b - p_a)`` (lever arm,
+    as in ``compose``). For a marginal of b computed with a held fixed (a bundle adjustment's gauge)."""
+    J = np.eye(6)
+    J[:3, 3:] = -skew(np.asarray(p_w_b, dtype=np.float64) - np.asarray(p_w_a, dtype=np.float64))
+    return J @ cov_w_a @ J.T + cov_w_b_given_a
+
+
 def floored(cov: F64) -> F64:
     """Symmetrize and keep every variance strictly positive (a zero covariance claims certainty)."""
     cov = 0.5 * (cov + cov.T)

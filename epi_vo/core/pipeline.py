@@ -379,7 +379,7 @@ class VoPipeline:
         ``ids_tracked``) becomes a scale prior."""
         kf = self._kf
         assert kf is not None
-        self._window.add(kf.T_w_kf, kf.ids, kf.xn, kf.X_kf, self._anchor, ids_tracked)
+        self._window.add(kf.T_w_kf, kf.ids, kf.xn, kf.X_kf, self._anchor, ids_tracked, kf.cov_w_kf)
         if not self._window.due():
             return
         t0 = time.perf_counter()
@@ -389,6 +389,10 @@ class VoPipeline:
             return
         self._kf = dataclasses.replace(kf, T_w_kf=update.T_w_kf, X_kf=update.X_kf)
         self._T_w_c = update.T_w_kf.copy()
+        if update.cov_w_kf is not None:
+            # The estimator's own uncertainty of the window replaces the chain of keyframe steps in it.
+            self._kf = dataclasses.replace(self._kf, cov_w_kf=update.cov_w_kf)
+            self._cov_w_c = update.cov_w_kf.copy()
 
     def _metric_step(self, motion: mo.Motion, kf: Keyframe, X_cur: F64, stamp_ns: int) -> tuple[F64, F64]:
         """The scale source's correction of this keyframe step: the step from the last keyframe and the

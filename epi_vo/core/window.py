@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from epi_vo.core import covariance as covm
 from epi_vo.core.errors import ConfigError
 from epi_vo.core.scale import WindowAnchor
 from epi_vo.core.transforms import invert_T
@@ -47,17 +48,21 @@ class _Entry:
     X_kf: F64
     anchor: WindowAnchor | None = None  # what the scale source knows in metres about this keyframe
     floor_ids: I64 | None = None  # track ids of its map points on the floor (ground_plane anchor)
+    cov_w: F64 | None = None  # its pose covariance in w (position first), as the pipeline had it
 
 
 @dataclass(frozen=True)
 class WindowUpdate:
-    """What an adjustment changes: the newest keyframe's pose and the map points of its rows."""
+    """What an adjustment changes: the newest keyframe's pose and the map points of its rows, and its
+    covariance: GTSAM's marginal given the window's fixed oldest keyframe, chained onto that keyframe's
+    own covariance (None when no covariance was given for it)."""
 
     T_w_kf: F64
     X_kf: F64  # (N, 3) the newest keyframe's map points in its own frame after the adjustment
     n_points: int
     n_keyframes: int
     ms: float
+    cov_w_kf: F64 | None = None
 
 
 class WindowedMap:
@@ -85,15 +90,16 @@ class WindowedMap:
         self._since = 0
 
     def add(self, T_w_kf: F64, ids: I64 | None, xn: F64, X_kf: F64, anchor: WindowAnchor | None = None,
-            anchor_ids: I64 | None = None) -> None:
+            anchor_ids: I64 | None = None, cov_w: F64 | None = None) -> None:
         """A new keyframe; ``anchor`` (with ``anchor_ids``, the track ids of the rows its ``floor_rows``
-        speak of) becomes a scale prior of the adjustments."""
+        speak of) becomes a scale prior of the adjustments; ``cov_w`` is its pose covariance."""
         if self.size <= 0 or ids is None:
             return
         floor_ids = None
         if anchor is not None and anchor.floor_rows is not None and anchor_ids is not None:
             floor_ids = anchor_ids[anchor.floor_rows[: anchor_ids.shape[0]]]
-        self._entries.append(_Entry(T_w_kf.copy(), ids.copy(), xn.copy(), X_kf.copy(), anchor, floor_ids))
+        self._entries.append(_Entry(T_w_kf.copy(), ids.copy(), xn.copy(), X_kf.copy(), anchor, floor_ids,
+                                    None if cov_w is None else cov_w.copy()))
         self._since += 1
 
     def due(self) -> bool:
@@ -123,8 +129,14 @@ class WindowedMap:
         T_kf_w = invert_T(newest.T_w_kf)
         X_kf[ok] = Xw[ok] @ T_kf_w[:3, :3].T + T_kf_w[:3, 3]
         newest.X_kf = X_kf
+        cov = None
+        oldest = entries[0]
+        if oldest.cov_w is not None and np.all(np.isfinite(result.cov_newest)):
+            cov = covm.floored(covm.chain_world(oldest.cov_w, oldest.T_w_kf[:3, 3], newest.T_w_kf[:3, 3],
+                                                result.cov_newest))
+            newest.cov_w = cov
         return WindowUpdate(newest.T_w_kf.copy(), X_kf, int(np.count_nonzero(np.isfinite(result.points_w[:, 0]))),
-                            len(entries), result.ms)
+                            len(entries), result.ms, cov)
 
 
 def _build(bundle_module: ModuleType, entries: list[_Entry], sigma_px: float, fx: float

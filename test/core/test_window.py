@@ -166,3 +166,64 @@ def test_floor_points_and_camera_height_set_the_window_scale() -> None:
     update = win.adjust(500.0)
     assert update is not None
     np.testing.assert_allclose(update.T_w_kf[:3, 3], poses[-1][:3, 3], atol=0.04)
+
+
+def _rotvec(R: np.ndarray) -> np.ndarray:
+    angle = math.acos(max(-1.0, min(1.0, (np.trace(R) - 1.0) / 2.0)))
+    if angle < 1e-12:
+        return np.zeros(3)
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return w * angle / (2.0 * math.sin(angle))
+
+
+def test_window_marginal_predicts_the_spread_of_the_newest_pose() -> None:
+    # Monte Carlo: 1 px image noise, the window's two oldest keyframes exact (the gauge), the newest
+    # started 7 cm off. Its covariance (GTSAM's marginal chained onto the oldest keyframe's, here
+    # nearly zero) must predict the errors over repeated noisy runs: mean NEES about 6 (6 dof).
+    poses, pts = _scene()
+    ids_all = np.arange(pts.shape[0])
+    nees = []
+    for seed in range(40):
+        rng = np.random.default_rng(100 + seed)
+        win = WindowedMap(size=5, every=1, sigma_px=1.0)
+        for k, T in enumerate(poses):
+            ids = ids_all[(ids_all + k) % 7 != 0]
+            xn, X = _entry(T, pts, ids, rng, noise=0.03)
+            T_start = T.copy()
+            if k == len(poses) - 1:
+                T_start[:3, 3] += np.array([0.05, -0.03, 0.04])
+            win.add(T_start, ids, xn, X, cov_w=np.eye(6) * 1e-14)
+        update = win.adjust(500.0)
+        assert update is not None and update.cov_w_kf is not None
+        T_est, T_true = update.T_w_kf, poses[-1]
+        e = np.concatenate([T_true[:3, 3] - T_est[:3, 3], _rotvec(T_true[:3, :3] @ T_est[:3, :3].T)])
+        nees.append(float(e @ np.linalg.solve(update.cov_w_kf, e)))
+    assert 3.0 < float(np.mean(nees)) < 10.0
+
+
+def test_window_covariance_chains_the_oldest_keyframes_uncertainty() -> None:
+    # The oldest keyframe's own uncertainty (here 1 cm and 0.5 deg) carries into the newest: its
+    # position variance gains the lever arm of the rotation error; without a covariance given, none.
+    poses, pts = _scene()
+    ids_all = np.arange(pts.shape[0])
+    rng = np.random.default_rng(7)
+    entries = []
+    for k, T in enumerate(poses):
+        ids = ids_all[(ids_all + k) % 7 != 0]
+        entries.append((T, ids, *_entry(T, pts, ids, rng, noise=0.03)))
+    cov_old = np.diag([1e-4] * 3 + [math.radians(0.5) ** 2] * 3)
+    tight, loose, bare = (WindowedMap(size=5, every=1, sigma_px=1.0) for _ in range(3))
+    for T, ids, xn, X in entries:
+        tight.add(T, ids, xn, X, cov_w=np.eye(6) * 1e-14)
+        loose.add(T, ids, xn, X, cov_w=cov_old)
+        bare.add(T, ids, xn, X)
+    u_tight, u_loose, u_bare = tight.adjust(500.0), loose.adjust(500.0), bare.adjust(500.0)
+    assert u_tight is not None and u_loose is not None and u_bare is not None
+    assert u_bare.cov_w_kf is None
+    assert u_tight.cov_w_kf is not None and u_loose.cov_w_kf is not None
+    lever = u_loose.T_w_kf[:3, 3] - poses[0][:3, 3]  # 2.5 m (the oldest keyframe is held as given)
+    added = np.diag(u_loose.cov_w_kf - u_tight.cov_w_kf)
+    np.testing.assert_allclose(added[3:], math.radians(0.5) ** 2, rtol=1e-6)
+    # Position: 1 cm^2 plus the lever arm of a 0.5 deg rotation error about the two other axes.
+    expected = 1e-4 + math.radians(0.5) ** 2 * (lever @ lever - lever**2)
+    np.testing.assert_allclose(added[:3], expected, rtol=1e-6)

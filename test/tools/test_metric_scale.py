@@ -113,7 +113,7 @@ def test_metric_covariance_carries_the_sources_systematic_scale_error(source: st
     # A calibration error (camera height, tyre radius) does not average out over keyframes: the scale's
     # reported uncertainty never drops below it, and the position's grows with the distance from the
     # map's origin along the path, not as a random walk. The published covariance is then consistent.
-    s, out = request.getfixturevalue(source)
+    _, out = request.getfixturevalue(source)
     metric = [r for r in _records(out) if r["metric_scale"] and r["state"] == "tracking"]
     assert all(r["scale_rel_std"] >= systematic for r in metric)
     for r in metric[::25]:
