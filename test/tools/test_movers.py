@@ -66,7 +66,10 @@ def test_a_mover_taking_es_consensus_is_caught_by_the_map(moving_mover: tuple[Re
     """The cart crossing the view takes E's consensus; the map's points (the static scene) catch it, and
     only while the cart is in view."""
     _, recs = moving_mover
-    caught = [r for r in recs if "E disagrees with the map's points" in r["reason"]]
+    # Either E disagrees with the map's pose, or E's consensus (on the cart) holds almost none of the
+    # map's points: both leave the pose to the map.
+    caught = [r for r in recs if "E disagrees with the map's points" in r["reason"]
+              or "E's inliers hold almost none of the map's points" in r["reason"]]
     assert len(caught) >= 1
     cov = {int(row[0]): row[1] for row in np.loadtxt(BAGS / "moving_mover" / "mover_coverage.txt")}
     assert cov[caught[0]["index"]] > 0.25  # it starts with the cart filling a quarter of the view

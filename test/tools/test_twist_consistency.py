@@ -88,6 +88,8 @@ def test_bag_twist_covariance_matches_its_errors(bag: str, params: dict, max_mea
     if s.units == "m":
         assert r.scale == 1.0  # metres: nothing fitted
     assert r.nees_linear.size >= 0.8 * s.frames
-    assert 0.3 < r.mean_linear < max_mean, r.mean_linear
+    # Cautious rather than overconfident: on ground_robot the linear twist carries the camera height's
+    # 2 % (camera_height_rel_sigma), which this exactly mounted bag does not show (NEES ~0.25).
+    assert 0.15 < r.mean_linear < max_mean, r.mean_linear
     assert r.mean_angular < max_mean, r.mean_angular
     assert r.inside_linear_percent >= 80.0 and r.inside_angular_percent >= 90.0
