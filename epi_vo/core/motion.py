@@ -69,6 +69,9 @@ E_MAP_AGREE_PX = 1.0  # map points this close to where E's pose puts them ...
 E_MAP_AGREE_FRACTION = 0.8  # ... this share of them: E agrees with the map, no check of its own needed
 MIN_OFF_PLANE_FOR_E_HINT = 5  # E inliers off H's plane needed before E may pick among H's decompositions
 MOVER_SUSPECT = "a moving object took its consensus?"  # why E and the map disagree, as the reason says
+PLANE_SUSPECT = "E took the plane's other solution?"  # ... when a plane dominates (H won RH)
+MAP_INFO_SIGMA_FACTOR = math.sqrt(2.0)  # map points' reprojections count as this much noisier (their depths
+# carry the previous pair's image noise)
 STATIC_KEEP = 0.6  # a static camera stays static down to this share of static_min_fraction
 
 
@@ -208,7 +211,7 @@ class MotionStage:
                                   f"{cfg.init_min_parallax_deg}): waiting for baseline, position held")
                 return Motion(TrackingState.INITIALIZING, R_p, zero, covm.block(1e-6, rot_cov), in_h)
             norm = float(np.linalg.norm(t_p))
-            return self._initialize(ctx, R_p, t_p / norm, in_h, st, "homography (planar scene)")
+            return self._initialize(ctx, R_p, t_p / norm, in_h, st, "homography (planar scene)", planar=True)
         if sel.E is not None and sel.inliers_e is not None and st.median_parallax_deg >= cfg.plane_e_min_parallax_deg:
             # RH is ORB-SLAM's test for the uncalibrated 8-point F, which a plane makes degenerate. The
             # calibrated 5-point E is not degenerate on a plane (only two-fold ambiguous), and with a map
@@ -218,7 +221,7 @@ class MotionStage:
             st.model = Model.ESSENTIAL
             st.reasons.append(f"plane-dominated view (RH {st.rh:.2f}) with parallax: E's pose, checked against "
                               "the map")
-            return self._from_essential(ctx, sel.E, sel.inliers_e, st, suspect="E took the plane's other solution?")
+            return self._from_essential(ctx, sel.E, sel.inliers_e, st, suspect=PLANE_SUSPECT)
         st.reasons.append(f"planar or low-parallax view (RH {st.rh:.2f}): pose from map points")
         return self._track_with_map(ctx, R_h, None, in_h, st, rot_cov)
 
@@ -231,7 +234,7 @@ class MotionStage:
         return kf.n_map_points >= self.cfg.min_scale_points
 
     def _initialize(self, ctx: MotionContext, R: F64, t_dir: F64, inl: NDArray[np.bool_], st: FrameStats,
-                    how: str) -> Motion:
+                    how: str, *, planar: bool = False) -> Motion:
         """Build the first map from the keyframe and this frame, or explain why not yet."""
         cfg = self.cfg
         K = ctx.kf.camera.K
@@ -265,11 +268,13 @@ class MotionStage:
         # The first baseline is the map's unit (VO units; a scale source rescales it and adds its own
         # uncertainty): its direction and the rotation have E's covariance; its length is as well known
         # as the scale carried from one keyframe to the next (scale_drift_per_keyframe).
+        # On a plane (initialised from H) E's residuals do not constrain the pose (degenerate): the
+        # isotropic form, with the rotation from the inliers' count.
         baseline = float(np.linalg.norm(t))
-        cov = geo.essential_pose_covariance(R, t_dir, xn_kf[inl], xn_cur[inl], cfg.score_sigma_px / K[0, 0],
-                                            baseline, cfg.scale_drift_per_keyframe**2)
+        cov = None if planar else geo.essential_pose_covariance(
+            R, t_dir, xn_kf[inl], xn_cur[inl], cfg.score_sigma_px / K[0, 0], baseline, cfg.scale_drift_per_keyframe**2)
         if cov is None or not np.all(np.isfinite(cov)):
-            cov = covm.block((0.1 * baseline) ** 2, rot_cov)
+            cov = covm.block((cfg.scale_drift_per_keyframe * baseline) ** 2, rot_cov)
         return Motion(TrackingState.TRACKING, R, t, cov, inl, new_map=full)
 
     def _track_with_map(self, ctx: MotionContext, R: F64, t_dir: F64 | None, inl: NDArray[np.bool_],
@@ -304,8 +309,10 @@ class MotionStage:
             trans_var = est.scale**2 * (dir_var + scale_var)
             disagree = self._map_disagrees(ctx, X, R, t0, st, suspect)
             if disagree is None:
-                return Motion(TrackingState.TRACKING, R, t0, self._essential_cov(ctx, R, t_dir, inl, X, has_depth, est,
-                                                                                 covm.block(trans_var, rot_cov)), inl)
+                cov = self._essential_cov(ctx, R, t_dir, inl, X, has_depth, est, covm.block(trans_var, rot_cov))
+                if suspect == PLANE_SUSPECT:
+                    cov = self._with_map_information(ctx, R, t0, X[has_depth], xn_cur[has_depth], cov)
+                return Motion(TrackingState.TRACKING, R, t0, cov, inl)
             # E's consensus was taken by something moving: the map's points, from the previous pose, decide.
             R0, t0 = ctx.T_cur_kf_prev[:3, :3], ctx.T_cur_kf_prev[:3, 3]
             has_depth = disagree
@@ -359,6 +366,16 @@ class MotionStage:
                                             est.rel_spread**2 / max(est.n_used, 1),
                                             (X[has_depth], ctx.xn_cur[has_depth]))
         return fallback if cov is None or not np.all(np.isfinite(cov)) else cov
+
+    def _with_map_information(self, ctx: MotionContext, R: F64, t: F64, X: F64, xn: F64, cov: F64) -> F64:
+        """E's covariance on a plane-dominated view, fused with what the map points say about the same
+        pose: on a plane E's five parameters are poorly conditioned (the two-fold ambiguity's direction),
+        while the map points (off the degeneracy) fix it. Independent to first order; the map points'
+        reprojections count as MAP_INFO_SIGMA_FACTOR noisier than the image noise."""
+        sigma_n = self.cfg.score_sigma_px * MAP_INFO_SIGMA_FACTOR / ctx.kf.camera.K[0, 0]
+        info = geo.map_information(R, t, X, xn, sigma_n)
+        fused = None if info is None else geo.fuse(cov, info)
+        return cov if fused is None else fused
 
     def _map_disagrees(self, ctx: MotionContext, X: F64, R_e: F64, t_e: F64, st: FrameStats,
                        suspect: str = MOVER_SUSPECT) -> NDArray[np.bool_] | None:

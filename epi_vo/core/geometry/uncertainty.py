@@ -144,3 +144,46 @@ def essential_pose_covariance(R_cur_kf: F64, t_dir: F64, xn_kf: F64, xn_cur: F64
     S[5, 5] = scale_rel_var * scale**2
     cov = G @ S @ G.T
     return 0.5 * (cov + cov.T)
+
+
+def map_information(R_cur_kf: F64, t_cur_kf: F64, X_kf: F64, xn_cur: F64, sigma_n: float) -> F64 | None:
+    """6x6 information (inverse covariance) over (c, phi), as ``essential_pose_covariance``, of the
+    pose (R_cur_kf, t_cur_kf) from the reprojections of map points ``X_kf`` (M, 3; keyframe frame) seen
+    at ``xn_cur`` (M, 2; normalised) with noise ``sigma_n``; the points are taken as exact, so the
+    caller discounts them (their depths carry the previous pair's noise). None with fewer than six
+    points in front of the camera."""
+    if X_kf.shape[0] < 6:
+        return None
+    rows = _subsample(X_kf.shape[0], MAX_POINTS)
+    X = X_kf[rows]
+    R_kf_cur = R_cur_kf.T
+    c = -R_kf_cur @ t_cur_kf
+    h = FD_STEP
+    R_kf_st = np.repeat(R_kf_cur[None], 7, axis=0)
+    c_st = np.repeat(c[None], 7, axis=0)
+    for i in range(3):
+        e = np.zeros(3)
+        e[i] = h
+        c_st[1 + i] = c + e
+        R_kf_st[4 + i] = R_kf_cur + skew(e) @ R_kf_cur
+    Xc = np.einsum("kji,knj->kni", R_kf_st, X[None] - c_st[:, None, :])  # R_cur_kf (X - c) per pose
+    if not np.all(Xc[0, :, 2] > 0):
+        keep = Xc[0, :, 2] > 0
+        if np.count_nonzero(keep) < 6:
+            return None
+        Xc = Xc[:, keep]
+    proj = Xc[..., :2] / Xc[..., 2:3]
+    J = ((proj[1:] - proj[0]) / h).reshape(6, -1).T  # (2m, 6)
+    info = np.einsum("ni,nj->ij", J, J) * (X_kf.shape[0] / rows.size) / sigma_n**2
+    return info if np.all(np.isfinite(info)) else None
+
+
+def fuse(cov: F64, info: F64) -> F64 | None:
+    """Covariance of two independent estimates of the same quantity: ``(cov^-1 + info)^-1``; None when
+    the sum is not invertible."""
+    try:
+        fused = np.linalg.inv(np.linalg.inv(cov) + info)
+    except np.linalg.LinAlgError:
+        return None
+    fused = 0.5 * (fused + fused.T)
+    return fused if np.all(np.isfinite(fused)) and np.all(np.diag(fused) > 0) else None
