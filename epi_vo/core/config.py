@@ -140,8 +140,9 @@ class VoConfig:
     ground_min_points: int = _knob(8, "map points on the floor needed to measure the scale", 3, 10000)
 
     # --- covariance ----------------------------------------------------------------------------
-    scale_drift_per_keyframe: float = _knob(0.02, "relative scale uncertainty added at each keyframe (1 sigma)",
-                                            0.0, 1.0)
+    scale_drift_per_keyframe: float = _knob(
+        0.01, "relative scale drift of the map per keyframe (1 sigma, a random walk): the scale filter's process "
+        "noise, and in VO units the position covariance's scale term, grown coherently along the path", 0.0, 1.0)
     lost_position_variance: float = _knob(1.0e4, "position variance reported when no pose can be justified",
                                           1.0, 1.0e12)
     lost_rotation_variance: float = _knob(1.0e2, "rotation variance (rad^2) reported when no pose can be justified",

@@ -85,6 +85,9 @@ class VoPipeline:
         self._scale = make_scale_source(self.cfg, self._wheel)
         self._map_origin_w = np.zeros(3)  # where the current map was initialised (odometry frame)
         self._map_origin_cov = np.zeros((6, 6))  # and the pose covariance it started from
+        # VO units: the map's log-scale variance and its covariance with the position (_scale_drift_cov)
+        self._scale_var = 0.0
+        self._cov_ps = np.zeros(3)
         self._window = WindowedMap(self.cfg.ba_window_keyframes, self.cfg.ba_every_keyframes, self.cfg.score_sigma_px)
         self._next_id = 0  # the next feature track id
         self._mover_ids = np.zeros(0, np.int64)  # sorted ids of tracks judged to move on their own
@@ -341,7 +344,7 @@ class VoPipeline:
         if self._scale.established:
             rel = self._scale.rel_std
         else:
-            rel = self.cfg.scale_drift_per_keyframe * math.sqrt(max(self._n_keyframes - self._map_kf0, 1))
+            rel = math.sqrt(max(self._scale_var, self.cfg.scale_drift_per_keyframe**2))
         return cov + np.pad(np.outer(step_w, step_w) * rel**2, (0, 3))
 
     # ---------------------------------------------------------------------------------------------
@@ -362,8 +365,8 @@ class VoPipeline:
             st.points_w = _transform(self._T_w_c, X_cur[np.isfinite(X_cur[:, 0])])
         cov = self._cov_w_c.copy()
         if motion.state is TrackingState.TRACKING:
-            rel = self._scale.filter.rel_std if self._scale.established else self.cfg.scale_drift_per_keyframe
-            cov[:3, :3] += np.eye(3) * (rel * float(np.linalg.norm(t))) ** 2
+            d = self._T_w_c[:3, 3] - kf.T_w_kf[:3, 3]
+            cov[:3, :3] += self._scale_drift_cov(motion, d, float(np.linalg.norm(t)))
         ids_tracked = kf.ids[rows] if kf.ids is not None else None
         self._set_keyframe(gray, camera, stamp_ns, cov, pts_cur, X_cur, orb_cur, ids_tracked)
         if motion.state is TrackingState.TRACKING:
@@ -371,6 +374,27 @@ class VoPipeline:
         else:
             self._window.clear()
         return True
+
+    def _scale_drift_cov(self, motion: mo.Motion, d: F64, step: float) -> F64:
+        """Position covariance a keyframe step ``d`` (odometry frame) adds through the map's scale error.
+
+        Metric: the scale filter's relative standard deviation times the step (isotropic). VO units: the
+        map's log-scale is a random walk of ``scale_drift_per_keyframe`` per keyframe, and one scale error
+        moves every later step alike, so the position error it causes grows coherently along the path
+        (the scale variance and its covariance with the position are carried, as an EKF augmented with
+        the scale would): var_p += d d^T var_s + c d^T + d c^T, c += d var_s, var_s += q.
+        """
+        q = self.cfg.scale_drift_per_keyframe**2
+        if self._scale.established:
+            return np.eye(3) * (self._scale.filter.rel_std * step) ** 2
+        if motion.new_map is not None:
+            # The first baseline's length (E's covariance along it) is the map's scale error itself.
+            self._scale_var, self._cov_ps = q, d * q
+            return np.zeros((3, 3))
+        vs, c = self._scale_var, self._cov_ps
+        self._cov_ps = c + d * vs
+        self._scale_var = vs + q
+        return np.outer(d, d) * vs + np.outer(c, d) + np.outer(d, c)
 
     def _adjust_window(self, st: FrameStats, ids_tracked: NDArray[np.int64] | None) -> None:
         """Windowed bundle adjustment (``epi_vo.core.window``) when it is due: the new keyframe, and the
