@@ -82,7 +82,7 @@ class VoPipeline:
         self._orb = fe.make_orb(self.cfg) if self.cfg.frontend == "orb" else None
         self._motion = mo.MotionStage(self.cfg)
         self._wheel = sc.WheelOdometry()
-        self._scale = make_scale_source(self.cfg, self._wheel)
+        self._scale = sc.source_from_config(self.cfg, self._wheel)
         self._map_origin_w = np.zeros(3)  # where the current map was initialised (odometry frame)
         self._map_origin_cov = np.zeros((6, 6))  # and the pose covariance it started from
         # VO units: the map's log-scale variance and its covariance with the position (_scale_drift_cov)
@@ -659,19 +659,6 @@ def downscale(gray: NDArray[np.uint8], camera: CameraModel, max_width: int
     factor = max_width / gray.shape[1]
     small = cv2.resize(gray, (max_width, round(gray.shape[0] * factor)), interpolation=cv2.INTER_AREA)
     return small, camera.scaled(factor)
-
-
-def make_scale_source(cfg: VoConfig, wheel: sc.WheelOdometry) -> sc.ScaleSource:
-    """The scale source ``cfg.scale_source`` names (see ``epi_vo.core.scale``)."""
-    drift = cfg.scale_drift_per_keyframe
-    if cfg.scale_source == "ground_plane":
-        return sc.GroundPlaneScale(cfg.camera_height_m, drift, max_tilt_deg=cfg.ground_max_tilt_deg,
-                                   inlier_ratio=cfg.ground_inlier_ratio, min_points=cfg.ground_min_points,
-                                   height_rel_sigma=cfg.camera_height_rel_sigma)
-    if cfg.scale_source == "wheel_odometry":
-        return sc.WheelOdometryScale(wheel, drift, rel_sigma=cfg.wheel_odometry_rel_sigma,
-                                     timeout_s=cfg.wheel_odometry_timeout_s)
-    return sc.VoUnitsScale(drift)
 
 
 def _expanded(motion: mo.Motion, use: NDArray[np.bool_]) -> mo.Motion:

@@ -34,6 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from epi_vo.core.config import VoConfig
+
 F64 = NDArray[np.float64]
 
 SCALE_SOURCES = ("none", "ground_plane", "wheel_odometry")
@@ -494,3 +496,16 @@ class WheelOdometryScale(ScaleSource):
         self.reason = ""
         r = self.rel_sigma**2 + (0.01 / d_wheel) ** 2
         return math.log(d_wheel / d_vo), r
+
+
+def source_from_config(cfg: VoConfig, wheel: WheelOdometry) -> ScaleSource:
+    """The scale source ``cfg.scale_source`` names."""
+    drift = cfg.scale_drift_per_keyframe
+    if cfg.scale_source == "ground_plane":
+        return GroundPlaneScale(cfg.camera_height_m, drift, max_tilt_deg=cfg.ground_max_tilt_deg,
+                                inlier_ratio=cfg.ground_inlier_ratio, min_points=cfg.ground_min_points,
+                                height_rel_sigma=cfg.camera_height_rel_sigma)
+    if cfg.scale_source == "wheel_odometry":
+        return WheelOdometryScale(wheel, drift, rel_sigma=cfg.wheel_odometry_rel_sigma,
+                                  timeout_s=cfg.wheel_odometry_timeout_s)
+    return VoUnitsScale(drift)
