@@ -42,6 +42,17 @@ def _sampson(E: F64, h_kf: F64, h_cur: F64) -> F64:
     return num / np.maximum(den, 1e-300)
 
 
+def _rotation_steps(R: F64, k: int, first: int) -> F64:
+    """``k`` copies of ``R`` (3, 3), those at ``first``..``first + 2`` perturbed on the left by FD_STEP
+    about x, y and z (exp(phi) = I + [phi]x to ~1e-12 at that step): a stack for forward differences."""
+    R_st = np.repeat(R[None], k, axis=0)
+    for i in range(3):
+        e = np.zeros(3)
+        e[i] = FD_STEP
+        R_st[first + i] = R + skew(e) @ R
+    return R_st
+
+
 def _subsample(n: int, m: int) -> NDArray[np.int64]:
     """At most ``m`` of ``n`` rows, evenly spread (deterministic)."""
     return np.arange(n) if n <= m else (np.arange(m) * (n - 1) // (m - 1)).astype(np.int64)
@@ -92,12 +103,8 @@ def essential_pose_covariance(R_cur_kf: F64, t_dir: F64, xn_kf: F64, xn_cur: F64
     # Six poses: the estimate and each parameter one step forward (forward differences, as stacks).
     # The step is so small that exp(phi) = I + [phi]x holds to ~1e-12.
     h = FD_STEP
-    R_kf_st = np.repeat(R_kf_cur[None], 6, axis=0)
+    R_kf_st = _rotation_steps(R_kf_cur, 6, 1)
     c_st = np.repeat(d[None], 6, axis=0)
-    for i in range(3):
-        e = np.zeros(3)
-        e[i] = h
-        R_kf_st[1 + i] = R_kf_cur + skew(e) @ R_kf_cur
     for j in range(2):
         c_st[4 + j] = d + h * B[:, j]
     c_st /= np.linalg.norm(c_st, axis=1, keepdims=True)
@@ -159,13 +166,9 @@ def map_information(R_cur_kf: F64, t_cur_kf: F64, X_kf: F64, xn_cur: F64, sigma_
     R_kf_cur = R_cur_kf.T
     c = -R_kf_cur @ t_cur_kf
     h = FD_STEP
-    R_kf_st = np.repeat(R_kf_cur[None], 7, axis=0)
+    R_kf_st = _rotation_steps(R_kf_cur, 7, 4)
     c_st = np.repeat(c[None], 7, axis=0)
-    for i in range(3):
-        e = np.zeros(3)
-        e[i] = h
-        c_st[1 + i] = c + e
-        R_kf_st[4 + i] = R_kf_cur + skew(e) @ R_kf_cur
+    c_st[1:4] += np.eye(3) * h
     Xc = np.einsum("kji,knj->kni", R_kf_st, X[None] - c_st[:, None, :])  # R_cur_kf (X - c) per pose
     if not np.all(Xc[0, :, 2] > 0):
         keep = Xc[0, :, 2] > 0
