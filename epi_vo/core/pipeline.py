@@ -407,7 +407,7 @@ class VoPipeline:
         if not self._window.due():
             return
         t0 = time.perf_counter()
-        update = self._window.adjust(float(kf.camera.K[0, 0]))
+        update = self._window.adjust(float(kf.camera.K[0, 0]), self._mover_ids)
         st.timings["window"] = _ms(t0)
         if update is None:
             return

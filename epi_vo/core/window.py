@@ -106,12 +106,13 @@ class WindowedMap:
         """An adjustment is due: enough keyframes in the window and ``every`` added since the last."""
         return self.size > 0 and len(self._entries) >= 3 and self._since >= self.every
 
-    def adjust(self, fx: float) -> WindowUpdate | None:
-        """Adjust the window; None when it cannot be (too few shared tracks, the optimiser refused)."""
+    def adjust(self, fx: float, exclude_ids: I64 | None = None) -> WindowUpdate | None:
+        """Adjust the window; None when it cannot be (too few shared tracks, the optimiser refused).
+        Tracks ``exclude_ids`` (judged to move on their own) are left out."""
         self._since = 0
         entries = list(self._entries)
         assert self._bundle is not None
-        window, point_ids = _build(self._bundle, entries, self.sigma_px, fx)
+        window, point_ids = _build(self._bundle, entries, self.sigma_px, fx, exclude_ids)
         if window is None:
             return None
         result = self._bundle.adjust(window)
@@ -139,12 +140,15 @@ class WindowedMap:
                             len(entries), result.ms, cov)
 
 
-def _build(bundle_module: ModuleType, entries: list[_Entry], sigma_px: float, fx: float
-           ) -> tuple[bundle.Window | None, I64]:
-    """The bundle window of these keyframes: tracks seen by two or more of them that have a depth."""
+def _build(bundle_module: ModuleType, entries: list[_Entry], sigma_px: float, fx: float,
+           exclude_ids: I64 | None = None) -> tuple[bundle.Window | None, I64]:
+    """The bundle window of these keyframes: tracks seen by two or more of them that have a depth
+    (except ``exclude_ids``)."""
     all_ids = np.concatenate([e.ids for e in entries])
     uniq, counts = np.unique(all_ids, return_counts=True)
     shared = uniq[counts >= 2]
+    if exclude_ids is not None and exclude_ids.size:
+        shared = np.setdiff1d(shared, exclude_ids)
     # Initial point of each shared track: from the newest keyframe that has a depth for it.
     points: dict[int, F64] = {}
     for e in reversed(entries):

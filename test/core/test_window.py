@@ -227,3 +227,30 @@ def test_window_covariance_chains_the_oldest_keyframes_uncertainty() -> None:
     # Position: 1 cm^2 plus the lever arm of a 0.5 deg rotation error about the two other axes.
     expected = 1e-4 + math.radians(0.5) ** 2 * (lever @ lever - lever**2)
     np.testing.assert_allclose(added[:3], expected, rtol=1e-6)
+
+
+def test_window_leaves_out_tracks_judged_to_move() -> None:
+    # 40 of the 120 tracks belong to an object that moved 0.3 m between the keyframes. Left out by id,
+    # they do not enter the adjustment at all, and the newest keyframe comes out closer to the truth.
+    poses, pts = _scene()
+    ids_all = np.arange(pts.shape[0])
+    movers = ids_all[:40]
+    errors, counts = [], []
+    for exclude in (None, movers):
+        rng = np.random.default_rng(5)
+        win = WindowedMap(size=5, every=1, sigma_px=1.0)
+        for k, T in enumerate(poses):
+            ids = ids_all[(ids_all + k) % 7 != 0]
+            moved = pts.copy()
+            moved[movers] += np.array([0.3, 0.0, 0.1]) * k  # the object drives on
+            xn, X = _entry(T, moved, ids, rng, noise=0.03)
+            T_start = T.copy()
+            if k == len(poses) - 1:
+                T_start[:3, 3] += np.array([0.05, -0.03, 0.04])
+            win.add(T_start, ids, xn, X)
+        update = win.adjust(500.0, exclude)
+        assert update is not None
+        errors.append(float(np.linalg.norm(update.T_w_kf[:3, 3] - poses[-1][:3, 3])))
+        counts.append(update.n_points)
+    assert counts[1] <= counts[0] - 35  # the movers' tracks are gone
+    assert errors[1] < 0.02 and errors[1] < errors[0]
