@@ -148,7 +148,8 @@ class MotionStage:
         return Motion(TrackingState.STATIC, np.eye(3), np.zeros(3), covm.block(1e-6, rot_cov), still)
 
     def _from_essential(self, ctx: MotionContext, E: F64, in_e: NDArray[np.bool_], st: FrameStats,
-                        suspect: str = MOVER_SUSPECT) -> Motion | None:
+                        plane: bool = False) -> Motion | None:
+        """E's pose (``plane``: asked although H won RH, a plane dominates the view)."""
         cfg = self.cfg
         kf = ctx.kf
         uv_kf, xn_kf, xn_cur = kf.uv[ctx.rows], kf.xn[ctx.rows], ctx.xn_cur
@@ -162,7 +163,7 @@ class MotionStage:
         rot_cov = covm.rotation_var(cfg.score_sigma_px, K[0, 0], st.n_inliers)
         if not self.has_map(kf):
             return self._initialize(ctx, R, t_dir, inl, st, "essential matrix")
-        return self._track_with_map(ctx, R, t_dir, inl, st, rot_cov, suspect)
+        return self._track_with_map(ctx, R, t_dir, inl, st, rot_cov, plane)
 
     def _from_homography(self, ctx: MotionContext, sel: ModelSelection, st: FrameStats) -> Motion | None:
         assert sel.H is not None and sel.inliers_h is not None
@@ -221,7 +222,7 @@ class MotionStage:
             st.model = Model.ESSENTIAL
             st.reasons.append(f"plane-dominated view (RH {st.rh:.2f}) with parallax: E's pose, checked against "
                               "the map")
-            return self._from_essential(ctx, sel.E, sel.inliers_e, st, suspect=PLANE_SUSPECT)
+            return self._from_essential(ctx, sel.E, sel.inliers_e, st, plane=True)
         st.reasons.append(f"planar or low-parallax view (RH {st.rh:.2f}): pose from map points")
         return self._track_with_map(ctx, R_h, None, in_h, st, rot_cov)
 
@@ -278,7 +279,7 @@ class MotionStage:
         return Motion(TrackingState.TRACKING, R, t, cov, inl, new_map=full)
 
     def _track_with_map(self, ctx: MotionContext, R: F64, t_dir: F64 | None, inl: NDArray[np.bool_],
-                        st: FrameStats, rot_cov: float, suspect: str = MOVER_SUSPECT) -> Motion | None:
+                        st: FrameStats, rot_cov: float, plane: bool = False) -> Motion | None:
         """Pose with the map's scale.
 
         E chosen with enough parallax: E's rotation and direction, scaled by the map points (robust 1-D
@@ -307,10 +308,10 @@ class MotionStage:
             dir_var = (cfg.score_sigma_px / (K[0, 0] * par_rad)) ** 2 / n
             scale_var = est.rel_spread**2 / max(est.n_used, 1)
             trans_var = est.scale**2 * (dir_var + scale_var)
-            disagree = self._map_disagrees(ctx, X, R, t0, st, suspect)
+            disagree = self._map_disagrees(ctx, X, R, t0, st, plane)
             if disagree is None:
                 cov = self._essential_cov(ctx, R, t_dir, inl, X, has_depth, est, covm.block(trans_var, rot_cov))
-                if suspect == PLANE_SUSPECT:
+                if plane:
                     cov = self._with_map_information(ctx, R, t0, X[has_depth], xn_cur[has_depth], cov)
                 return Motion(TrackingState.TRACKING, R, t0, cov, inl)
             # E's consensus was taken by something moving: the map's points, from the previous pose, decide.
@@ -378,7 +379,7 @@ class MotionStage:
         return cov if fused is None else fused
 
     def _map_disagrees(self, ctx: MotionContext, X: F64, R_e: F64, t_e: F64, st: FrameStats,
-                       suspect: str = MOVER_SUSPECT) -> NDArray[np.bool_] | None:
+                       plane: bool = False) -> NDArray[np.bool_] | None:
         """None when the map's points agree with E's rotation and direction of travel; else the map points
         that agree with the pose they give on their own (started from the previous frame's pose), and the
         reason is noted.
@@ -411,7 +412,7 @@ class MotionStage:
         if angle <= cfg.e_map_max_rotation_diff_deg and direction <= E_MAP_MAX_DIRECTION_DIFF_DEG:
             return None
         st.reasons.append(f"E disagrees with the map's points by {angle:.2f} deg in rotation, {direction:.0f} deg "
-                          f"in direction ({suspect}): pose from the map")
+                          f"in direction ({PLANE_SUSPECT if plane else MOVER_SUSPECT}): pose from the map")
         agree = np.zeros(depth.shape[0], bool)
         agree[np.flatnonzero(depth)[refined[2]]] = True
         return agree

@@ -94,7 +94,6 @@ class VoPipeline:
         self._anchor: sc.WindowAnchor | None = None  # the scale source's anchor of the newest keyframe step
         self._rel_prev: tuple[int, F64] | None = None  # keyframe stamp and relative covariance of the last pose
         self._last_pos_w = np.zeros(3)  # position of the last frame with a pose (for the step's scale error)
-        self._map_kf0 = 0  # keyframe count when the current map began
         self._jumped = False  # this frame's position jumped to metres (metric scale just established)
         self._T_w_c = np.eye(4)
         self._cov_w_c = np.zeros((6, 6))
@@ -427,7 +426,6 @@ class VoPipeline:
         if motion.new_map is not None:
             self._map_origin_w = kf.T_w_kf[:3, 3].copy()
             self._map_origin_cov = kf.cov_w_kf.copy()
-            self._map_kf0 = self._n_keyframes
             self._scale.on_new_map()
         was_metric = self._scale.established
         step = sc.KeyframeStep(X_cur, float(np.linalg.norm(t)), kf.stamp_ns, stamp_ns)
@@ -491,7 +489,6 @@ class VoPipeline:
                            None)
         self._map_origin_w = self._T_w_c[:3, 3].copy()
         self._map_origin_cov = cov.copy()
-        self._map_kf0 = self._n_keyframes
         self._last_pos_w = self._T_w_c[:3, 3].copy()
         st.timings["frontend"] = _ms(t0)
         self._cov_w_c = cov
@@ -507,7 +504,6 @@ class VoPipeline:
                            orb_cur)
         self._map_origin_w = self._T_w_c[:3, 3].copy()
         self._map_origin_cov = cov.copy()
-        self._map_kf0 = self._n_keyframes
         self._last_pos_w = self._T_w_c[:3, 3].copy()
         self._fail_count = 0
 
