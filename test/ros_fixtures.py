@@ -174,3 +174,35 @@ def replay_odometry(bag: Any, out: Any) -> dict[int, Any]:
     odo = read_odometry(out / "output.mcap")
     return {int(t): np.concatenate([p, q]) for t, p, q in zip(odo.stamps_ns, odo.positions, odo.quats_xyzw,
                                                              strict=True)}
+
+
+PROBE_WAIT_S = 120.0  # bound on a probe's wait for another process or DDS (only matters if it never comes)
+
+
+class ProbeBase:
+    """A test-side node with its own executor, subscribed to the VO's odometry and diagnostics (reliable,
+    deep queues: nothing may be lost). The tests' probes add the publishers, subscriptions and clients
+    they need, with ``self.qos``."""
+
+    def __init__(self, ros: RosSession, name: str, namespace: str = "") -> None:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from nav_msgs.msg import Odometry
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+        self.node = rclpy.create_node(name, namespace=namespace or None, context=ros.context)
+        self.executor = SingleThreadedExecutor(context=ros.context)
+        self.executor.add_node(self.node)
+        self.qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        self.odom: list[Any] = []
+        self.diag: list[Any] = []
+        self.node.create_subscription(Odometry, "vo/odometry", self.odom.append, self.qos)
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self.diag.append, self.qos)
+
+    def spin_until(self, predicate: Callable[[], bool], timeout_s: float = PROBE_WAIT_S) -> bool:
+        return spin_until(self.executor, predicate, timeout_s)
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()

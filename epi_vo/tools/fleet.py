@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from epi_vo.core.config import VoConfig
-from epi_vo.core.errors import BagError, EpiVoError, Interrupted, OutputError
+from epi_vo.core.errors import BagError, EpiVoError, Interrupted
 from epi_vo.tools.fleet_summary import (
     REPORT_HTML,
     STATUS_FILE,
@@ -51,7 +51,7 @@ from epi_vo.tools.fleet_summary import (
     write_json_atomic,
     write_summary,
 )
-from epi_vo.tools.replay import ReplaySummary, StopRequest, run_replay, stop_on_signals
+from epi_vo.tools.replay import ReplaySummary, StopRequest, ensure_output_dir, run_replay, stop_on_signals
 
 _log = logging.getLogger(__name__)
 
@@ -340,13 +340,7 @@ def run_fleet(bags: Sequence[Path], output_dir: str | Path, cfg: VoConfig, *, jo
     Raises:
         OutputError: the output directory cannot be created or the summary not written.
     """
-    out = Path(output_dir)
-    if out.exists() and not out.is_dir():
-        raise OutputError(f"output {out} exists and is not a directory")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OutputError(f"cannot create the output directory {out}: {exc.strerror or exc}") from None
+    out = ensure_output_dir(output_dir)
     names = output_names(bags)
     # Absolute bag paths: stats.json then names the bag whatever the directory a later run starts from.
     todo = [FleetJob(i, name, str(bag.absolute()), str(out / name), cfg, image_topic, camera_info_topic, report,

@@ -151,7 +151,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     """
     started = time.perf_counter()
     cfg = cfg or VoConfig()
-    out = _output_dir(output_dir)
+    out = ensure_output_dir(output_dir)
     _remove_stats(out)  # stats.json is written last: without it the directory holds no finished replay
     pipeline = VoPipeline(cfg)
     converter = OdometryConverter()
@@ -306,7 +306,7 @@ def _os_reason(exc: OSError) -> str:
     return f"{exc.strerror or exc}{where}"
 
 
-def _output_dir(output_dir: str | Path) -> Path:
+def ensure_output_dir(output_dir: str | Path) -> Path:
     """The output directory, created if needed; OutputError naming the problem when it cannot be."""
     out = Path(output_dir)
     if out.exists() and not out.is_dir():

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from ros_fixtures import NodeProcess, RosSession, odom_pose, rclpy_session, replay_odometry, spin_until
+from ros_fixtures import NodeProcess, ProbeBase, RosSession, odom_pose, rclpy_session, replay_odometry
 
 from epi_vo.io.msgconv import stamp_to_ns
 
@@ -40,36 +40,21 @@ def ros() -> Iterator[RosSession]:
 LIFECYCLE = "epi_vo.ros.lifecycle_node"
 
 
-class Probe:
+class Probe(ProbeBase):
     """The test side: lifecycle and parameter clients of /vo_node, subscriptions to its outputs, camera
     publishers (reliable, deep queues: nothing may be lost)."""
 
     def __init__(self, ros: RosSession, name: str) -> None:
-        import rclpy
-        from diagnostic_msgs.msg import DiagnosticArray
         from lifecycle_msgs.srv import ChangeState, GetState
-        from nav_msgs.msg import Odometry
         from rcl_interfaces.srv import SetParameters
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.qos import QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import CameraInfo, CompressedImage
 
-        self.node = rclpy.create_node(name, context=ros.context)
-        self.executor = SingleThreadedExecutor(context=ros.context)
-        self.executor.add_node(self.node)
-        qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-        self.odom: list[Any] = []
-        self.diag: list[Any] = []
-        self.node.create_subscription(Odometry, "vo/odometry", self.odom.append, qos)
-        self.node.create_subscription(DiagnosticArray, "/diagnostics", self.diag.append, qos)
-        self.pub_img = self.node.create_publisher(CompressedImage, "camera/image_raw/compressed", qos)
-        self.pub_info = self.node.create_publisher(CameraInfo, "camera/camera_info", qos)
+        super().__init__(ros, name)
+        self.pub_img = self.node.create_publisher(CompressedImage, "camera/image_raw/compressed", self.qos)
+        self.pub_info = self.node.create_publisher(CameraInfo, "camera/camera_info", self.qos)
         self.change_client = self.node.create_client(ChangeState, "/vo_node/change_state")
         self.get_client = self.node.create_client(GetState, "/vo_node/get_state")
         self.set_client = self.node.create_client(SetParameters, "/vo_node/set_parameters")
-
-    def spin_until(self, predicate: Callable[[], bool], timeout_s: float = WAIT_S) -> bool:
-        return spin_until(self.executor, predicate, timeout_s)
 
     def call(self, client: Any, request: Any) -> Any:
         assert client.wait_for_service(timeout_sec=WAIT_S), client.srv_name
@@ -130,10 +115,6 @@ class Probe:
             self.pub_info.publish(info)
             self.pub_img.publish(img)
             self.executor.spin_once(timeout_sec=0.03)
-
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.node.destroy_node()
 
 
 def _level(status: Any) -> int:

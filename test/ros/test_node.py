@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from ros_fixtures import NodeProcess, RosSession, odom_pose, rclpy_session, replay_odometry, spin_until
+from ros_fixtures import NodeProcess, ProbeBase, RosSession, odom_pose, rclpy_session, replay_odometry
 
 REPO = Path(__file__).resolve().parents[2]
 BAG = REPO / "bags" / "general_motion" / "bag"
@@ -31,44 +31,26 @@ def ros() -> Iterator[RosSession]:
         yield session
 
 
-class Probe:
-    """A test-side node subscribing to the VO outputs (reliable, deep queues: nothing may be lost)."""
+class Probe(ProbeBase):
+    """A test-side node subscribing to the VO outputs: odometry and diagnostics, points and path."""
 
     def __init__(self, ros: RosSession, name: str) -> None:
-        import rclpy
-        from diagnostic_msgs.msg import DiagnosticArray
-        from nav_msgs.msg import Odometry, Path
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from nav_msgs.msg import Path
         from sensor_msgs.msg import PointCloud2
 
-        self.node = rclpy.create_node(name, context=ros.context)
-        self.executor = SingleThreadedExecutor(context=ros.context)
-        self.executor.add_node(self.node)
-        qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-        self.odom: list[Any] = []
-        self.diag: list[Any] = []
+        super().__init__(ros, name)
         self.points: list[Any] = []
         self.paths: list[Any] = []
-        self.node.create_subscription(Odometry, "vo/odometry", self.odom.append, qos)
-        self.node.create_subscription(DiagnosticArray, "/diagnostics", self.diag.append, qos)
-        self.node.create_subscription(PointCloud2, "vo/points", self.points.append, qos)
-        self.node.create_subscription(Path, "vo/path", self.paths.append, qos)
+        self.node.create_subscription(PointCloud2, "vo/points", self.points.append, self.qos)
+        self.node.create_subscription(Path, "vo/path", self.paths.append, self.qos)
 
     def wait_for_node(self, timeout_s: float = WAIT_S) -> bool:
-        return spin_until(self.executor, lambda: self.node.count_publishers("vo/odometry") > 0, timeout_s)
-
-    def spin_until(self, predicate: Any, timeout_s: float = WAIT_S) -> bool:
-        return spin_until(self.executor, predicate, timeout_s)
+        return self.spin_until(lambda: self.node.count_publishers("vo/odometry") > 0, timeout_s)
 
     def frame_statuses(self) -> list[Any]:
         """Per-frame tracking statuses (the watchdog's 'stalled' ones excluded)."""
         return [s for a in self.diag for s in a.status
                 if s.name.endswith(": tracking") and not s.message.startswith("stalled")]
-
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.node.destroy_node()
 
 
 def _play(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]:

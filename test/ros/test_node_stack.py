@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from ros_fixtures import NodeProcess, RosSession, rclpy_session, spin_until
+from ros_fixtures import NodeProcess, ProbeBase, RosSession, rclpy_session
 
 REPO = Path(__file__).resolve().parents[2]
 BAG = REPO / "bags" / "general_motion" / "bag"
@@ -124,32 +124,17 @@ def test_transform_message_to_matrix() -> None:
 
 
 # -- helpers for the DDS tests -----------------------------------------------------------------------------------
-class Probe:
+class Probe(ProbeBase):
     """A test-side node: camera publishers and subscriptions to the VO outputs (reliable, deep queues)."""
 
     def __init__(self, ros: RosSession, name: str, namespace: str = "") -> None:
-        import rclpy
-        from diagnostic_msgs.msg import DiagnosticArray
-        from nav_msgs.msg import Odometry
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.qos import QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import CameraInfo, CompressedImage, PointCloud2
 
-        self.node = rclpy.create_node(name, namespace=namespace or None, context=ros.context)
-        self.executor = SingleThreadedExecutor(context=ros.context)
-        self.executor.add_node(self.node)
-        qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-        self.odom: list[Any] = []
-        self.diag: list[Any] = []
+        super().__init__(ros, name, namespace)
         self.points: list[Any] = []
-        self.node.create_subscription(Odometry, "vo/odometry", self.odom.append, qos)
-        self.node.create_subscription(DiagnosticArray, "/diagnostics", self.diag.append, qos)
-        self.node.create_subscription(PointCloud2, "vo/points", self.points.append, qos)
-        self.pub_img = self.node.create_publisher(CompressedImage, "camera/image_raw/compressed", qos)
-        self.pub_info = self.node.create_publisher(CameraInfo, "camera/camera_info", qos)
-
-    def spin_until(self, predicate: Any, timeout_s: float = WAIT_S) -> bool:
-        return spin_until(self.executor, predicate, timeout_s)
+        self.node.create_subscription(PointCloud2, "vo/points", self.points.append, self.qos)
+        self.pub_img = self.node.create_publisher(CompressedImage, "camera/image_raw/compressed", self.qos)
+        self.pub_info = self.node.create_publisher(CameraInfo, "camera/camera_info", self.qos)
 
     def statuses(self, suffix: str) -> list[Any]:
         return [s for a in self.diag for s in a.status if s.name.endswith(suffix)]
@@ -169,10 +154,6 @@ class Probe:
             self.pub_info.publish(info)
             self.pub_img.publish(img)
             self.executor.spin_once(timeout_sec=0.02)
-
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.node.destroy_node()
 
 
 def _frames(n: int) -> list[tuple[Any, Any]]:
