@@ -32,6 +32,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -206,3 +207,36 @@ class ProbeBase:
     def close(self) -> None:
         self.executor.shutdown()
         self.node.destroy_node()
+
+
+def bag_frame_count(bag: Path) -> int:
+    """How many camera frames the bag holds."""
+    from epi_vo.io import bagio
+
+    with bagio.open_camera_bag(bag) as b:
+        return b.frame_count
+
+
+def bag_frames_rclpy(bag: Path, n: int, shift_s: int = 0) -> list[tuple[Any, Any]]:
+    """The first n (CompressedImage, CameraInfo) pairs of the bag as rclpy messages (via CDR), header stamps
+    shifted by ``shift_s`` seconds."""
+    from rclpy.serialization import deserialize_message
+    from rosbags.typesys import Stores, get_typestore
+    from sensor_msgs.msg import CameraInfo, CompressedImage
+
+    from epi_vo.io import bagio
+
+    ts = get_typestore(Stores.ROS2_JAZZY)
+
+    def conv(msg: Any, kind: Any) -> Any:
+        out = deserialize_message(bytes(ts.serialize_cdr(msg, msg.__msgtype__)), kind)
+        out.header.stamp.sec += shift_s
+        return out
+
+    frames = []
+    with bagio.open_camera_bag(bag) as b:
+        for f in b.iter_frames():
+            if f.index >= n:
+                break
+            frames.append((conv(f.image_msg, CompressedImage), conv(f.camera_info_msg, CameraInfo)))
+    return frames

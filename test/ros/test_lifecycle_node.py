@@ -19,7 +19,16 @@ from typing import Any
 
 import numpy as np
 import pytest
-from ros_fixtures import NodeProcess, ProbeBase, RosSession, odom_pose, rclpy_session, replay_odometry
+from ros_fixtures import (
+    NodeProcess,
+    ProbeBase,
+    RosSession,
+    bag_frame_count,
+    bag_frames_rclpy,
+    odom_pose,
+    rclpy_session,
+    replay_odometry,
+)
 
 from epi_vo.io.msgconv import stamp_to_ns
 
@@ -127,37 +136,6 @@ def _play(env: dict[str, str], *args: str) -> None:
     assert played.returncode == 0, played.stderr
 
 
-def _bag_frames() -> int:
-    from epi_vo.io import bagio
-
-    with bagio.open_camera_bag(BAG) as bag:
-        return bag.frame_count
-
-
-def _frames(n: int, shift_s: int = 0) -> list[tuple[Any, Any]]:
-    """The first n (CompressedImage, CameraInfo) pairs of the bag as rclpy messages, stamps shifted by shift_s."""
-    from rclpy.serialization import deserialize_message
-    from rosbags.typesys import Stores, get_typestore
-    from sensor_msgs.msg import CameraInfo, CompressedImage
-
-    from epi_vo.io import bagio
-
-    ts = get_typestore(Stores.ROS2_JAZZY)
-
-    def conv(msg: Any, kind: Any) -> Any:
-        out = deserialize_message(bytes(ts.serialize_cdr(msg, msg.__msgtype__)), kind)
-        out.header.stamp.sec += shift_s
-        return out
-
-    out = []
-    with bagio.open_camera_bag(BAG) as bag:
-        for f in bag.iter_frames():
-            if f.index >= n:
-                break
-            out.append((conv(f.image_msg, CompressedImage), conv(f.camera_info_msg, CameraInfo)))
-    return out
-
-
 @pytest.fixture(scope="module")
 def offline(tmp_path_factory: pytest.TempPathFactory) -> dict[int, np.ndarray]:
     """Odometry of the offline replay of the same bag, by stamp."""
@@ -179,10 +157,10 @@ def _assert_equals_offline(odom: list[Any], offline: dict[int, np.ndarray], n: i
 def test_configure_activate_deactivate_cleanup_shutdown(ros: RosSession, offline: dict[int, np.ndarray]) -> None:
     from lifecycle_msgs.msg import Transition
 
-    n = _bag_frames()
+    n = bag_frame_count(BAG)
     probe = Probe(ros, "probe_lifecycle")
-    still = _frames(10)  # published by the probe while the node is inactive
-    later = _frames(20, shift_s=100)  # after a deactivate / activate: the same scene 100 s later
+    still = bag_frames_rclpy(BAG, 10)  # published by the probe while the node is inactive
+    later = bag_frames_rclpy(BAG, 20, shift_s=100)  # after a deactivate / activate: the same scene 100 s later
     try:
         with NodeProcess(ros.env, *PLAYBACK_ARGS, module=LIFECYCLE) as node:
             # Unconfigured: the lifecycle services and a summary, no VO endpoints.

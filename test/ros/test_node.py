@@ -14,7 +14,16 @@ from typing import Any
 
 import numpy as np
 import pytest
-from ros_fixtures import NodeProcess, ProbeBase, RosSession, odom_pose, rclpy_session, replay_odometry
+from ros_fixtures import (
+    NodeProcess,
+    ProbeBase,
+    RosSession,
+    bag_frame_count,
+    bag_frames_rclpy,
+    odom_pose,
+    rclpy_session,
+    replay_odometry,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 BAG = REPO / "bags" / "general_motion" / "bag"
@@ -58,13 +67,6 @@ def _play(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]:
                           capture_output=True, text=True, timeout=2 * WAIT_S)
 
 
-def _bag_frames() -> int:
-    from epi_vo.io import bagio
-
-    with bagio.open_camera_bag(BAG) as bag:
-        return bag.frame_count
-
-
 @pytest.fixture(scope="module")
 def offline(tmp_path_factory: pytest.TempPathFactory) -> dict[int, np.ndarray]:
     """Odometry of the offline replay of the same bag, by stamp."""
@@ -73,7 +75,7 @@ def offline(tmp_path_factory: pytest.TempPathFactory) -> dict[int, np.ndarray]:
 
 
 def test_live_playback_equals_offline_replay(ros: RosSession, offline: dict[int, np.ndarray]) -> None:
-    n = _bag_frames()
+    n = bag_frame_count(BAG)
     probe = Probe(ros, "probe_playback")
     try:
         with NodeProcess(ros.env, *PLAYBACK_ARGS) as node:
@@ -127,7 +129,7 @@ def _assert_points_in_front(probe: Probe) -> None:
 def test_reset_service_mid_stream_continues_from_last_pose(ros: RosSession) -> None:
     from std_srvs.srv import Trigger
 
-    n = _bag_frames()
+    n = bag_frame_count(BAG)
     probe = Probe(ros, "probe_reset")
     client = probe.node.create_client(Trigger, "vo/reset")
 
@@ -195,7 +197,7 @@ def test_late_camera_info_and_params_file(ros: RosSession, tmp_path: Path) -> No
     probe.node.create_subscription(Image, "vo/debug_image", debug_images.append,
                                    QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
     pub_img, pub_info = _camera_publishers(probe)
-    frames = _rclpy_frames(12)
+    frames = bag_frames_rclpy(BAG, 12)
     try:
         with NodeProcess(ros.env, "--params-file", str(params)) as node:
             assert probe.wait_for_node(), node.proc.stderr
@@ -234,25 +236,10 @@ def _wait_matched(probe: Probe, pub_img: Any, pub_info: Any) -> None:
     probe.spin_until(lambda: False, 0.3)
 
 
-def _rclpy_frames(n: int) -> list[tuple[Any, Any]]:
-    """The first n (image, camera_info) pairs of the bag as rclpy messages."""
-    from sensor_msgs.msg import CameraInfo, CompressedImage
-
-    from epi_vo.io import bagio
-
-    frames = []
-    with bagio.open_camera_bag(BAG) as bag:
-        for f in bag.iter_frames():
-            if f.index >= n:
-                break
-            frames.append((_to_rclpy(f.image_msg, CompressedImage), _to_rclpy(f.camera_info_msg, CameraInfo)))
-    return frames
-
-
 def test_equal_and_backward_stamps_are_reported_and_odometry_stays_continuous(ros: RosSession) -> None:
     probe = Probe(ros, "probe_stamps")
     pub_img, pub_info = _camera_publishers(probe)
-    frames = _rclpy_frames(30)
+    frames = bag_frames_rclpy(BAG, 30)
     # 0..19, then frame 19 again (equal stamp), then frames 20..29 stamped 5 s in the past.
     sequence = [*frames[:20], frames[19]]
     for img, info in frames[20:]:
@@ -283,7 +270,7 @@ def test_equal_and_backward_stamps_are_reported_and_odometry_stays_continuous(ro
 def test_live_mode_drops_oldest_frames_and_counts_them(ros: RosSession) -> None:
     probe = Probe(ros, "probe_drops")
     pub_img, pub_info = _camera_publishers(probe)
-    frames = _rclpy_frames(40)
+    frames = bag_frames_rclpy(BAG, 40)
     try:
         with NodeProcess(ros.env, "-p", "image_transport:=compressed", "-p", "qos_reliability:=reliable",
                          "-p", "qos_depth:=100", "-p", "queue_size:=1") as node:
@@ -327,15 +314,6 @@ def _to_rclpy_copy(msg: Any) -> Any:
     from rclpy.serialization import deserialize_message, serialize_message
 
     return deserialize_message(serialize_message(msg), type(msg))
-
-
-def _to_rclpy(msg: Any, msg_type: Any) -> Any:
-    """A rosbags message as the rclpy message of the same type (via CDR)."""
-    from rclpy.serialization import deserialize_message
-    from rosbags.typesys import Stores, get_typestore
-
-    ts = get_typestore(Stores.ROS2_JAZZY)
-    return deserialize_message(bytes(ts.serialize_cdr(msg, msg.__msgtype__)), msg_type)
 
 
 def test_bad_parameters_are_refused_with_every_name(ros: RosSession) -> None:
@@ -390,7 +368,7 @@ def test_bad_frames_and_a_stalled_camera_keep_the_node_up(ros: RosSession) -> No
     resume, tracking comes back."""
     probe = Probe(ros, "probe_bad")
     pub_img, pub_info = _camera_publishers(probe)
-    frames = _rclpy_frames(40)
+    frames = bag_frames_rclpy(BAG, 40)
     good = frames[:15]
     bad = []
     for i, (img, info) in enumerate(frames[15:18]):
@@ -476,7 +454,7 @@ def test_raw_image_inputs_good_and_bad(ros: RosSession) -> None:
     qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
     pub_img = probe.node.create_publisher(Image, "camera/image_raw", qos)
     pub_info = probe.node.create_publisher(CameraInfo, "camera/camera_info", qos)
-    src = _rclpy_frames(24)
+    src = bag_frames_rclpy(BAG, 24)
     grays = [decode_frame(img, True) for img, _ in src]
 
     def info_of(i: int, **change: Any) -> Any:

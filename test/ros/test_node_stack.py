@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from ros_fixtures import NodeProcess, ProbeBase, RosSession, rclpy_session
+from ros_fixtures import NodeProcess, ProbeBase, RosSession, bag_frames_rclpy, rclpy_session
 
 REPO = Path(__file__).resolve().parents[2]
 BAG = REPO / "bags" / "general_motion" / "bag"
@@ -156,28 +156,6 @@ class Probe(ProbeBase):
             self.executor.spin_once(timeout_sec=0.02)
 
 
-def _frames(n: int) -> list[tuple[Any, Any]]:
-    """The first n (CompressedImage, CameraInfo) pairs of the bag as rclpy messages."""
-    from rclpy.serialization import deserialize_message
-    from rosbags.typesys import Stores, get_typestore
-    from sensor_msgs.msg import CameraInfo, CompressedImage
-
-    from epi_vo.io import bagio
-
-    ts = get_typestore(Stores.ROS2_JAZZY)
-
-    def conv(msg: Any, kind: Any) -> Any:
-        return deserialize_message(bytes(ts.serialize_cdr(msg, msg.__msgtype__)), kind)
-
-    out = []
-    with bagio.open_camera_bag(BAG) as bag:
-        for f in bag.iter_frames():
-            if f.index >= n:
-                break
-            out.append((conv(f.image_msg, CompressedImage), conv(f.camera_info_msg, CameraInfo)))
-    return out
-
-
 def _values(status: Any) -> dict[str, str]:
     return {kv.key: kv.value for kv in status.values}
 
@@ -243,7 +221,7 @@ def test_node_waits_for_tf_says_so_then_uses_it(ros: RosSession) -> None:
     node = _in_process_node(ros, buf, tf_timeout_s=600.0)
     probe = Probe(ros, "probe_tf_wait")
     probe.executor.add_node(node)
-    frames = _frames(25)
+    frames = bag_frames_rclpy(BAG, 25)
     try:
         probe.send(frames[:1])
         waiting = "waiting for TF base_link <- camera_optical_frame"
@@ -272,7 +250,7 @@ def test_node_falls_back_to_the_parameters_when_tf_never_comes(ros: RosSession) 
     node = _in_process_node(ros, buf, tf_timeout_s=0.3, hardware_id="front_cam")
     probe = Probe(ros, "probe_tf_fallback")
     probe.executor.add_node(node)
-    frames = _frames(20)
+    frames = bag_frames_rclpy(BAG, 20)
     try:
         probe.send(frames)
         assert probe.spin_until(lambda: len(probe.odom) >= len(frames)), len(probe.odom)
@@ -294,7 +272,7 @@ def test_auto_transport_namespace_extrinsic_fallback_and_warnings(ros: RosSessio
     (and said); statuses are named by the fully qualified node name with the camera frame as hardware id;
     without tf2_ros the parameters give the extrinsic and publish_tf is refused, each said once at WARN."""
     probe = Probe(ros, "probe_auto", namespace="/robot1")
-    frames = _frames(15)
+    frames = bag_frames_rclpy(BAG, 15)
     try:
         with NodeProcess(ros.env, "-r", "__ns:=/robot1", "-p", "camera_xyz:=[0.2, 0.0, 0.5]",
                          "-p", "qos_reliability:=reliable", "-p", "qos_depth:=100",
@@ -349,7 +327,7 @@ def test_runtime_parameter_changes_are_validated_and_applied_at_the_next_frame(r
     probe = Probe(ros, "probe_params")
     set_client = probe.node.create_client(SetParameters, "/vo_node/set_parameters")
     get_client = probe.node.create_client(GetParameters, "/vo_node/get_parameters")
-    frames = _frames(40)
+    frames = bag_frames_rclpy(BAG, 40)
     try:
         with NodeProcess(ros.env, "-p", "image_transport:=compressed", "-p", "process_every_frame:=true",
                          "-p", "qos_reliability:=reliable", "-p", "qos_depth:=100") as node:
