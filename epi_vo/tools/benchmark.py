@@ -38,7 +38,7 @@ from epi_vo.io import bagio, tum
 from epi_vo.io.msgconv import decode_frame
 from epi_vo.io.odometry_bag import read_odometry
 from epi_vo.io.params import load_config
-from epi_vo.tools.evaluation import NeesResult, evaluate_trajectory, replay_nees
+from epi_vo.tools.evaluation import NeesResult, StampedPoses, evaluate_trajectory, metric_poses, replay_nees
 from epi_vo.tools.reference import ReferencePipeline
 from epi_vo.tools.replay import run_replay
 from epi_vo.tools.twist_consistency import TwistNees, replay_twist_nees
@@ -103,12 +103,13 @@ def _moving_frames(positions: np.ndarray) -> int:
 
 
 def _metrics_row(name: str, pipeline: str, frames: int, n_pose: int, ms: float, stamps: np.ndarray,
-                 positions: np.ndarray, quats: np.ndarray, gt: tuple[np.ndarray, np.ndarray, np.ndarray]
-                 ) -> BenchRow:
+                 positions: np.ndarray, quats: np.ndarray, gt: tuple[np.ndarray, np.ndarray, np.ndarray],
+                 evaluated: StampedPoses | None = None) -> BenchRow:
+    """One table row; the trajectory metrics over ``evaluated`` (default: every pose)."""
     gt_len = float(np.sum(np.linalg.norm(np.diff(gt[1], axis=0), axis=1)))
     ate = rpe = tdir = step_scale = ate_se3 = math.nan
     try:
-        m = evaluate_trajectory((stamps, positions, quats), gt)
+        m = evaluate_trajectory(evaluated if evaluated is not None else (stamps, positions, quats), gt)
         ate, rpe, tdir = m.ate_percent_of_path, m.rpe_rot_deg_per_frame, m.trans_direction_err_deg
         step_scale, ate_se3 = m.step_scale_median, m.ate_se3_percent_of_path
     except EpiVoError:
@@ -124,10 +125,13 @@ def bench_epi_vo(name: str, bag: Path, gt_path: Path, cfg: VoConfig, label: str 
     with tempfile.TemporaryDirectory() as tmp:
         summary = run_replay(bag, tmp, cfg)
         stamps, positions, quats = tum.read_tum(Path(tmp) / "trajectory.tum")
-        nees = _nees(Path(tmp), gt)
-        twist = _twist_nees(Path(tmp), gt)
+        records = [json.loads(line) for line in (Path(tmp) / "frames.jsonl").read_text(encoding="utf-8").splitlines()
+                   if line.strip()]
+        evaluated, _ = metric_poses((stamps, positions, quats), records)  # the metric ones, once metres
+        nees = _nees(Path(tmp), records, gt)
+        twist = _twist_nees(Path(tmp), records, gt)
     row = _metrics_row(name, label, summary.frames, summary.frames_with_pose, summary.ms_per_frame,
-                       stamps, positions, quats, gt)
+                       stamps, positions, quats, gt, evaluated)
     if summary.units != "m":  # VO units: the metric figures say nothing
         row = dataclasses.replace(row, step_scale=math.nan, ate_se3_percent=math.nan)
     # end_to_end_fps: a newer ReplaySummary field; an older summary has none (n/a).
@@ -141,21 +145,17 @@ def bench_epi_vo(name: str, bag: Path, gt_path: Path, cfg: VoConfig, label: str 
     return row
 
 
-def _twist_nees(out: Path, gt: tuple[np.ndarray, np.ndarray, np.ndarray]) -> TwistNees | None:
+def _twist_nees(out: Path, records: list[dict], gt: tuple[np.ndarray, np.ndarray, np.ndarray]) -> TwistNees | None:
     """Twist covariance consistency of the replay in ``out``; None when it cannot be evaluated."""
     try:
-        records = [json.loads(line) for line in (out / "frames.jsonl").read_text(encoding="utf-8").splitlines()
-                   if line.strip()]
         return replay_twist_nees(records, read_odometry(out / "output.mcap"), gt)
     except (EpiVoError, OSError, ValueError, np.linalg.LinAlgError):
         return None
 
 
-def _nees(out: Path, gt: tuple[np.ndarray, np.ndarray, np.ndarray]) -> NeesResult | None:
+def _nees(out: Path, records: list[dict], gt: tuple[np.ndarray, np.ndarray, np.ndarray]) -> NeesResult | None:
     """Covariance consistency of the replay in ``out`` against ``gt``; None when it cannot be evaluated."""
     try:
-        records = [json.loads(line) for line in (out / "frames.jsonl").read_text(encoding="utf-8").splitlines()
-                   if line.strip()]
         return replay_nees(records, read_odometry(out / "output.mcap"), gt)
     except (EpiVoError, OSError, ValueError):
         return None

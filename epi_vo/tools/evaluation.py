@@ -75,6 +75,28 @@ class StampedPoses(NamedTuple):
     quats_xyzw: NDArray[np.float64]  # (N, 4) R_w_c as a quaternion, x, y, z, w order
 
 
+def metric_poses(est: StampedPoses | tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]],
+                 records: Sequence[dict[str, Any]]) -> tuple[StampedPoses, int]:
+    """The poses of ``est`` that the trajectory metrics judge, and how many were left out.
+
+    A run whose scale source established metres (a record with ``metric_scale``) published, before
+    that, positions held where the map started, in VO units, with a covariance that says the scale
+    is unknown: no estimate of where the camera was, and no length in metres. Its metrics (Sim(3) and
+    SE(3) ATE, step scale, RPE) are over the poses it published in metres, as the covariance
+    consistency (``replay_nees``) is; the held poses are counted. A run in VO units keeps every pose.
+    Poses are matched to ``records`` (frames.jsonl) by ``stamp_ns``.
+    """
+    stamps = np.asarray(est[0], dtype=np.float64)
+    metric_ns = {int(r["stamp_ns"]) for r in records if r.get("metric_scale") and "stamp_ns" in r}
+    if not metric_ns:
+        return StampedPoses(stamps, np.asarray(est[1]), np.asarray(est[2])), 0
+    metric_s = np.array(sorted(metric_ns), dtype=np.float64) * 1e-9
+    # Within 1 us: a TUM stamp in float seconds is not exact to the nanosecond; frames are ms apart.
+    keep = np.abs(metric_s[nearest_rows(metric_s, stamps)] - stamps) <= 1e-6
+    return (StampedPoses(stamps[keep], np.asarray(est[1])[keep], np.asarray(est[2])[keep]),
+            int(np.count_nonzero(~keep)))
+
+
 @dataclass(frozen=True)
 class TrajectoryMetrics:
     """Metrics of one estimated trajectory; NaN where a metric is undefined (see module docstring)."""

@@ -78,6 +78,9 @@ class ReplaySummary:
     scale_source: str = "none"
     units: str = "vo"  # of the trajectory at the end of the run: 'm' once a metric scale source is established
     metric_from_frame: int | None = None  # first frame whose position was metric
+    # Poses published before metric scale was established (held, VO units): not in the metrics
+    # (see epi_vo.tools.evaluation.metric_poses)
+    poses_before_metric: int = 0
     skipped_messages: list[str] = field(default_factory=list)  # camera_info / ground truth not decodable,
     # image messages announced by the bag but not read
     wall_s: float = 0.0  # run_replay from start to finish (opening the bag .. evaluation), seconds
@@ -157,6 +160,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     converter = OdometryConverter()
     cameras = CameraModelCache()
     results_pose: list[tuple[float, np.ndarray, np.ndarray]] = []
+    metric_stamps: list[dict[str, Any]] = []  # the poses published in metres (see evaluation.metric_poses)
     path_poses = _PathWindow(PATH_MAX_POSES)
     states: collections.Counter[str] = collections.Counter()
     models: collections.Counter[str] = collections.Counter()
@@ -208,6 +212,8 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                     stamp_s = result.stamp_ns * 1e-9
                     tum_f.write(f"{_tum_stamp(result.stamp_ns)} " + " ".join(f"{v:.9f}" for v in (*p, *q)) + "\n")
                     results_pose.append((stamp_s, p.copy(), q.copy()))
+                    if result.scale.metric:
+                        metric_stamps.append({"stamp_ns": result.stamp_ns, "metric_scale": True})
                     if last_pos is not None:
                         path_length += float(np.linalg.norm(p - last_pos))
                     last_pos = p.copy()
@@ -233,11 +239,11 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     elif n_frames > bag.frame_count:
         notes.append(f"the bag announces {bag.frame_count} images on {bag.image_topic}, {n_frames} were read "
                      "(its metadata understates the count)")
-    metrics, gt_source = None, ""
+    metrics, gt_source, held = None, "", 0
     if gt is not None:
         gt_source = gt[0]
         try:
-            m = _evaluate(results_pose, gt[1])
+            m, held = _evaluate(results_pose, metric_stamps, gt[1])
             metrics = asdict(m)
         except EpiVoError as exc:
             notes.append(f"evaluation skipped: {exc}")
@@ -251,7 +257,8 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
         metrics=metrics, gt_source=gt_source, output_dir=str(out), notes=notes, parameters=asdict(cfg),
         rejected=[f"{n} frame(s) from frame {first_rejected[r]}: {r}" for r, n in rejected.items()],
         rejected_frames=sum(rejected.values()), skipped_messages=skipped, scale_source=cfg.scale_source,
-        units=units, metric_from_frame=metric_from, wall_s=wall_s, end_to_end_fps=n_frames / max(wall_s, 1e-9))
+        units=units, metric_from_frame=metric_from, poses_before_metric=held, wall_s=wall_s,
+        end_to_end_fps=n_frames / max(wall_s, 1e-9))
     write_stats(out, summary)
     return summary
 
@@ -500,14 +507,17 @@ def _ground_truth(bag: bagio.CameraBag, gt_tum: str | Path | None
     return f"bag topic {bag.gt_topic}", (gt.stamps_ns * 1e-9, gt.positions, gt.quats_xyzw)
 
 
-def _evaluate(poses: list[tuple[float, np.ndarray, np.ndarray]],
-              gt: tuple[np.ndarray, np.ndarray, np.ndarray]) -> TrajectoryMetrics:
-    from epi_vo.tools.evaluation import evaluate_trajectory  # evo: imported only when there is ground truth
+def _evaluate(poses: list[tuple[float, np.ndarray, np.ndarray]], metric_stamps: list[dict[str, Any]],
+              gt: tuple[np.ndarray, np.ndarray, np.ndarray]) -> tuple[TrajectoryMetrics, int]:
+    """The metrics of the run's poses (its metric ones once it established metres) and how many poses
+    were left out (held before metric scale)."""
+    from epi_vo.tools.evaluation import evaluate_trajectory, metric_poses  # evo: only with ground truth
 
     stamps = np.array([s for s, _, _ in poses])
     pos = np.array([p for _, p, _ in poses]).reshape(-1, 3)
     quat = np.array([q for _, _, q in poses]).reshape(-1, 4)
-    return evaluate_trajectory((stamps, pos, quat), gt)
+    est, held = metric_poses((stamps, pos, quat), metric_stamps)
+    return evaluate_trajectory(est, gt), held
 
 
 def format_summary(s: ReplaySummary) -> str:
@@ -530,7 +540,9 @@ def format_summary(s: ReplaySummary) -> str:
         m = s.metrics
         lines.append(f"  vs GT ({s.gt_source}): ATE {_f(m['ate_rmse'])} ({_f(m['ate_percent_of_path'])} % of path, "
                      f"Sim3)  RPE rot {_f(m['rpe_rot_deg_per_frame'])} deg/frame  trans-dir "
-                     f"{_f(m['trans_direction_err_deg'])} deg  ({m['matched_poses']} poses)")
+                     f"{_f(m['trans_direction_err_deg'])} deg  ({m['matched_poses']} poses"
+                     + (f"; {s.poses_before_metric} held before metric scale not evaluated" if s.poses_before_metric
+                        else "") + ")")
         if s.units == "m":
             lines.append(f"  metric        step scale {_f(m['step_scale_median'])} (estimate / GT, median)  ATE "
                          f"{_f(m['ate_se3_percent_of_path'])} % of path with SE(3) alignment only")

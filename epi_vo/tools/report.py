@@ -226,6 +226,8 @@ def render_html(run: Run, figs: RunFigures, span_list: Sequence[Span], alignment
                  ("translation direction error", f"{fmt_num(m.trans_direction_err_deg)} deg (mean over "
                                                  f"{m.trans_direction_pairs} steps)"
                   if m.trans_direction_pairs else "undefined: no step with a direction in both trajectories")]
+        if figs.metrics_note:
+            rows.append(("poses evaluated", e(figs.metrics_note)))
     else:
         rows.append(("ATE / RPE", f"<span class=\"muted\">{e(figs.metrics_note)}</span>"))
     rows += _nees_rows(nees, nees_note)

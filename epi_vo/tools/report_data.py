@@ -47,6 +47,7 @@ from epi_vo.tools.evaluation import (
     StampedPoses,
     TrajectoryMetrics,
     evaluate_trajectory,
+    metric_poses,
     to_evo_trajectory,
 )
 
@@ -232,7 +233,7 @@ def _pair(run: Run) -> _Paired | None:
     if run.gt is None:
         return None
     try:
-        traj_est = to_evo_trajectory(run.est, "estimated trajectory")
+        traj_est = to_evo_trajectory(metric_poses(run.est, run.records)[0], "estimated trajectory")
         traj_gt = to_evo_trajectory(run.gt, "ground-truth trajectory")
         traj_gt, traj_est = sync.associate_trajectories(traj_gt, traj_est, max_diff=_GT_MAX_TIME_DIFF_S)
     except (EpiVoError, sync.SyncException) as exc:
@@ -594,7 +595,10 @@ def run_figures(run: Run) -> RunFigures:
         note = "no ground truth"
     else:
         try:
-            metrics = evaluate_trajectory(run.est, run.gt, max_time_diff=_GT_MAX_TIME_DIFF_S)
+            est, held = metric_poses(run.est, run.records)
+            metrics = evaluate_trajectory(est, run.gt, max_time_diff=_GT_MAX_TIME_DIFF_S)
+            if held:
+                note = f"{held} pose(s) held before metric scale was established are not in the metrics"
         except EpiVoError as exc:
             note = f"metrics not computed: {exc}"
     steps = np.diff(run.est.positions_xyz, axis=0)

@@ -15,6 +15,7 @@ from epi_vo.tools.evaluation import (
     StampedPoses,
     TrajectoryMetrics,
     evaluate_trajectory,
+    metric_poses,
     translation_direction_error,
 )
 
@@ -259,3 +260,22 @@ def test_bad_max_time_diff() -> None:
     gt = make_gt(n=10)
     with pytest.raises(EvaluationError, match="max_time_diff"):
         evaluate_trajectory(gt, gt, max_time_diff=-1.0)
+
+
+def test_metric_runs_are_judged_on_their_metric_poses() -> None:
+    """Poses held (at the map's origin, VO units) before a scale source established metres are no
+    positions: the metrics leave them out and count them; a run in VO units keeps every pose."""
+    gt = make_gt(n=40)
+    est = StampedPoses(gt.stamps_s.copy(), gt.positions_xyz.copy(), gt.quats_xyzw.copy())
+    est.positions_xyz[:5] = est.positions_xyz[0]  # held where the map started
+    stamps_ns = [round(float(t) * 1e9) for t in gt.stamps_s]
+    records = [{"stamp_ns": ns, "metric_scale": i >= 5} for i, ns in enumerate(stamps_ns)]
+    kept, held = metric_poses(est, records)
+    assert held == 5 and kept.stamps_s.size == 35
+    np.testing.assert_array_equal(kept.positions_xyz, gt.positions_xyz[5:])
+    m = evaluate_trajectory(kept, gt)
+    assert m.matched_poses == 35 and m.ate_se3_percent_of_path < 1e-6 and m.ate_rmse < 1e-6
+    assert evaluate_trajectory(est, gt).ate_se3_percent_of_path > 1.0  # the held poses, judged as metres
+    # VO units (no record claims metres): every pose is judged.
+    kept, held = metric_poses(est, [dict(r, metric_scale=False) for r in records])
+    assert held == 0 and kept.stamps_s.size == 40

@@ -107,6 +107,10 @@ def test_metric_sources_give_metres(source: str, request: pytest.FixtureRequest)
     assert all(r["position"] == [0.0, 0.0, 0.0] for r in before)
     assert all(r["covariance_diagonal"][0] >= 1e4 for r in before if r["has_pose"])
     assert all(r["covariance_diagonal"][0] < 1.0 for r in metric)
+    # The held poses are no positions in metres: the metrics are over the metric ones, the held counted.
+    held = sum(1 for r in before if r["has_pose"])
+    assert held > 0 and s.poses_before_metric == held
+    assert m["matched_poses"] == s.frames_with_pose - held
 
 
 @pytest.mark.parametrize(("source", "systematic"), [("ground", VoConfig().camera_height_rel_sigma),
