@@ -66,6 +66,7 @@ class BenchRow:
     nees_twist_lin: float = math.nan  # mean NEES of the linear velocity against the twist covariance (3 dof)
     nees_twist_ang: float = math.nan  # the same for the angular velocity
     e2e_fps: float = math.nan  # end-to-end frames/s of the replay (nan: not measured, reference rows)
+    held_poses: int = 0  # poses published before metric scale (held, VO units): not in the trajectory metrics
 
 
 # Metric scale sources the benchmark runs on top of the default configuration, per dataset name.
@@ -127,7 +128,7 @@ def bench_epi_vo(name: str, bag: Path, gt_path: Path, cfg: VoConfig, label: str 
         stamps, positions, quats = tum.read_tum(Path(tmp) / "trajectory.tum")
         records = [json.loads(line) for line in (Path(tmp) / "frames.jsonl").read_text(encoding="utf-8").splitlines()
                    if line.strip()]
-        evaluated, _ = metric_poses((stamps, positions, quats), records)  # the metric ones, once metres
+        evaluated, held = metric_poses((stamps, positions, quats), records)  # the metric ones, once metres
         nees = _nees(Path(tmp), records, gt)
         twist = _twist_nees(Path(tmp), records, gt)
     row = _metrics_row(name, label, summary.frames, summary.frames_with_pose, summary.ms_per_frame,
@@ -135,7 +136,8 @@ def bench_epi_vo(name: str, bag: Path, gt_path: Path, cfg: VoConfig, label: str 
     if summary.units != "m":  # VO units: the metric figures say nothing
         row = dataclasses.replace(row, step_scale=math.nan, ate_se3_percent=math.nan)
     # end_to_end_fps: a newer ReplaySummary field; an older summary has none (n/a).
-    row = dataclasses.replace(row, e2e_fps=float(getattr(summary, "end_to_end_fps", math.nan) or math.nan))
+    row = dataclasses.replace(row, e2e_fps=float(getattr(summary, "end_to_end_fps", math.nan) or math.nan),
+                              held_poses=held)
     if nees is not None:
         row = dataclasses.replace(row, nees_pos=nees.mean_nees_pos, nees_pos_inside_percent=nees.inside_pos_percent,
                                   nees_rot=nees.mean_nees_rot, nees_rot_inside_percent=nees.inside_rot_percent,
@@ -194,7 +196,7 @@ def bench_reference(name: str, bag_path: Path, gt_path: Path) -> BenchRow:
 
 def format_table(rows: list[BenchRow]) -> str:
     head = (f"{'bag':<16} {'pipeline':<22} {'frames':>6} {'tracked%':>8} {'ATE%path':>9} {'RPErot°/f':>10} "
-            f"{'tdir°':>7} {'ms/frame':>9} {'moving':>7} {'scale':>6} {'SE3ATE%':>8} {'NEES pos':>9} "
+            f"{'tdir°':>7} {'ms/frame':>9} {'moving':>7} {'scale':>6} {'held':>5} {'SE3ATE%':>8} {'NEES pos':>9} "
             f"{'in 3σ pos %':>11} {'NEES rot':>9} {'in 3σ rot %':>11} {'NEES v':>8} {'NEES w':>8} {'e2e fps':>8}")
     lines = [head, "-" * len(head)]
 
@@ -204,7 +206,7 @@ def format_table(rows: list[BenchRow]) -> str:
     for r in rows:
         lines.append(f"{r.bag:<16} {r.pipeline:<22} {r.frames:>6} {r.tracked_percent:>8.1f} {f(r.ate_percent):>9} "
                      f"{f(r.rpe_rot_deg, 4):>10} {f(r.trans_dir_deg, 2):>7} {r.ms_per_frame:>9.2f} "
-                     f"{r.moving_frames:>7} {f(r.step_scale):>6} {f(r.ate_se3_percent, 2):>8} "
+                     f"{r.moving_frames:>7} {f(r.step_scale):>6} {r.held_poses:>5} {f(r.ate_se3_percent, 2):>8} "
                      f"{f(r.nees_pos, 3):>9} {f(r.nees_pos_inside_percent, 1):>11} {f(r.nees_rot, 3):>9} "
                      f"{f(r.nees_rot_inside_percent, 1):>11} {f(r.nees_twist_lin, 2):>8} {f(r.nees_twist_ang, 2):>8} "
                      f"{f(r.e2e_fps, 1):>8}")
@@ -243,7 +245,9 @@ def run_benchmark(bags_dir: str | None, kitti_dir: str | None, params: str | Non
     print("\nATE after Sim(3) alignment (evo); 'moving' = frames whose position changed (on pure_rotation "
           "any is invented translation); ms/frame = median processing time, decoding excluded; metric rows "
           "(epi_vo[source]): scale = median estimated / GT step length, SE3ATE% = ATE with SE(3) alignment only "
-          "(no scale), % of path.\nNEES pos / rot = mean normalised estimation error squared of the tracking "
+          "(no scale), % of path; held = poses published before the source established metres (held at the "
+          "map's origin, VO units): a metric row's trajectory figures are over its other poses.\n"
+          "NEES pos / rot = mean normalised estimation error squared of the tracking "
           "frames against the published /vo/odometry covariance (3 dof, consistent: 3), after the global scale "
           "(Sim(3) anchored at the odometry origin; SE(3) when metric); in 3σ % = share within the chi-square "
           "3-dof 99 % bound 11.345 (n/a: no tracking frame, e.g. a static or rotating camera); NEES v / w = "

@@ -1,0 +1,32 @@
+"""The benchmark's epi_vo rows: a metric row's trajectory figures are over its metric poses, and the
+poses it held before metres are counted in the table."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+from epi_vo.core.config import VoConfig
+from epi_vo.tools.benchmark import METRIC_VARIANTS, bench_epi_vo, format_table
+
+REPO = Path(__file__).resolve().parents[2]
+BAG_DIR = REPO / "bags" / "ground_robot"
+
+
+def test_metric_row_counts_the_held_poses_and_judges_the_metric_ones() -> None:
+    label, values = METRIC_VARIANTS["ground_robot"][1]
+    assert label == "wheel_odometry"
+    cfg = dataclasses.replace(VoConfig(), **values)
+    row = bench_epi_vo("ground_robot", BAG_DIR / "bag", BAG_DIR / "groundtruth_tum.txt", cfg, f"epi_vo[{label}]")
+    # The wheels need 0.5 m before the first scale measurement: the first poses are held.
+    assert 5 <= row.held_poses <= 40
+    assert row.ate_percent < 0.3 and row.ate_se3_percent < 1.5  # over the metric poses
+    assert 0.97 <= row.step_scale <= 1.03
+    assert 1.0 <= row.nees_pos <= 6.0
+    vo = bench_epi_vo("ground_robot", BAG_DIR / "bag", BAG_DIR / "groundtruth_tum.txt", VoConfig())
+    assert vo.held_poses == 0 and math.isnan(vo.step_scale) and vo.ate_percent < 0.3
+    table = format_table([vo, row]).splitlines()
+    held_col = table[0].split().index("held")
+    assert table[2].split()[held_col] == "0"
+    assert table[3].split()[held_col] == str(row.held_poses)
