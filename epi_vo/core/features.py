@@ -6,6 +6,8 @@ float32 pixel coordinates of the raw image (before undistortion), as OpenCV's tr
 
 from __future__ import annotations
 
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -186,19 +188,73 @@ def match_orb(desc_ref: NDArray[np.uint8], desc_cur: NDArray[np.uint8], ratio: f
     return np.asarray(i_ref, np.int64), np.asarray(i_cur, np.int64)
 
 
+def _timed_klt(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_prev: F32, cfg: VoConfig
+               ) -> tuple[F32, Mask, float]:
+    t0 = time.perf_counter()
+    pts, ok = track_klt(gray_prev, gray_cur, pts_prev, cfg)
+    return pts, ok, (time.perf_counter() - t0) * 1e3
+
+
+class KltAhead:
+    """KLT into the next image, started while the current one is still being processed.
+
+    Replay knows the next image before it processes the current one. Tracking the current frame's
+    points into it on a worker thread overlaps OpenCV's KLT (it releases the GIL) with the current
+    frame's model selection and pose. Pyramidal LK tracks each point on its own, so the result is the
+    one tracking at the next frame would give: it is used only for the points it tracked from the same
+    image, which are the first rows of the points to track then (a keyframe appends its new corners
+    after the tracked ones; those are tracked when the frame comes). Anything else (a restart, another
+    image) drops it. ``key`` is the caller's next image object: the job is for that image only.
+    """
+
+    def __init__(self) -> None:
+        self._pool: ThreadPoolExecutor | None = None
+        self._job: tuple[object, NDArray[np.uint8], F32, Future[tuple[F32, Mask, float]]] | None = None
+
+    def start(self, key: object, gray_from: NDArray[np.uint8], gray_to: NDArray[np.uint8], pts: F32,
+              cfg: VoConfig) -> None:
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="epi_vo_klt_ahead")
+        self._job = (key, gray_from, pts, self._pool.submit(_timed_klt, gray_from, gray_to, pts, cfg))
+
+    def take(self, key: object, gray_from: NDArray[np.uint8], gray_to: NDArray[np.uint8], pts_prev: F32,
+             cfg: VoConfig) -> tuple[F32, Mask, float] | None:
+        """``track_klt(gray_from, gray_to, pts_prev)`` and the milliseconds the worker spent on it, when
+        the started job covers it (None: track now)."""
+        job, self._job = self._job, None
+        if job is None:
+            return None
+        j_key, j_from, j_pts, future = job
+        n = j_pts.shape[0]
+        if j_key is not key or j_from is not gray_from or pts_prev.shape[0] < n \
+                or not np.array_equal(pts_prev[:n], j_pts):
+            future.cancel()
+            return None
+        pts, ok, ms = future.result()  # an OpenCV error is raised here, at the frame it belongs to
+        if pts_prev.shape[0] > n:
+            t0 = time.perf_counter()
+            more, ok_more = track_klt(gray_from, gray_to, pts_prev[n:], cfg)
+            pts, ok = np.vstack([pts, more]), np.concatenate([ok, ok_more])
+            ms += (time.perf_counter() - t0) * 1e3
+        return pts, ok, ms
+
+
 def track(gray: NDArray[np.uint8], cfg: VoConfig, orb: cv2.ORB | None, gray_prev: NDArray[np.uint8] | None,
-          pts_prev: F32, rows_prev: NDArray[np.int64], kf_descriptors: NDArray[np.uint8] | None
-          ) -> tuple[F32, NDArray[np.int64], OrbFeatures | None]:
-    """Correspondences keyframe -> current image: (current raw pixels, keyframe rows, ORB features).
+          pts_prev: F32, rows_prev: NDArray[np.int64], kf_descriptors: NDArray[np.uint8] | None,
+          ahead: tuple[KltAhead, object] | None = None) -> tuple[F32, NDArray[np.int64], OrbFeatures | None, float]:
+    """Correspondences keyframe -> current image: (current raw pixels, keyframe rows, ORB features, ms of
+    KLT done ahead on the worker thread).
 
     KLT (``orb`` None) follows the previous frame's points ``pts_prev`` (keyframe rows ``rows_prev``)
-    into ``gray``; ORB detects in ``gray`` and matches against the keyframe's descriptors.
+    into ``gray``, taking what ``ahead`` (the tracker and this image's key) started for it; ORB detects
+    in ``gray`` and matches against the keyframe's descriptors.
     """
     if orb is None:
         assert gray_prev is not None
-        pts, ok = track_klt(gray_prev, gray, pts_prev, cfg)
-        return pts[ok], rows_prev[ok], None
+        got = ahead[0].take(ahead[1], gray_prev, gray, pts_prev, cfg) if ahead is not None else None
+        pts, ok, ms = got if got is not None else (*track_klt(gray_prev, gray, pts_prev, cfg), 0.0)
+        return pts[ok], rows_prev[ok], None, ms
     feats = detect_orb(orb, gray, cfg)
     assert kf_descriptors is not None
     i_kf, i_cur = match_orb(kf_descriptors, feats.descriptors, cfg.orb_ratio)
-    return feats.pts[i_cur], i_kf, OrbFeatures(feats.pts, feats.descriptors)
+    return feats.pts[i_cur], i_kf, OrbFeatures(feats.pts, feats.descriptors), 0.0

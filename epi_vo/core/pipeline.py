@@ -105,6 +105,9 @@ class VoPipeline:
         self._rows = np.zeros(0, np.int64)  # keyframe row of each live track
         self._pts_prev = np.zeros((0, 2), np.float32)
         self._gray_prev: NDArray[np.uint8] | None = None  # previous image, for KLT
+        self._ahead = fe.KltAhead()
+        self._key: object = None  # the image ``process`` was given (before downscaling)
+        self._next: tuple[object, NDArray[np.uint8]] | None = None  # see ``announce_next``
         self._T_cur_kf_prev = np.eye(4)
         self._fail_count = 0
         self._n_keyframes = 0
@@ -188,6 +191,12 @@ class VoPipeline:
         return dataclasses.replace(self._result(stamp_ns, TrackingState.LOST, False, False, st, t_start),
                                    problem=reason)
 
+    def announce_next(self, gray: NDArray[np.uint8], camera: CameraModel) -> None:
+        """The image the next ``process`` call will get (the same object): tracking into it starts on a
+        worker thread during this frame (``fe.KltAhead``; results identical). Replay knows it; live nodes do not."""
+        if gray.ndim == 2 and gray.dtype == np.uint8:
+            self._next = (gray, downscale(gray, camera, self.cfg.max_image_width)[0])
+
     def process(self, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int) -> FrameResult:
         """Process one grayscale frame taken with ``camera`` at ``stamp_ns``.
 
@@ -204,7 +213,7 @@ class VoPipeline:
         skipped = self._check_stamp(stamp_ns)
         if skipped is not None:
             return skipped
-        stamp_ns = int(stamp_ns)
+        stamp_ns, self._key = int(stamp_ns), gray
         t_start = time.perf_counter()
         held = (self._T_w_c.copy(), self._cov_w_c.copy())
         try:
@@ -242,11 +251,16 @@ class VoPipeline:
 
         kf = self._kf
         # features
-        pts_cur, rows, orb_cur = fe.track(gray, self.cfg, self._orb, self._gray_prev, self._pts_prev, self._rows,
-                                          kf.descriptors)
+        pts_cur, rows, orb_cur, ahead_ms = fe.track(gray, self.cfg, self._orb, self._gray_prev, self._pts_prev,
+                                                    self._rows, kf.descriptors, (self._ahead, self._key))
+        nxt, self._next = self._next, None
+        if nxt is not None and self._orb is None and nxt[1].shape == gray.shape:
+            self._ahead.start(nxt[0], gray, nxt[1], pts_cur, self.cfg)  # tracking into the next image
         xn_cur = camera.normalize(pts_cur)
         uv_cur = camera.to_pixels(xn_cur)
         st.timings["frontend"] = _ms(t0)
+        if ahead_ms:  # KLT done on the worker thread during the previous frame (not in "total")
+            st.timings["klt_ahead"] = ahead_ms
         st.n_tracked = int(rows.shape[0])
 
         motion: mo.Motion | None = None

@@ -124,7 +124,7 @@ def _metrics_row(name: str, pipeline: str, frames: int, n_pose: int, ms: float, 
 def bench_epi_vo(name: str, bag: Path, gt_path: Path, cfg: VoConfig, label: str = "epi_vo") -> BenchRow:
     gt = tum.read_tum(gt_path)
     with tempfile.TemporaryDirectory() as tmp:
-        summary = run_replay(bag, tmp, cfg)
+        summary = run_replay(bag, tmp, cfg, lookahead=False)  # per-frame times as a live node has them
         stamps, positions, quats = tum.read_tum(Path(tmp) / "trajectory.tum")
         records = [json.loads(line) for line in (Path(tmp) / "frames.jsonl").read_text(encoding="utf-8").splitlines()
                    if line.strip()]

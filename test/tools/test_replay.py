@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -13,9 +14,10 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from epi_vo.cli import main
+from epi_vo.core.errors import BagError
 from epi_vo.io import bagio
 from epi_vo.io.msgconv import read_points_xyz
-from epi_vo.tools.replay import ReplaySummary, format_summary, run_replay
+from epi_vo.tools.replay import ReplaySummary, format_summary, run_replay, with_next
 
 REPO = Path(__file__).resolve().parents[2]
 BAGS = REPO / "bags"
@@ -236,3 +238,20 @@ def test_stats_json_only_for_a_finished_replay(tmp_path: Path, capsys: pytest.Ca
     assert "bag not found" in capsys.readouterr().err
     assert not (out / "stats.json").exists()
     assert not list(out.glob(".*.tmp"))
+
+
+def test_the_lookahead_never_loses_a_frame_read_before_a_read_error() -> None:
+    """Replay reads one frame ahead (its image is tracked into while the current one is processed); a bag
+    that cannot be read further still gives every frame read before the error its turn."""
+    def frames(n: int, fail: bool) -> Iterator[int]:
+        yield from range(n)
+        if fail:
+            raise BagError("cannot read /camera/image_raw from bag: damaged record")
+
+    assert list(with_next(frames(3, False))) == [(0, 1), (1, 2), (2, None)]
+    assert list(with_next(frames(0, False))) == []
+    got = []
+    with pytest.raises(BagError, match="damaged record"):
+        for pair in with_next(frames(3, True)):
+            got.append(pair)
+    assert got == [(0, 1), (1, 2), (2, None)]
