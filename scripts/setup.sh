@@ -9,13 +9,15 @@ if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
 stamp=.venv/.epi_vo-requirements.sha256
-want=$(sha256sum requirements.txt setup.py | sha256sum | cut -d' ' -f1)
+want=$(sha256sum requirements.txt bags/requirements.txt setup.py | sha256sum | cut -d' ' -f1)
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   echo "setup: installing pinned requirements (first run takes a few minutes)"
   .venv/bin/python -m pip install --quiet --upgrade pip 2>&1 | grep -v WARNING || true
   .venv/bin/python -m pip install --quiet -r requirements.txt 2>&1 | grep -v -E "^WARNING: Location|^$" || true
+  # The bundled bags' generator (bags/make_bags.py) and its tests: small, and without it those tests skip.
+  .venv/bin/python -m pip install --quiet -r bags/requirements.txt 2>&1 | grep -v -E "^WARNING: Location|^$" || true
   .venv/bin/python -m pip install --quiet --no-deps -e . 2>&1 | grep -v -E "^WARNING: Location|^$" || true
-  .venv/bin/python -c "import cv2, rosbags, evo, mcap, epi_vo" || { echo "setup: import check failed" >&2; exit 1; }
+  .venv/bin/python -c "import cv2, rosbags, evo, mcap, skimage, epi_vo" || { echo "setup: import check failed" >&2; exit 1; }
   echo "$want" > "$stamp"
 fi
 # The report test renders report.html in a real headless browser (Debian's chromium). Installed when
