@@ -366,6 +366,13 @@ def test_metric_records_give_metres_and_the_scale_panel(synthetic: Synthetic) ->
     assert _summary_row(page, "path length (estimate)") == f"{run_figures(run).path_length:.3f} m"
     assert _summary_row(page, "units") == "m (metric scale)"
     assert _summary_row(page, "metric from frame") == str(METRIC_FROM)
+    # The poses held before metric scale are no positions in metres: left out of the metrics, counted.
+    held = sum(1 for i in range(METRIC_FROM) if _record(i)["has_pose"])
+    figs = run_figures(run)
+    assert held > 0 and figs.metrics is not None
+    assert figs.metrics.matched_poses == run.est.stamps_s.size - held
+    assert _summary_row(page, "poses evaluated") == (f"{held} pose(s) held before metric scale was established "
+                                                     "are not in the metrics")
     assert '<figure id="scale">' in page and "no scale plot" not in page and len(_data_pngs(page)) == 4
     scale_png = synthetic.directory / "report" / "scale.png"
     img = cv2.imread(str(scale_png), cv2.IMREAD_COLOR)
