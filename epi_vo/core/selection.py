@@ -46,7 +46,7 @@ def select_model(uv_kf: F64, uv_cur: F64, K: F64, cfg: VoConfig) -> ModelSelecti
     F = geo.fundamental_from_essential(E, K) if E is not None else None
     s_e, in_e = geo.score_fundamental(F, uv_kf, uv_cur, cfg.score_sigma_px) if F is not None else (0.0, None)
     s_h, in_h = geo.score_homography(H, uv_kf, uv_cur, cfg.score_sigma_px) if H is not None else (0.0, None)
-    s_0, in_0 = geo.score_homography(np.eye(3), uv_kf, uv_cur, cfg.score_sigma_px)
+    s_0, in_0 = geo.score_static(uv_kf, uv_cur, cfg.score_sigma_px)
     rh = geo.rh_ratio(s_h, s_e)
     if H is not None and in_h is not None and (rh > cfg.rh_threshold or E is None):
         model = Model.HOMOGRAPHY

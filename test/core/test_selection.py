@@ -113,3 +113,16 @@ def test_selection_is_deterministic(general_scene_outliers) -> None:
     a, b = _select(general_scene_outliers), _select(general_scene_outliers)
     assert a.model is b.model and a.rh == b.rh
     np.testing.assert_array_equal(a.inliers_e, b.inliers_e)
+
+
+def test_the_static_hypothesis_scores_as_the_identity_homography() -> None:
+    """``score_static`` is ``score_homography`` of H = I without the general transfer: the same score and
+    inliers to the bit, on still, slowly and quickly moving points."""
+    rng = np.random.default_rng(3)
+    for sigma in (0.0, 0.3, 1.0, 3.0, 20.0):
+        a = rng.uniform(0.0, 640.0, size=(300, 2))
+        b = a + rng.normal(0.0, sigma, size=(300, 2))
+        s_h, in_h = geo.score_homography(np.eye(3), a, b, 1.0)
+        s_0, in_0 = geo.score_static(a, b, 1.0)
+        assert s_0 == s_h and np.array_equal(in_0, in_h)
+        assert (sigma == 0.0) <= bool(in_0.all())

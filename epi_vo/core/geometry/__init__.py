@@ -23,6 +23,7 @@ from epi_vo.core.geometry.models import (
     sampson_distance_sq,
     score_fundamental,
     score_homography,
+    score_static,
     transfer_errors_sq,
 )
 from epi_vo.core.geometry.pose import (
@@ -65,6 +66,7 @@ __all__ = [
     "scale_from_points",
     "score_fundamental",
     "score_homography",
+    "score_static",
     "skew",
     "transfer_errors_sq",
     "triangulate",
