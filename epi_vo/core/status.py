@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 from epi_vo.core.diagnostics import DiagnosticLevel, DiagnosticStatusRecord
 from epi_vo.core.frame import FrameResult, TrackingState
@@ -50,18 +51,19 @@ CAMERA_POSITION_FRAME = "camera optical frame of the first image"
 
 
 def frame_status(result: FrameResult, node_name: str, hardware_id: str,
-                 pose: StatusPose | None = None) -> DiagnosticStatusRecord:
+                 pose: StatusPose | None = None, record: dict[str, Any] | None = None) -> DiagnosticStatusRecord:
     """Status named ``<node_name>: tracking`` with the level, the reason and the frame record.
 
     ``position``, ``quat_xyzw`` and ``covariance_diagonal`` are those of ``pose`` when given (the node
     gives the odometry's, odom -> base_link), else the record's (camera optical frame); the key
-    ``position_frame`` names which ("odom -> base_link" for the former).
+    ``position_frame`` names which ("odom -> base_link" for the former). ``record``: the frame's
+    ``result.to_record()`` when the caller has it already (not changed).
     """
     level = DiagnosticLevel.WARN if result.skipped else _LEVELS[result.state]
     message = result.reason or result.state.value
     if not message.startswith(result.state.value):
         message = f"{result.state.value}: {message}"
-    record = result.to_record()
+    record = result.to_record() if record is None else dict(record)
     if pose is not None:
         record["position"] = list(pose.position)
         record["quat_xyzw"] = list(pose.quat_xyzw)

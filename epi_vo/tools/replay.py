@@ -209,7 +209,8 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                 n_kf += int(result.is_keyframe)
                 for k, v in result.timings_ms.items():
                     stage_times[k].append(v)
-                frames_f.write(json.dumps(result.to_record()) + "\n")
+                record = result.to_record()
+                frames_f.write(json.dumps(record) + "\n")
                 frames_f.flush()
                 if result.has_pose:
                     n_pose += 1
@@ -223,10 +224,10 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                         path_length += float(np.linalg.norm(p - last_pos))
                     last_pos = p.copy()
                 if not result.skipped:  # a skipped frame gets its record and status, but no pose
-                    _write_outputs(obag, converter, result, path_poses)
+                    _write_outputs(obag, converter, result, path_poses, record)
                 else:
                     obag.write_diagnostics(result.stamp_ns, [frame_status(
-                        result, "epi_vo", "replay", status_pose(converter, result, ODOM_FRAME, BASE_FRAME))])
+                        result, "epi_vo", "replay", status_pose(converter, result, ODOM_FRAME, BASE_FRAME), record)])
                 bar.update()
                 if on_result is not None:
                     on_result(result)
@@ -536,7 +537,7 @@ class _PathWindow:
 
 
 def _write_outputs(obag: outbag.OutputBag, converter: OdometryConverter, result: FrameResult,
-                   path_poses: _PathWindow) -> None:
+                   path_poses: _PathWindow, record: dict[str, Any] | None = None) -> None:
     sample = converter.convert(result.stamp_ns, result.T_w_c, result.covariance, result.has_pose,
                                      result.step_covariance)
     obag.write_odometry(result.stamp_ns, ODOM_FRAME, BASE_FRAME, sample.position, sample.quat_xyzw,
@@ -551,7 +552,7 @@ def _write_outputs(obag: outbag.OutputBag, converter: OdometryConverter, result:
         path_poses.append(result.stamp_ns, sample.position, sample.quat_xyzw)
         obag.write_path(result.stamp_ns, ODOM_FRAME, *path_poses.window())
     obag.write_diagnostics(result.stamp_ns, [frame_status(
-        result, "epi_vo", "replay", status_pose(converter, result, ODOM_FRAME, BASE_FRAME))])
+        result, "epi_vo", "replay", status_pose(converter, result, ODOM_FRAME, BASE_FRAME), record)])
 
 
 def _ground_truth(bag: bagio.CameraBag, gt_tum: str | Path | None

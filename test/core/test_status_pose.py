@@ -48,6 +48,11 @@ def test_with_the_odometry_pose_every_pose_key_is_in_odom_base_link() -> None:
     assert values["position_frame"] == "odom -> base_link"
     keys = [k for k, _ in status.values]
     assert keys[: len(r.to_record())] == list(r.to_record())  # the record's keys, in order, kept
+    # The record the caller already made (replay writes it to frames.jsonl) gives the same status and
+    # stays as it was.
+    record = r.to_record()
+    assert frame_status(r, "/robot1/vo_node", "camera_optical_frame", pose, record) == status
+    assert record == r.to_record()
 
 
 def test_summary_status() -> None:
