@@ -109,6 +109,7 @@ class VoNodeBase:
         self._running = True
         self._active = active  # images are processed only while active (always, in vo_node)
         self._busy = False  # the worker is processing a frame
+        self._ahead: tuple[Ready, Any] | None = None  # the next queued frame and its image, decoded ahead
         self._n_received = self._n_dropped = self._n_processed = self._n_ignored = 0
         self._arrivals: collections.deque[float] = collections.deque(maxlen=30)
         self._last_image_wall: float | None = None  # steady clock (time.monotonic) of the last image
@@ -403,6 +404,25 @@ class VoNodeBase:
         return dataclasses.replace(r, index=r.index + offset, T_w_c=T_w_a @ T_a_c, covariance=covm.floored(cov),
                                    points_w=points, reason=reason)
 
+    def _look_ahead(self) -> None:
+        """Bag playback (``process_every_frame``) with frames waiting: the next one is processed next, so
+        its image is decoded now and the pipeline tracks into it while this frame is processed
+        (``VoPipeline.announce_next``: the same results, sooner). Live, a waiting frame may still be
+        dropped for a newer one: nothing is done ahead."""
+        if not self.opts.process_every_frame:
+            return
+        with self._lock:
+            nxt = self._queue[0] if self._queue else None
+        if nxt is None or nxt.info is None or msgconv.stamp_problem(nxt.image.header.stamp) is not None:
+            return
+        try:
+            gray = msgconv.decode_frame(nxt.image, isinstance(nxt.image, CompressedImage))
+            camera = self._cameras.get(nxt.info)
+        except EpiVoError:
+            return  # decoded again in its turn, and rejected there with the reason
+        self._ahead = (nxt, gray)
+        self._pipeline.announce_next(gray, camera)
+
     def _process(self, item: Ready) -> None:
         stamp = item.stamp_ns
         problem = msgconv.stamp_problem(item.image.header.stamp)
@@ -416,7 +436,10 @@ class VoNodeBase:
             if item.first_mismatch:
                 self.get_logger().warning("camera_info stamps do not match image stamps; using the latest "
                                           "camera_info")
-            gray = msgconv.decode_frame(item.image, isinstance(item.image, CompressedImage))
+            ahead, self._ahead = self._ahead, None
+            gray = ahead[1] if ahead is not None and ahead[0] is item else \
+                msgconv.decode_frame(item.image, isinstance(item.image, CompressedImage))
+            self._look_ahead()
             result = self._pipeline.process(gray, self._cameras.get(item.info), stamp)
         result = self._anchored(result)
         self._n_processed += 1
