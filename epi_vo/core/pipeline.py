@@ -343,15 +343,13 @@ class VoPipeline:
                                    step_covariance=None if step_cov is None else frozen(covm.floored(step_cov)))
 
     def _step_covariance(self, kf: Keyframe, cov_rel: F64, step_w: F64) -> F64:
-        """Covariance of the motion since the previous frame (odometry frame): both frames' poses are
-        measured against the same keyframe with their own image noise, so the keyframe's uncertainty
-        cancels and their relative ones add; against a new keyframe (the previous frame) only this
-        frame's counts."""
+        """Covariance of the motion since the previous frame (odometry frame) from both frames' poses
+        relative to the keyframe (``covariance.step``); against a new keyframe (the previous frame) only
+        this frame's counts."""
         cov = rotate_covariance(cov_rel, kf.T_w_kf[:3, :3])
         prev = self._rel_prev
         self._rel_prev = (kf.stamp_ns, cov)
-        if prev is not None and prev[0] == kf.stamp_ns:
-            cov = cov + prev[1]
+        cov = covm.step(cov, prev[1] if prev is not None and prev[0] == kf.stamp_ns else None)
         # The step's length carries the map's scale error: the scale source's uncertainty once metric,
         # else the drift accumulated over the map's keyframes (a random walk of scale_drift_per_keyframe).
         if self._scale.established:

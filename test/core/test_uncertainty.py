@@ -98,3 +98,52 @@ def test_fusing_two_equal_estimates_halves_the_covariance() -> None:
     assert fused is not None
     np.testing.assert_allclose(fused, cov / 2, rtol=1e-9, atol=1e-12)
     assert geo.fuse(cov, np.full((6, 6), np.nan)) is None
+
+
+
+@pytest.mark.parametrize("chained", [True, False], ids=["klt_chained", "matched_to_keyframe"])
+def test_step_covariance_predicts_the_spread_of_rotation_between_consecutive_frames(general_scene,
+                                                                                    chained: bool) -> None:
+    """Monte Carlo: two frames posed against the same keyframe (E and recoverPose each, 1 px noise);
+    the rotation from the keyframe to the first and between the two spread as ``covariance.step`` says
+    (the twist's covariance), per axis within 2x in standard deviation. KLT noise is chained (each
+    frame's point = the previous frame's + a new tracking step, the keyframe's corners exact); matched
+    features (ORB) carry their own noise in every image. Even chained, the share of the one new tracking
+    step only, (cov_1 + cov_2) / 4, is too narrow: each frame's robust fit has its own error."""
+    from epi_vo.core import covariance as covm
+
+    s = general_scene
+    K, sigma_px = s.K, 1.0
+    rv = _rotvec(s.R_cur_ref)
+    poses = [(cv2.Rodrigues(f * rv)[0], f * s.t_cur_ref) for f in (0.9, 1.0)]
+    uv_true = [(s.X_ref @ R.T + t) @ K.T for R, t in poses]
+    uv_true = [p[:, :2] / p[:, 2:3] for p in uv_true]
+    xn_ref = _normalized(s.uv_ref, K)
+    covs = [geo.essential_pose_covariance(R, t / np.linalg.norm(t), xn_ref, _normalized(uv, K), sigma_px / K[0, 0],
+                                          1.0, 0.0) for (R, t), uv in zip(poses, uv_true, strict=True)]
+    assert covs[0] is not None and covs[1] is not None
+    rng = np.random.default_rng(5)
+    first, between = [], []
+    for _ in range(80):
+        w1, w2 = rng.normal(0, sigma_px, (2, *s.uv_ref.shape))
+        if chained:
+            uv_kf, uv1, uv2 = s.uv_ref, uv_true[0] + w1, uv_true[1] + w1 + w2
+        else:
+            uv_kf = s.uv_ref + rng.normal(0, sigma_px, s.uv_ref.shape)
+            uv1, uv2 = uv_true[0] + w1, uv_true[1] + w2
+        phi = []
+        for (R_true, _), uv in zip(poses, (uv1, uv2), strict=True):
+            E, inl = geo.estimate_essential(uv_kf, uv, K)
+            R, _, _ = geo.recover_pose(E, uv_kf, uv, K, inl)
+            phi.append(_rotvec(R.T @ R_true))  # left perturbation of R_kf_cur in the keyframe frame
+        first.append(phi[0])
+        between.append(phi[1] - phi[0])
+
+    def ratio(errs: list[np.ndarray], predicted: np.ndarray) -> np.ndarray:
+        return np.sqrt(np.mean(np.square(errs), axis=0) / np.diag(predicted)[3:])
+
+    for errs, predicted in ((first, covm.step(covs[0], None)), (between, covm.step(covs[1], covs[0]))):
+        r = ratio(errs, predicted)
+        assert np.all((r > 0.5) & (r < 2.0)), r
+    if chained:
+        assert np.all(ratio(between, (covs[0] + covs[1]) / 4) > 1.3)
