@@ -405,6 +405,10 @@ class MotionStage:
                                       cfg.max_reprojection_error_px)
         if refined is None or np.count_nonzero(refined[2]) < cfg.min_scale_points:
             return None
+        if np.count_nonzero(refined[2]) <= np.count_nonzero((Xc[:, 2] > 0) & (err <= cfg.max_reprojection_error_px)):
+            # E's pose puts at least as many of the map's points where they are seen as the map's own
+            # fit does: that fit, not E, went wrong (LM from the previous pose into a wrong minimum).
+            return None
         angle = rotation_angle_deg(refined[0] @ R_e.T)
         c_map, c_e = -refined[0].T @ refined[1], -R_e.T @ t_e
         norms = float(np.linalg.norm(c_map) * np.linalg.norm(c_e))
