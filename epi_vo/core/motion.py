@@ -67,7 +67,7 @@ class MotionContext:
 E_MAP_MAX_DIRECTION_DIFF_DEG = 20.0  # E's direction of travel this far from the map's: a mover took E
 E_MAP_AGREE_PX = 1.0  # map points this close to where E's pose puts them ...
 E_MAP_AGREE_FRACTION = 0.8  # ... this share of them: E agrees with the map, no check of its own needed
-MIN_OFF_PLANE_FOR_E_HINT = 5  # E inliers off H's plane needed before E may pick among H's decompositions
+MIN_OFF_PLANE_FOR_E_HINT = 3  # E inliers off H's plane needed before E may pick among H's decompositions
 MOVER_SUSPECT = "a moving object took its consensus?"  # why E and the map disagree, as the reason says
 PLANE_SUSPECT = "E took the plane's other solution?"  # ... when a plane dominates (H won RH)
 MAP_INFO_SIGMA_FACTOR = math.sqrt(2.0)  # map points' reprojections count as this much noisier (their depths
