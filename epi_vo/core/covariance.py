@@ -60,7 +60,7 @@ def step(cov_rel: F64, prev_rel: F64 | None) -> F64:
     tracking step's noise only, although KLT follows each point from the previous frame: each frame's
     pose is its own robust fit (its own inliers, its own RANSAC), so its error is nearly independent of
     the previous frame's (Monte Carlo in test/core/test_uncertainty.py: the sum predicts the spread of
-    the rotation between frames within 0.7-1.1x; one tracking step's share is 1.4-2.2x too narrow).
+    the rotation between frames within 0.7-1.3x; one tracking step's share is 1.4-2.2x too narrow).
     """
     return cov_rel.copy() if prev_rel is None else cov_rel + prev_rel
 

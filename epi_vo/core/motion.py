@@ -405,7 +405,8 @@ class MotionStage:
                                       cfg.max_reprojection_error_px)
         if refined is None or np.count_nonzero(refined[2]) < cfg.min_scale_points:
             return None
-        if np.count_nonzero(refined[2]) <= np.count_nonzero((Xc[:, 2] > 0) & (err <= cfg.max_reprojection_error_px)):
+        held_by_e = np.count_nonzero((Xc[:, 2] > 0) & (err <= cfg.max_reprojection_error_px))
+        if np.count_nonzero(refined[2]) <= held_by_e:
             # E's pose puts at least as many of the map's points where they are seen as the map's own
             # fit does: that fit, not E, went wrong (LM from the previous pose into a wrong minimum).
             return None
