@@ -69,6 +69,9 @@ E_MAP_AGREE_PX = 1.0  # map points this close to where E's pose puts them ...
 E_MAP_AGREE_FRACTION = 0.8  # ... this share of them: E agrees with the map, no check of its own needed
 MIN_OFF_PLANE_FOR_E_HINT = 3  # E inliers off H's plane needed before E may pick among H's decompositions
 NOT_A_PLANE_OFF = (10, 0.1)  # E inliers off H's plane, at least this many and this share: no plane, E initialises
+PLANE_NORMAL_AGREE_DEG = 1.5  # a decomposition's plane this close to one seen from an earlier view: the same plane
+PLANE_MAX_WAIT = 10  # frames an initialisation on a plane with two valid decompositions waits for a view that
+# tells them apart; then the one more points pass the gates is taken (as without the wait)
 MOVER_SUSPECT = "a moving object took its consensus?"  # why E and the map disagree, as the reason says
 PLANE_SUSPECT = "E took the plane's other solution?"  # ... when a plane dominates (H won RH)
 MAP_INFO_SIGMA_FACTOR = math.sqrt(2.0)  # map points' reprojections count as this much noisier (their depths
@@ -82,6 +85,9 @@ class MotionStage:
     def __init__(self, cfg: VoConfig) -> None:
         self.cfg = cfg
         self.static = False  # the last frame was judged static (hysteresis: staying static is easier)
+        # An ambiguous planar initialisation: (keyframe stamp, plane normals of its valid solutions at the
+        # first such frame, frames waited).
+        self._plane_views: tuple[int, list[F64], int] | None = None
 
     def estimate(self, ctx: MotionContext, sel: ModelSelection, st: FrameStats) -> Motion | None:
         """The pose from the winning model; ``st.model`` says which one it was."""
@@ -211,8 +217,17 @@ class MotionStage:
                 R_e, _, inl_e = geo.recover_pose(sel.E, kf.uv[ctx.rows], ctx.uv_cur, K, sel.inliers_e)
                 if np.count_nonzero(inl_e) < cfg.min_inliers:
                     R_e = None
-            planar = geo.pose_from_homography(H, K, xn_kf, xn_cur, in_h, cfg.max_reprojection_error_px,
-                                              cfg.min_triangulation_angle_deg, prefer_R=R_e)
+            planar = None
+            if R_e is None and st.median_parallax_deg >= cfg.init_min_parallax_deg:
+                verdict, planar, spread = self._plane_by_views(ctx, H, in_h, st)
+                if verdict == "wait":
+                    # Neither solution's rotation (nor R_h, which assumes no translation) can be published:
+                    # the orientation is held too, its variance covering every valid solution's rotation.
+                    return Motion(TrackingState.INITIALIZING, np.eye(3), zero,
+                                  covm.block(1e-6, rot_cov + math.radians(spread) ** 2), in_h)
+            if planar is None:
+                planar = geo.pose_from_homography(H, K, xn_kf, xn_cur, in_h, cfg.max_reprojection_error_px,
+                                                  cfg.min_triangulation_angle_deg, prefer_R=R_e)
             if planar is None:
                 st.reasons.append("planar scene: homography decomposition ambiguous, waiting for parallax")
                 return Motion(TrackingState.INITIALIZING, R_h, zero, covm.block(1e-6, rot_cov), in_h)
@@ -235,6 +250,56 @@ class MotionStage:
             return self._from_essential(ctx, sel.E, sel.inliers_e, st, plane=True)
         st.reasons.append(f"planar or low-parallax view (RH {st.rh:.2f}): pose from map points")
         return self._track_with_map(ctx, R_h, None, in_h, st, rot_cov)
+
+    def _plane_by_views(self, ctx: MotionContext, H: F64, in_h: NDArray[np.bool_], st: FrameStats
+                        ) -> tuple[str, tuple[F64, F64, geo.Triangulation] | None, float]:
+        """A plane whose homography has two physically valid decompositions (both put the points in front
+        of both cameras: a floor seen from a camera moving along it), with no point off the plane to
+        tell them apart, is told apart by a later view against the same keyframe. The true plane keeps
+        its normal in the keyframe's frame; the other solution's normal follows the direction of travel
+        (ground_robot replayed from frame 31: 0.4 against 2.9 deg one frame later). The count of points
+        through the triangulation gates does not decide: the wrong solution sees its points under larger
+        angles (192 against 109 there; the map started 4.4 deg off, 1.2 % ATE).
+
+        Returns ("unambiguous", None) when fewer than two solutions are valid, ("wait", None), ("picked",
+        pose) when the view decides, ("fallback", None) after ``PLANE_MAX_WAIT`` frames without one; and
+        the largest rotation angle (deg) among the valid solutions."""
+        cfg = self.cfg
+        kf = ctx.kf
+        sols = geo.homography_solutions(H, kf.camera.K, kf.xn[ctx.rows], ctx.xn_cur, in_h,
+                                        cfg.max_reprojection_error_px, cfg.min_triangulation_angle_deg)
+        valid = [s for s in sols if s.tri.positive_depth_ratio >= cfg.min_positive_depth_ratio
+                 and s.n_good >= cfg.min_triangulated]
+        if len(valid) < 2:
+            self._plane_views = None
+            return "unambiguous", None, 0.0
+        spread = max(rotation_angle_deg(s.R) for s in valid)
+        pending = self._plane_views
+        if pending is None or pending[0] != kf.stamp_ns:
+            self._plane_views = (kf.stamp_ns, [s.normal for s in valid], 1)
+            st.reasons.append(f"planar scene: {len(valid)} decompositions of H fit; waiting for a view that tells "
+                              f"the plane apart (1/{PLANE_MAX_WAIT}), pose held")
+            return "wait", None, spread
+        _, normals, waited = pending
+        with np.errstate(invalid="ignore"):
+            dist = [min(math.degrees(math.acos(min(1.0, abs(float(s.normal @ n))))) for n in normals)
+                    for s in valid]
+        order = np.argsort(dist)
+        best, runner = dist[order[0]], dist[order[1]]
+        if best < PLANE_NORMAL_AGREE_DEG and runner >= max(3.0 * best, PLANE_NORMAL_AGREE_DEG):
+            s = valid[int(order[0])]
+            st.reasons.append(f"planar scene: the plane kept its normal over {waited + 1} views ({best:.1f} deg; "
+                              f"the other solution moved {runner:.1f} deg)")
+            return "picked", (s.R, s.t, s.tri.expanded(np.flatnonzero(in_h), ctx.xn_cur.shape[0])), spread
+        if waited >= PLANE_MAX_WAIT:
+            st.reasons.append(f"planar scene: no view told H's decompositions apart in {PLANE_MAX_WAIT} frames; "
+                              "taking the one most points pass the gates")
+            return "fallback", None, spread
+        self._plane_views = (pending[0], normals, waited + 1)
+        st.reasons.append(f"planar scene: {len(valid)} decompositions of H fit ({best:.1f} / {runner:.1f} deg from "
+                          f"the first view's planes); waiting for a view that tells the plane apart "
+                          f"({waited + 1}/{PLANE_MAX_WAIT}), pose held")
+        return "wait", None, spread
 
     def _inlier_stats(self, st: FrameStats, inl: NDArray[np.bool_], R: F64, xn_kf: F64, xn_cur: F64) -> None:
         st.n_inliers = int(np.count_nonzero(inl))

@@ -27,6 +27,8 @@ from epi_vo.core.geometry.models import (
     transfer_errors_sq,
 )
 from epi_vo.core.geometry.pose import (
+    PlanarSolution,
+    homography_solutions,
     parallax_deg,
     pose_from_homography,
     recover_pose,
@@ -42,6 +44,7 @@ __all__ = [
     "F64",
     "ROBUST_METHOD_FLAGS",
     "Mask",
+    "PlanarSolution",
     "ScaleEstimate",
     "Triangulation",
     "as_float64",
@@ -53,6 +56,7 @@ __all__ = [
     "fundamental_from_essential",
     "fuse",
     "homogeneous",
+    "homography_solutions",
     "map_information",
     "nearest_rotation",
     "parallax_deg",

@@ -5,6 +5,8 @@ map points (H&Z ch. 9, 18). Conventions: see ``epi_vo.core.geometry.common``.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
@@ -53,10 +55,47 @@ def rotation_from_homography(H: F64, K: F64) -> F64:
     return nearest_rotation(M)
 
 
+@dataclass(frozen=True)
+class PlanarSolution:
+    """One decomposition of a homography: ``X_cur = R X_ref + t`` with ``t`` in units of the plane's
+    distance from the reference camera, the plane's unit ``normal`` in the reference frame, and the
+    triangulation of H's inliers under this motion (``n_good`` points pass the gates)."""
+
+    R: F64
+    t: F64
+    normal: F64
+    tri: Triangulation
+    n_good: int
+
+
+def homography_solutions(H: F64, K: F64, xn_ref: F64, xn_cur: F64, inliers: Mask, max_reproj_err_px: float,
+                         min_angle_deg: float) -> list[PlanarSolution]:
+    """The decompositions of H (Faugeras / Malis, ``cv2.decomposeHomographyMat``) with at least one point
+    through the triangulation gates, most such points first; each triangulates H's inliers only."""
+    _, Rs, ts, ns = cv2.decomposeHomographyMat(H, K)
+    idx = np.flatnonzero(inliers)
+    out = []
+    for R, t, n in zip(Rs, ts, ns, strict=False):
+        R = np.asarray(R, dtype=np.float64)
+        t = np.asarray(t, dtype=np.float64).reshape(3)
+        n = np.asarray(n, dtype=np.float64).reshape(3)
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and np.all(np.isfinite(n))
+                and np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.norm(n) > 0):
+            # OpenCV returns non-rotations for an H that no plane can produce (e.g. wildly unequal
+            # singular values of K^-1 H K); such a candidate is no pose at all.
+            continue
+        tri = triangulate(R, t, xn_ref[idx], xn_cur[idx], K, max_reproj_err_px, min_angle_deg)
+        n_good = int(np.count_nonzero(tri.good))
+        if n_good:
+            out.append(PlanarSolution(R, t, n / np.linalg.norm(n), tri, n_good))
+    out.sort(key=lambda r: -r.n_good)
+    return out
+
+
 def pose_from_homography(H: F64, K: F64, xn_ref: F64, xn_cur: F64, inliers: Mask,
                          max_reproj_err_px: float, min_angle_deg: float, prefer_R: F64 | None = None
                          ) -> tuple[F64, F64, Triangulation] | None:
-    """Planar decomposition of H (Faugeras / Malis, ``cv2.decomposeHomographyMat``) resolved by cheirality.
+    """Planar decomposition of H (``homography_solutions``) resolved by cheirality.
 
     Returns ``(R_cur_ref, t_cur_ref, triangulation)`` for the solution with the most points passing the
     gates, with ``t`` in units of the plane's distance from the reference camera; None when no solution
@@ -72,32 +111,20 @@ def pose_from_homography(H: F64, K: F64, xn_ref: F64, xn_cur: F64, inliers: Mask
     points through the gates, and the winner E disagrees with was 1.6-3.7 deg off on moving_mover
     started at frame 20 and on synthetic floor pairs. Without ``prefer_R`` the rule above decides alone.
     """
-    _, Rs, ts, _ = cv2.decomposeHomographyMat(H, K)
-    idx = np.flatnonzero(inliers)
-    results = []
-    for R, t in zip(Rs, ts, strict=False):
-        R = np.asarray(R, dtype=np.float64)
-        t = np.asarray(t, dtype=np.float64).reshape(3)
-        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and np.allclose(R @ R.T, np.eye(3), atol=1e-6)):
-            # OpenCV returns non-rotations for an H that no plane can produce (e.g. wildly unequal
-            # singular values of K^-1 H K); such a candidate is no pose at all.
-            continue
-        tri = triangulate(R, t, xn_ref[idx], xn_cur[idx], K, max_reproj_err_px, min_angle_deg)
-        results.append((int(np.count_nonzero(tri.good)), R, t, tri))
-    results.sort(key=lambda r: -r[0])
-    if not results or results[0][0] == 0:
+    results = homography_solutions(H, K, xn_ref, xn_cur, inliers, max_reproj_err_px, min_angle_deg)
+    if not results:
         return None
-    if prefer_R is not None and rotation_angle_deg(results[0][1].T @ prefer_R) > 1.0:
+    if prefer_R is not None and rotation_angle_deg(results[0].R.T @ prefer_R) > 1.0:
         # The other model's rotation decides between physically valid solutions, or says wait.
-        agree = [r for r in results if rotation_angle_deg(r[1].T @ prefer_R) < 0.5]
-        if not agree or agree[0][0] < 0.25 * results[0][0]:
+        agree = [r for r in results if rotation_angle_deg(r.R.T @ prefer_R) < 0.5]
+        if not agree or agree[0].n_good < 0.25 * results[0].n_good:
             return None
         results = [agree[0]]
-    if len(results) > 1 and results[1][0] >= 0.75 * results[0][0]:
+    if len(results) > 1 and results[1].n_good >= 0.75 * results[0].n_good:
         return None
-    _, R, t, tri_in = results[0]
+    best = results[0]
     # Outliers of H are not triangulated: expand back to all N correspondences.
-    return R, t, tri_in.expanded(idx, xn_ref.shape[0])
+    return best.R, best.t, best.tri.expanded(np.flatnonzero(inliers), xn_ref.shape[0])
 
 
 def parallax_deg(R_cur_ref: F64, xn_ref: F64, xn_cur: F64) -> F64:
