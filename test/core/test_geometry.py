@@ -270,6 +270,25 @@ def test_essential_and_pose_with_outliers(general_scene_outliers: TwoViewScene, 
     assert not np.any(mask & ~inliers)  # cheirality only removes points from the given inliers
 
 
+@pytest.mark.parametrize("kind", ["general", "planar"])
+def test_recover_pose_picks_what_opencv_recover_pose_picks(two_view_scene: Callable[..., TwoViewScene],
+                                                           kind: str) -> None:
+    """The cheirality vote is done in numpy (0.35 instead of 0.87 ms a frame); it must choose exactly the
+    candidate cv2.recoverPose chooses from the same (at most 100) inliers, with 20 % outliers."""
+    for seed in range(12):
+        s = two_view_scene(kind, seed=seed, n_points=180, outlier_ratio=0.2)
+        E, mask = cv2.findEssentialMat(s.uv_ref_obs, s.uv_cur_obs, s.K, cv2.RANSAC, 0.999, 1.0)
+        assert E is not None and E.shape == (3, 3)
+        inliers = mask.ravel() > 0
+        R, t, _ = geo.recover_pose(E, s.uv_ref_obs, s.uv_cur_obs, s.K, inliers)
+        idx = np.flatnonzero(inliers)
+        idx = idx[np.linspace(0, idx.size - 1, min(100, idx.size)).astype(np.int64)]
+        out = cv2.recoverPose(E, s.uv_ref_obs[idx], s.uv_cur_obs[idx], cameraMatrix=s.K, distanceThresh=1.0e7,
+                              mask=np.ones((idx.size, 1), np.uint8))
+        np.testing.assert_array_equal(R, out[1])
+        np.testing.assert_array_equal(t, out[2].ravel())
+
+
 def test_recover_pose_keeps_the_given_mask(general_scene: TwoViewScene) -> None:
     s = general_scene
     E = geo.essential_from_pose(s.R_cur_ref, s.t_cur_ref)

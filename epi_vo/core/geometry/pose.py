@@ -22,28 +22,34 @@ def recover_pose(E: F64, uv_ref: F64, uv_cur: F64, K: F64, inliers: Mask, max_po
                  ) -> tuple[F64, F64, Mask]:
     """Decompose E and pick the candidate with most points in front of both cameras (cheirality).
 
-    ``cv2.recoverPose(E, uv_ref, uv_cur, K)`` returns the motion ref -> cur. It chooses among the four
-    candidates on at most ``max_points`` inliers spread evenly through the list (the vote is not
-    close for a correct E, and recoverPose triangulates every point four times); the cheirality of
-    every inlier is then checked against the chosen motion. Returns
-    ``(R_cur_ref, t_cur_ref (3,) unit, mask of inliers in front of both cameras)``.
+    The motion ref -> cur, as ``cv2.recoverPose(E, uv_ref, uv_cur, K)`` returns it: the four candidates
+    of ``cv2.decomposeEssentialMat`` (R1, t), (R2, t), (R1, -t), (R2, -t) vote on at most ``max_points``
+    inliers spread evenly through the list (the vote is not close for a correct E), ties going to the
+    earlier candidate as in OpenCV. The vote is done here, on the least-squares depths of both rays
+    (``ray_depths``), in one vectorised pass: recoverPose triangulates every point four times, which
+    cost 0.67 ms a frame. The cheirality of every inlier is then checked against the chosen motion.
+    Returns ``(R_cur_ref, t_cur_ref (3,) unit, mask of inliers in front of both cameras)``.
     """
     idx = np.flatnonzero(inliers)
     if idx.size < 5:
         return np.eye(3), np.zeros(3), np.zeros(inliers.shape[0], dtype=bool)
-    if idx.size > max_points:
-        idx = idx[np.linspace(0, idx.size - 1, max_points).astype(np.int64)]
-    # The plain overload drops points farther than 50 baselines as 'at infinity', which with video
-    # frame rates (short baselines, depths of 100+ baselines) discards most good inliers; only the
-    # sign of the depth matters here, so the distance limit is lifted.
-    _, R, t, _, _ = cv2.recoverPose(E, uv_ref[idx], uv_cur[idx], cameraMatrix=K,
-                                    distanceThresh=_CHEIRALITY_MAX_DISTANCE,
-                                    mask=np.ones((idx.size, 1), np.uint8))
-    R = np.asarray(R, dtype=np.float64)
-    t = np.asarray(t, dtype=np.float64).reshape(3)
     K_inv = np.linalg.inv(K)
     xn_ref = (homogeneous(uv_ref) @ K_inv.T)[:, :2]
     xn_cur = (homogeneous(uv_cur) @ K_inv.T)[:, :2]
+    vote = idx if idx.size <= max_points else idx[np.linspace(0, idx.size - 1, max_points).astype(np.int64)]
+    R1, R2, t = cv2.decomposeEssentialMat(np.asarray(E, dtype=np.float64))
+    R1, R2 = np.asarray(R1, np.float64), np.asarray(R2, np.float64)
+    t = np.asarray(t, dtype=np.float64).reshape(3)
+    # The depths are linear in t: those of (R, -t) are those of (R, t) negated.
+    far = _CHEIRALITY_MAX_DISTANCE
+    votes = []
+    for R_c in (R1, R2):
+        d_ref, d_cur = ray_depths(R_c, t, xn_ref[vote], xn_cur[vote])
+        votes.append((int(np.count_nonzero((d_ref > 0.0) & (d_cur > 0.0) & (d_ref < far) & (d_cur < far))),
+                      int(np.count_nonzero((d_ref < 0.0) & (d_cur < 0.0) & (d_ref > -far) & (d_cur > -far)))))
+    counts = [votes[0][0], votes[1][0], votes[0][1], votes[1][1]]  # OpenCV's order: (R1,t) (R2,t) (R1,-t) (R2,-t)
+    best = int(np.argmax(counts))  # the first of equal counts
+    R, t = (R1, R2)[best % 2], (t if best < 2 else -t)
     d_ref, d_cur = ray_depths(R, t, xn_ref, xn_cur)
     return R, t, inliers & (d_ref > 0.0) & (d_cur > 0.0)
 
