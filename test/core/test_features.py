@@ -1,0 +1,101 @@
+"""The KLT frontend (epi_vo.core.features.track_klt) across exposure changes, on a synthetic texture
+moved by a known sub-pixel shift."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from epi_vo.core import features as fe
+from epi_vo.core.config import VoConfig
+
+CFG = VoConfig()
+SHIFT = np.array([2.3, -1.7], np.float32)
+
+
+@pytest.fixture(scope="module")
+def texture() -> np.ndarray:
+    """640x480 blurred random texture with grey levels 40-200 (room to brighten and darken)."""
+    rng = np.random.default_rng(3)
+    img = cv2.GaussianBlur(rng.integers(0, 256, (480, 640), dtype=np.uint8), (0, 0), 2.0).astype(np.float64)
+    img = 40.0 + 160.0 * (img - img.min()) / (img.max() - img.min())
+    return np.round(img).astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def points() -> np.ndarray:
+    u, v = np.meshgrid(np.arange(40.0, 600.0, 40.0), np.arange(40.0, 440.0, 40.0))
+    return np.column_stack([u.ravel(), v.ravel()]).astype(np.float32) + 0.25
+
+
+def _moved(texture: np.ndarray, gain: float) -> np.ndarray:
+    M = np.array([[1.0, 0.0, SHIFT[0]], [0.0, 1.0, SHIFT[1]]])
+    warped = cv2.warpAffine(texture.astype(np.float32), M, (640, 480), flags=cv2.INTER_CUBIC,
+                            borderMode=cv2.BORDER_REFLECT)
+    return np.clip(np.round(warped * gain), 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("gain", [0.6, 0.8, 1.2, 1.5])
+def test_klt_follows_the_points_across_an_exposure_step(texture: np.ndarray, points: np.ndarray, gain: float,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A darker or brighter next image (1.5: with clipped highlights): the tracks survive and land where
+    the texture moved, nearly as with no change (median 0.04-0.08 px; 0.04 unchanged: the warp's
+    interpolation). Lucas-Kanade alone loses most of them or biases them by 0.7-1.6 px. Replayed with a
+    40 % darker step at frame 20 (2026-11-23), every run lost a frame and KITTI ended at 0.60 % ATE
+    (0.17 % now)."""
+    cur = _moved(texture, gain)
+    pts, ok, used = fe.track_klt(texture, cur, points, CFG)
+    assert used == pytest.approx(1.0 / gain, rel=0.03)
+    err = np.linalg.norm(pts - (points + SHIFT), axis=1)
+    assert np.count_nonzero(ok) >= 0.95 * len(points)
+    assert float(np.median(err[ok])) < 0.12 and float(np.max(err[ok])) < 0.3  # 1.5: clipping biases the gain
+
+    monkeypatch.setattr(fe, "EXPOSURE_MIN_LEVELS", math.inf)  # without the second attempt
+    pts_raw, ok_raw, _ = fe.track_klt(texture, cur, points, CFG)
+    err_raw = np.linalg.norm(pts_raw - (points + SHIFT), axis=1)
+    assert np.count_nonzero(ok_raw) < 0.5 * len(points) or float(np.median(err_raw[ok_raw])) > 0.5
+
+
+def test_exposure_change_is_measured_on_the_tracks(texture: np.ndarray, points: np.ndarray) -> None:
+    dark = _moved(texture, 0.6)
+    gain = fe.exposure_change(texture, dark, points, points + SHIFT)
+    assert gain == pytest.approx(1.0 / 0.6, rel=0.02)
+    assert fe.exposure_change(texture, _moved(texture, 1.0), points, points + SHIFT) is None
+    assert fe.exposure_change(texture, _moved(texture, 1.03), points, points + SHIFT) is None  # ~3.6 levels
+    # Too few tracks: the image means decide.
+    few = points[:5]
+    assert fe.exposure_change(texture, dark, few, few + SHIFT) == pytest.approx(1.0 / 0.6, rel=0.03)
+
+
+def test_the_unchanged_exposure_is_tracked_once(texture: np.ndarray, points: np.ndarray,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    calls = []
+    real = fe._klt_both_ways
+    monkeypatch.setattr(fe, "_klt_both_ways", lambda *a: calls.append(1) or real(*a))
+    pts, ok, used = fe.track_klt(texture, _moved(texture, 1.0), points, CFG)
+    assert len(calls) == 1 and used == 1.0 and np.count_nonzero(ok) >= 0.95 * len(points)
+    assert float(np.median(np.linalg.norm(pts - (points + SHIFT), axis=1)[ok])) < 0.05
+
+
+@pytest.mark.parametrize("n_ahead", [120, 60])
+def test_klt_done_ahead_equals_klt_in_line_across_an_exposure_step(texture: np.ndarray, points: np.ndarray,
+                                                                   n_ahead: int) -> None:
+    """The worker tracks the frame's points into the next (darker) image; the next frame then tracks
+    those rows plus corners a keyframe appended. The result must be the in-line one, bit for bit: with
+    at least EXPOSURE_MAX_TRACKS rows ahead the exposure is judged the same way; with fewer, the job is
+    dropped and the frame tracks in line."""
+    cur = _moved(texture, 0.6)
+    in_line, ok_in_line, _ = fe.track_klt(texture, cur, points, CFG)
+    ahead = fe.KltAhead()
+    key = object()
+    ahead.start(key, texture, cur, points[:n_ahead], CFG)
+    got = ahead.take(key, texture, cur, points, CFG)
+    if n_ahead >= fe.EXPOSURE_MAX_TRACKS:
+        assert got is not None
+        np.testing.assert_array_equal(got[0], in_line)
+        np.testing.assert_array_equal(got[1], ok_in_line)
+    else:
+        assert got is None
