@@ -287,9 +287,9 @@ class KltAhead:
         self._job = (key, gray_from, pts, self._pool.submit(_timed_klt, gray_from, gray_to, pts, cfg))
 
     def take(self, key: object, gray_from: NDArray[np.uint8], gray_to: NDArray[np.uint8], pts_prev: F32,
-             cfg: VoConfig) -> tuple[F32, Mask, float] | None:
-        """``track_klt(gray_from, gray_to, pts_prev)``'s points and mask, and the milliseconds the worker
-        spent on it, when the started job covers it (None: track now)."""
+             cfg: VoConfig) -> tuple[F32, Mask, float, float] | None:
+        """``track_klt(gray_from, gray_to, pts_prev)`` (points, mask, exposure gain) and the milliseconds
+        the worker spent on it, when the started job covers it (None: track now)."""
         job, self._job = self._job, None
         if job is None:
             return None
@@ -306,14 +306,15 @@ class KltAhead:
             more, ok_more, _ = track_klt(gray_from, gray_to, pts_prev[n:], cfg, gain=gain)
             pts, ok = np.vstack([pts, more]), np.concatenate([ok, ok_more])
             ms += (time.perf_counter() - t0) * 1e3
-        return pts, ok, ms
+        return pts, ok, gain, ms
 
 
 def track(gray: NDArray[np.uint8], cfg: VoConfig, orb: cv2.ORB | None, gray_prev: NDArray[np.uint8] | None,
           pts_prev: F32, rows_prev: NDArray[np.int64], kf_descriptors: NDArray[np.uint8] | None,
-          ahead: tuple[KltAhead, object] | None = None) -> tuple[F32, NDArray[np.int64], OrbFeatures | None, float]:
+          ahead: tuple[KltAhead, object] | None = None
+          ) -> tuple[F32, NDArray[np.int64], OrbFeatures | None, float, float]:
     """Correspondences keyframe -> current image: (current raw pixels, keyframe rows, ORB features, ms of
-    KLT done ahead on the worker thread).
+    KLT done ahead on the worker thread, the exposure gain the image was tracked with (1.0: unchanged)).
 
     KLT (``orb`` None) follows the previous frame's points ``pts_prev`` (keyframe rows ``rows_prev``)
     into ``gray``, taking what ``ahead`` (the tracker and this image's key) started for it; ORB detects
@@ -322,9 +323,9 @@ def track(gray: NDArray[np.uint8], cfg: VoConfig, orb: cv2.ORB | None, gray_prev
     if orb is None:
         assert gray_prev is not None
         got = ahead[0].take(ahead[1], gray_prev, gray, pts_prev, cfg) if ahead is not None else None
-        pts, ok, ms = got if got is not None else (*track_klt(gray_prev, gray, pts_prev, cfg)[:2], 0.0)
-        return pts[ok], rows_prev[ok], None, ms
+        pts, ok, gain, ms = got if got is not None else (*track_klt(gray_prev, gray, pts_prev, cfg), 0.0)
+        return pts[ok], rows_prev[ok], None, ms, gain
     feats = detect_orb(orb, gray, cfg)
     assert kf_descriptors is not None
     i_kf, i_cur = match_orb(kf_descriptors, feats.descriptors, cfg.orb_ratio)
-    return feats.pts[i_cur], i_kf, OrbFeatures(feats.pts, feats.descriptors), 0.0
+    return feats.pts[i_cur], i_kf, OrbFeatures(feats.pts, feats.descriptors), 0.0, 1.0

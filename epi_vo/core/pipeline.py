@@ -251,8 +251,10 @@ class VoPipeline:
 
         kf = self._kf
         # features
-        pts_cur, rows, orb_cur, ahead_ms = fe.track(gray, self.cfg, self._orb, self._gray_prev, self._pts_prev,
-                                                    self._rows, kf.descriptors, (self._ahead, self._key))
+        pts_cur, rows, orb_cur, ahead_ms, gain = fe.track(gray, self.cfg, self._orb, self._gray_prev, self._pts_prev,
+                                                          self._rows, kf.descriptors, (self._ahead, self._key))
+        if gain != 1.0:
+            st.reasons.append(f"exposure changed: the image was scaled by {gain:.2f} to track it")
         nxt, self._next = self._next, None
         if nxt is not None and self._orb is None and nxt[1].shape == gray.shape:
             self._ahead.start(nxt[0], gray, nxt[1], pts_cur, self.cfg)  # tracking into the next image

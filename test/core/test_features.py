@@ -99,3 +99,18 @@ def test_klt_done_ahead_equals_klt_in_line_across_an_exposure_step(texture: np.n
         np.testing.assert_array_equal(got[1], ok_in_line)
     else:
         assert got is None
+
+
+def test_the_frame_record_says_when_the_exposure_changed(texture: np.ndarray) -> None:
+    """Tracking across a 40 % darker image is reported in the frame's reason (diagnostics, frames.jsonl)."""
+    from epi_vo.core.camera import CameraModel
+    from epi_vo.core.pipeline import VoPipeline
+
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+    camera = CameraModel.create(640, 480, K, [])
+    vo = VoPipeline(CFG)
+    first = vo.process(texture, camera, 1_000_000_000)
+    same = vo.process(_moved(texture, 1.0), camera, 1_066_000_000)
+    dark = vo.process(_moved(_moved(texture, 1.0), 0.6), camera, 1_133_000_000)
+    assert "exposure changed" not in first.reason and "exposure changed" not in same.reason
+    assert "exposure changed: the image was scaled by 1.6" in dark.reason
