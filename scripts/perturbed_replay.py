@@ -11,6 +11,8 @@ The bag is not rewritten: the replay's frame iterator and image decoder are wrap
                  darker)
 --flicker A/P    multiply the grey levels by 1 + A sin(2 pi i / P) (auto-exposure flicker)
 --noise SIGMA    add Gaussian noise of SIGMA grey levels (seeded)
+--blur S/K       Gaussian blur of sigma S px on every K-th replayed frame (defocus)
+--motion-blur L/K horizontal motion blur over L px on every K-th replayed frame
 
 Everything after ``--`` is the ``epi-vo`` command line. With --start or --every the replay reports the
 frames left out as announced but not read (exit status 3); its outputs are complete for what it read.
@@ -22,6 +24,7 @@ import argparse
 import math
 import sys
 
+import cv2
 import numpy as np
 
 
@@ -36,6 +39,8 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--gain-step", default="")
     ap.add_argument("--flicker", default="")
     ap.add_argument("--noise", type=float, default=0.0)
+    ap.add_argument("--blur", default="")
+    ap.add_argument("--motion-blur", default="")
     args = ap.parse_args(argv[:cut])
     if args.start < 0 or args.every < 1 or args.noise < 0:
         ap.error("--start >= 0, --every >= 1, --noise >= 0")
@@ -43,6 +48,9 @@ def main(argv: list[str]) -> int:
         else (1.0, 0)
     amp, period = (float(args.flicker.split("/")[0]), float(args.flicker.split("/")[1])) if args.flicker \
         else (0.0, 1.0)
+    blur, blur_every = (float(args.blur.split("/")[0]), int(args.blur.split("/")[1])) if args.blur else (0.0, 1)
+    streak, streak_every = (int(args.motion_blur.split("/")[0]), int(args.motion_blur.split("/")[1])) \
+        if args.motion_blur else (0, 1)
 
     import epi_vo.io.bagio as bagio
     import epi_vo.tools.replay as replay
@@ -65,6 +73,12 @@ def main(argv: list[str]) -> int:
         gray = decode(msg, compressed)
         i = count[0]
         count[0] += 1
+        if blur and i % blur_every == 0:
+            gray = cv2.GaussianBlur(gray, (0, 0), blur)
+        if streak and i % streak_every == 0:
+            kernel = np.zeros((streak, streak), np.float32)
+            kernel[streak // 2, :] = 1.0 / streak
+            gray = cv2.filter2D(gray, -1, kernel)
         gain = (1.0 + amp * math.sin(2.0 * math.pi * i / period)) * (step if i >= step_at else 1.0)
         if gain == 1.0 and not args.noise:
             return gray

@@ -488,7 +488,8 @@ def test_the_map_overrules_e_only_when_its_fit_holds_clearly_more_points(
     """The map's own fit is made to hold its points, so it holds a few more than E's pose whenever the
     tracks are degraded (motion blur on moving_mover, 2026-11-23: 11-34 against the fit's 15-39; the fit
     0.77 deg off, E right; overruling ended that run at 7.7 % ATE, 0.95 % now). E stands unless it holds
-    less than E_MAP_HELD_SHARE (0.7) of what the fit holds, as when a mover took its consensus."""
+    less than E_MAP_HELD_SHARE (0.7) of what the fit holds, or the fit explains the points more than
+    E_MAP_RESIDUAL_RATIO (2) times better, as when a mover took E's consensus."""
     import cv2
 
     import epi_vo.core.motion as motion_module
