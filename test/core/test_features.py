@@ -114,3 +114,19 @@ def test_the_frame_record_says_when_the_exposure_changed(texture: np.ndarray) ->
     dark = vo.process(_moved(_moved(texture, 1.0), 0.6), camera, 1_133_000_000)
     assert "exposure changed" not in first.reason and "exposure changed" not in same.reason
     assert "exposure changed: the image was scaled by 1.6" in dark.reason
+
+
+def test_patches_changing_while_the_image_does_not_are_no_exposure_change(texture: np.ndarray,
+                                                                          points: np.ndarray) -> None:
+    """The tracks' patches alone can change brightness (vignetting, new surroundings): KITTI replayed
+    every 3rd frame had them +9 to +11 % while the image means went -4 to -7 %. Only a change of the
+    whole image the same way is taken for exposure."""
+    cur = _moved(texture, 1.0)
+    pts_cur = points + SHIFT
+    darker_patches = cur.copy()
+    for u, v in np.rint(pts_cur).astype(int):
+        darker_patches[v - 3:v + 4, u - 3:u + 4] = np.clip(cur[v - 3:v + 4, u - 3:u + 4] * 0.85, 0, 255)
+    assert fe.exposure_change(texture, darker_patches, points, pts_cur) is None  # the image: 0.3 % darker
+    # The same patches with the whole image darker by as much: an exposure change.
+    darker = np.clip(np.round(cur.astype(np.float64) * 0.85), 0, 255).astype(np.uint8)
+    assert fe.exposure_change(texture, darker, points, pts_cur) == pytest.approx(1.0 / 0.85, rel=0.03)
