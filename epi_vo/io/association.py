@@ -8,7 +8,11 @@ an image stamp; the VO must still run on those images. :class:`CameraInfoAssocia
 - otherwise holds it (at most ``max_pending`` images) until its camera_info arrives;
 - gives up on an image once a newer image is stamped more than ``max_wait_ns`` after it, or when it
   is pushed out by ``max_pending``, and releases it with the best inexact camera_info: the latest
-  cached one stamped at or before the image, else the most recently received one, else None.
+  cached one stamped at or before the image, else the most recently received one, else None;
+- before any camera_info was received, holds up to ``startup_pending`` images whatever their stamps:
+  a subscriber that matched the image publisher a few milliseconds before the camera_info one loses
+  the first camera_info messages, not the calibration (a node started with a bag played as fast as
+  possible lost four; those frames were rejected and the run differed from the offline replay).
 
 Every image added comes out exactly once (nothing silently vanishes), always in arrival order: an
 image whose camera_info is already there still waits behind older images that are waiting for theirs.
@@ -61,13 +65,17 @@ class CameraInfoAssociator:
 
     ``max_pending``: images held waiting for their camera_info (0: never wait). ``max_wait_ns``: an
     image is given up on once a newer image is stamped more than this after it. ``cache_size``:
-    camera_info messages kept, by arrival (the oldest received is dropped first).
+    camera_info messages kept, by arrival (the oldest received is dropped first). ``startup_pending``:
+    images held, whatever their stamps, while no camera_info has been received at all.
     """
 
-    def __init__(self, max_pending: int = 2, max_wait_ns: int = 200_000_000, cache_size: int = 50) -> None:
+    def __init__(self, max_pending: int = 2, max_wait_ns: int = 200_000_000, cache_size: int = 50,
+                 startup_pending: int = 0) -> None:
         problems = []
         if max_pending < 0:
             problems.append(f"max_pending must be >= 0, got {max_pending}")
+        if startup_pending < 0:
+            problems.append(f"startup_pending must be >= 0, got {startup_pending}")
         if max_wait_ns < 0:
             problems.append(f"max_wait_ns must be >= 0, got {max_wait_ns}")
         if cache_size < 1:
@@ -75,6 +83,7 @@ class CameraInfoAssociator:
         if problems:
             raise ConfigError("invalid camera_info association settings: " + "; ".join(problems))
         self.max_pending = max_pending
+        self.startup_pending = startup_pending
         self.max_wait_ns = max_wait_ns
         self.cache_size = cache_size
         self._infos: OrderedDict[int, Any] = OrderedDict()  # stamp -> info, oldest received first
@@ -97,7 +106,7 @@ class CameraInfoAssociator:
         for waiting in self._queue:
             if not waiting.resolved and waiting.stamp_ns == stamp_ns:
                 self._resolve(waiting, info, exact=True)
-        return self._drain()
+        return self._give_up()  # images held before any camera_info now wait as usual
 
     def add_image(self, stamp_ns: int, image: Any) -> list[Ready]:
         """Queue ``image``; return every image released now (this one included if it is), in arrival order."""
@@ -108,11 +117,17 @@ class CameraInfoAssociator:
         self._queue.append(waiting)
         if self._newest_image_stamp_ns is None or stamp_ns > self._newest_image_stamp_ns:
             self._newest_image_stamp_ns = stamp_ns
-        for older in self._queue:
-            if not older.resolved and self._newest_image_stamp_ns - older.stamp_ns > self.max_wait_ns:
-                self._resolve_inexact(older)
+        return self._give_up()
+
+    def _give_up(self) -> list[Ready]:
+        """Resolve the images waited for long enough (by stamps, or pushed out); release what can go."""
+        if self._infos and self._newest_image_stamp_ns is not None:
+            for older in self._queue:
+                if not older.resolved and self._newest_image_stamp_ns - older.stamp_ns > self.max_wait_ns:
+                    self._resolve_inexact(older)
         released = self._drain()
-        while len(self._queue) > self.max_pending:
+        bound = self.max_pending if self._infos else max(self.max_pending, self.startup_pending)
+        while len(self._queue) > bound:
             # Pushed out: the head is necessarily unresolved (a resolved head would have drained).
             self._resolve_inexact(self._queue[0])
             released += self._drain()

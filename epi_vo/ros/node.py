@@ -166,7 +166,8 @@ class VoNodeBase:
         self._worker.start()
 
     def _new_associator(self) -> CameraInfoAssociator:
-        return CameraInfoAssociator(max_pending=5, max_wait_ns=int(self.opts.camera_info_wait_s * 1e9))
+        return CameraInfoAssociator(max_pending=5, max_wait_ns=int(self.opts.camera_info_wait_s * 1e9),
+                                    startup_pending=30)
 
     def _create_output_publisher(self, msg_type: Any, topic: str, depth: int) -> Any:
         """A publisher of the VO outputs (odometry, points, path, debug image): a plain one here, a lifecycle

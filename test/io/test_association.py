@@ -182,3 +182,31 @@ def test_max_pending_zero_never_holds() -> None:
 def test_bad_settings_are_reported_together() -> None:
     with pytest.raises(ConfigError, match=r"max_pending must be >= 0.*max_wait_ns.*cache_size must be >= 1"):
         CameraInfoAssociator(max_pending=-1, max_wait_ns=-1, cache_size=0)
+
+
+def test_images_before_any_camera_info_wait_for_the_first_one() -> None:
+    """A subscriber matched with the camera_info publisher a little after the image one loses the first
+    camera_info messages: the first images wait (up to startup_pending, whatever their stamps) and take
+    the first camera_info received; then the usual waiting applies."""
+    assoc = CameraInfoAssociator(max_pending=2, max_wait_ns=200 * MS, startup_pending=10)
+    out: list[Ready] = []
+    for i in range(6):  # their camera_info messages were lost
+        out += assoc.add_image(10**9 + i * PERIOD, f"img{i}")
+    assert out == [] and assoc.pending == 6
+    out += assoc.add_info(10**9 + 6 * PERIOD, "info6")
+    out += assoc.add_image(10**9 + 6 * PERIOD, "img6")
+    # Now the usual rules: img5 (66 ms before the newest) may still get its own; img6 waits behind it.
+    assert [r.image for r in out] == [f"img{i}" for i in range(5)] and assoc.pending == 2
+    assert all(r.info == "info6" and not r.exact for r in out)
+    assert sum(r.first_mismatch for r in out) == 1
+    out = assoc.add_image(10**9 + 7 * PERIOD, "img7")  # img5 waited long enough
+    assert [(r.image, r.info, r.exact) for r in out] == [("img5", "info6", False), ("img6", "info6", True)]
+
+
+def test_startup_holding_is_bounded() -> None:
+    assoc = CameraInfoAssociator(max_pending=2, max_wait_ns=200 * MS, startup_pending=4)
+    out: list[Ready] = []
+    for i in range(10):
+        out += assoc.add_image(10**9 + i * PERIOD, f"img{i}")
+        assert assoc.pending <= 4
+    assert [r.image for r in out] == [f"img{i}" for i in range(6)] and all(r.info is None for r in out)
