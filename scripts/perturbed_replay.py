@@ -13,6 +13,8 @@ The bag is not rewritten: the replay's frame iterator and image decoder are wrap
 --noise SIGMA    add Gaussian noise of SIGMA grey levels (seeded)
 --blur S/K       Gaussian blur of sigma S px on every K-th replayed frame (defocus)
 --motion-blur L/K horizontal motion blur over L px on every K-th replayed frame
+--focal-scale F  a wrong calibration: fx and fy of every camera_info multiplied by F
+--cx-shift PX    a wrong calibration: cx of every camera_info shifted by PX pixels
 
 Everything after ``--`` is the ``epi-vo`` command line. With --start or --every the replay reports the
 frames left out as announced but not read (exit status 3); its outputs are complete for what it read.
@@ -41,6 +43,8 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--noise", type=float, default=0.0)
     ap.add_argument("--blur", default="")
     ap.add_argument("--motion-blur", default="")
+    ap.add_argument("--focal-scale", type=float, default=1.0)
+    ap.add_argument("--cx-shift", type=float, default=0.0)
     args = ap.parse_args(argv[:cut])
     if args.start < 0 or args.every < 1 or args.noise < 0:
         ap.error("--start >= 0, --every >= 1, --noise >= 0")
@@ -55,6 +59,19 @@ def main(argv: list[str]) -> int:
     import epi_vo.io.bagio as bagio
     import epi_vo.tools.replay as replay
     from epi_vo.cli import main as cli_main
+    from epi_vo.core.camera import CameraModel
+
+    if args.focal_scale != 1.0 or args.cx_shift:
+        create = CameraModel.create.__func__  # type: ignore[attr-defined]
+
+        def miscalibrated(cls, width, height, K, D, *rest, **kw):  # type: ignore[no-untyped-def]
+            K = np.asarray(K, np.float64).reshape(3, 3).copy()
+            K[0, 0] *= args.focal_scale
+            K[1, 1] *= args.focal_scale
+            K[0, 2] += args.cx_shift
+            return create(cls, width, height, K, D, *rest, **kw)
+
+        CameraModel.create = classmethod(miscalibrated)  # type: ignore[method-assign,assignment]
 
     for name in dir(bagio):
         cls = getattr(bagio, name)
