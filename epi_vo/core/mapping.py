@@ -20,6 +20,7 @@ from epi_vo.core.keyframe import Keyframe
 from epi_vo.core.motion import Motion
 
 F64 = NDArray[np.float64]
+THIN_MAP_FACTOR = 2  # a keyframe when fewer map points than this many times min_scale_points are tracked
 
 
 def keyframe_map(cfg: VoConfig, motion: Motion, kf: Keyframe, rows: NDArray[np.int64], xn_cur: F64,
@@ -33,6 +34,12 @@ def keyframe_map(cfg: VoConfig, motion: Motion, kf: Keyframe, rows: NDArray[np.i
     tracked_ratio = rows.shape[0] / max(kf.n_features, 1)
     too_old = (stamp_ns - kf.stamp_ns) * 1e-9 > cfg.kf_max_interval_s
     weak = tracked_ratio < cfg.kf_min_tracked_ratio or st.n_inliers < cfg.kf_min_inliers
+    if motion.state is TrackingState.TRACKING and motion.new_map is None and kf.n_map_points >= cfg.min_scale_points:
+        # The map thinning out while tracking: a new keyframe before too few of its points are left to
+        # carry the scale (moving_mover replayed from frame 3: a first map of 55 points, no keyframe at
+        # < 1 deg parallax until 7 remained and tracking was lost for 3 frames).
+        held = np.isfinite(kf.X_kf[rows][:, 0]) & motion.inliers
+        weak = weak or int(np.count_nonzero(held)) < THIN_MAP_FACTOR * cfg.min_scale_points
     parallax = st.median_parallax_deg >= cfg.kf_min_parallax_deg
     R, t = motion.R_cur_kf, motion.t_cur_kf
     X_cur: F64 | None = None
