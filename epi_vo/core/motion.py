@@ -479,25 +479,21 @@ class MotionStage:
         K = ctx.kf.camera.K
         # Cheap first: when E's pose (with the map's scale) already puts nearly all map points where they
         # are seen, the map agrees with it and its own pose need not be computed.
-        Xc = np.einsum("ij,nj->ni", R_e, X[depth]) + t_e
-        with np.errstate(divide="ignore", invalid="ignore"):
-            uv = np.einsum("ij,nj->ni", K[:2, :2], Xc[:, :2] / Xc[:, 2:3]) + K[:2, 2]
-        err = np.linalg.norm(uv - ctx.uv_cur[depth], axis=1)
-        if np.count_nonzero((Xc[:, 2] > 0) & (err <= E_MAP_AGREE_PX)) >= E_MAP_AGREE_FRACTION * err.shape[0]:
+        err_e = _reprojection_errors(R_e, t_e, X[depth], ctx.uv_cur[depth], K)
+        if np.count_nonzero(err_e <= E_MAP_AGREE_PX) >= E_MAP_AGREE_FRACTION * err_e.shape[0]:
             return None
         prev = ctx.T_cur_kf_prev
         refined = geo.refine_pose_pnp(X[depth], ctx.uv_cur[depth], K, prev[:3, :3], prev[:3, 3],
                                       cfg.max_reprojection_error_px)
         if refined is None or np.count_nonzero(refined[2]) < cfg.min_scale_points:
             return None
-        held_by_e = np.count_nonzero((Xc[:, 2] > 0) & (err <= cfg.max_reprojection_error_px))
+        held_by_e = np.count_nonzero(err_e <= cfg.max_reprojection_error_px)
         held_by_map = np.count_nonzero(refined[2])
         if held_by_map <= held_by_e:
             # E's pose puts at least as many of the map's points where they are seen as the map's own
             # fit does: that fit, not E, went wrong (LM from the previous pose into a wrong minimum:
             # KITTI, 15 points against E's 100).
             return None
-        err_e = _reprojection_errors(R_e, t_e, X[depth], ctx.uv_cur[depth], K)
         err_map = _reprojection_errors(refined[0], refined[1], X[depth], ctx.uv_cur[depth], K)
         if held_by_e >= E_MAP_HELD_SHARE * held_by_map \
                 and np.median(err_e) <= E_MAP_RESIDUAL_RATIO * np.median(err_map):
@@ -521,7 +517,7 @@ class MotionStage:
 
 def _reprojection_errors(R_cur_kf: F64, t_cur_kf: F64, X_kf: F64, uv: F64, K: F64) -> F64:
     """Pixel distances of the map points ``X_kf`` under the pose from where they are seen (``uv``);
-    infinite behind the camera."""
+    infinite behind the camera (so no distance gate counts them)."""
     Xc = np.einsum("ij,nj->ni", R_cur_kf, X_kf) + t_cur_kf
     with np.errstate(divide="ignore", invalid="ignore"):
         uv_p = np.einsum("ij,nj->ni", K[:2, :2], Xc[:, :2] / Xc[:, 2:3]) + K[:2, 2]
