@@ -61,7 +61,7 @@ from epi_vo.core.frame import (
 from epi_vo.core.keyframe import Keyframe, make_keyframe
 from epi_vo.core.mapping import keyframe_map
 from epi_vo.core.odometry import rotate_covariance
-from epi_vo.core.selection import select_model
+from epi_vo.core.selection import ModelSelector
 from epi_vo.core.transforms import invert_T, make_T, rotation_angle_deg
 from epi_vo.core.window import WindowedMap
 
@@ -106,6 +106,7 @@ class VoPipeline:
         self._pts_prev = np.zeros((0, 2), np.float32)
         self._gray_prev: NDArray[np.uint8] | None = None  # previous image, for KLT
         self._ahead = fe.KltAhead()
+        self._select = ModelSelector()
         self._key: object = None  # the image ``process`` was given (before downscaling)
         self._next: tuple[object, NDArray[np.uint8]] | None = None  # see ``announce_next``
         self._T_cur_kf_prev = np.eye(4)
@@ -278,7 +279,7 @@ class VoPipeline:
             t0 = time.perf_counter()
             rows_u, xn_u, uv_u = (rows, xn_cur, uv_cur) if n_use == rows.shape[0] else \
                 (rows[use], xn_cur[use], uv_cur[use])
-            sel = select_model(kf.uv[rows_u], uv_u, kf.camera.K, self.cfg)
+            sel = self._select(kf.uv[rows_u], uv_u, kf.camera.K, self.cfg)
             st.rh = sel.rh
             if sel.F is not None:
                 st.F = sel.F
