@@ -78,6 +78,8 @@ MOVER_SUSPECT = "a moving object took its consensus?"  # why E and the map disag
 PLANE_SUSPECT = "E took the plane's other solution?"  # ... when a plane dominates (H won RH)
 MAP_INFO_SIGMA_FACTOR = math.sqrt(2.0)  # map points' reprojections count as this much noisier (their depths
 # carry the previous pair's image noise)
+FOCAL_SUSPECT_RANGE = (0.8, 1.25)  # focal lengths (x the calibration's) a rotation-only view may suggest ...
+FOCAL_SUSPECT_MIN_OFF = 0.03  # ... at least this far from it (closer: within the estimate's noise)
 STATIC_KEEP = 0.6  # a static camera stays static down to this share of static_min_fraction
 
 
@@ -199,6 +201,10 @@ class MotionStage:
                 st.reasons.append(f"low parallax ({st.median_parallax_deg:.2f} deg): waiting for baseline, "
                                   "position held")
                 return Motion(TrackingState.INITIALIZING, R_h, zero, covm.block(1e-6, rot_cov), in_h)
+        else:
+            rotation = self._rotation_under_other_focal(ctx, H, in_h, st, rot_cov)
+            if rotation is not None:
+                return rotation
         if not self.has_map(kf):
             R_e = None
             off_plane = 0 if sel.inliers_e is None else int(np.count_nonzero(sel.inliers_e & ~in_h))
@@ -252,6 +258,40 @@ class MotionStage:
             return self._from_essential(ctx, sel.E, sel.inliers_e, st, plane=True)
         st.reasons.append(f"planar or low-parallax view (RH {st.rh:.2f}): pose from map points")
         return self._track_with_map(ctx, R_h, None, in_h, st, rot_cov)
+
+    def _rotation_under_other_focal(self, ctx: MotionContext, H: F64, in_h: NDArray[np.bool_], st: FrameStats,
+                                    rot_cov: float) -> Motion | None:
+        """A pure rotation seen through a wrong focal length: rotation-only, and the reason says so.
+
+        With the calibration's focal length off, a rotating camera's rays do not line up after the
+        rotation is taken out: the leftover grows with the rotation (pure_rotation with fx x 0.9: 0.5 deg
+        at 5 deg of rotation) and was taken for parallax, a plane and a translation. When H is a rotation
+        under a focal length within ``FOCAL_SUSPECT_RANGE`` of the calibration's and at least
+        ``FOCAL_SUSPECT_MIN_OFF`` away from it, and the parallax under that focal length is below
+        ``rotation_only_parallax_deg``, the motion is that rotation (position held). Homographies of a
+        translating camera over a plane are rotations under no plausible focal length (none, or 0.02-0.15 x
+        the calibration's, on every H frame of the bundled bags and KITTI)."""
+        cfg = self.cfg
+        K = ctx.kf.camera.K
+        f = geo.focal_for_rotation(H, K)
+        lo, hi = FOCAL_SUSPECT_RANGE
+        if f is None or not 0.85 * lo <= f / K[0, 0] <= 1.15 * hi:
+            return None
+        ratio = geo.refine_focal_for_rotation(H, K, f, ctx.kf.uv[ctx.rows][in_h], ctx.uv_cur[in_h]) / K[0, 0]
+        if not lo <= ratio <= hi or abs(ratio - 1.0) < FOCAL_SUSPECT_MIN_OFF:
+            return None
+        K_f = K.copy()
+        K_f[:2, :2] *= ratio  # normalised coordinates under K_f: xn / ratio
+        R_f = geo.rotation_from_homography(H, K_f)
+        par = geo.parallax_deg(R_f, ctx.kf.xn[ctx.rows][in_h] / ratio, ctx.xn_cur[in_h] / ratio)
+        par_f = float(np.median(par)) if par.size else math.nan
+        angle = rotation_angle_deg(R_f)
+        if not (par_f < cfg.rotation_only_parallax_deg and angle >= cfg.min_rotation_for_rotation_only_deg):
+            return None
+        st.reasons.append(f"pure rotation if the focal length were {ratio:.3f} x the calibration's (parallax "
+                          f"{par_f:.2f} deg instead of {st.median_parallax_deg:.2f}, rotation {angle:.1f} deg): "
+                          "check the camera calibration; translation not observable, position held")
+        return Motion(TrackingState.ROTATION_ONLY, R_f, np.zeros(3), covm.block(1e-6, rot_cov), in_h)
 
     def _plane_by_views(self, ctx: MotionContext, H: F64, in_h: NDArray[np.bool_], st: FrameStats
                         ) -> tuple[str, tuple[F64, F64, geo.Triangulation] | None, float]:

@@ -35,8 +35,8 @@ def _camera(scene: Any) -> CameraModel:
     return CameraModel.create(640, 480, scene.K, [])
 
 
-def _keyframe(scene: Any, X_kf: np.ndarray) -> Keyframe:
-    cam = _camera(scene)
+def _keyframe(scene: Any, X_kf: np.ndarray, cam: CameraModel | None = None) -> Keyframe:
+    cam = cam or _camera(scene)
     pts = np.asarray(scene.uv_ref_obs, dtype=np.float32)
     xn = cam.normalize(pts)
     return Keyframe(3, KF_STAMP_NS, np.eye(4), np.zeros((6, 6)), pts, xn, cam.to_pixels(xn), X_kf, None, cam)
@@ -51,11 +51,12 @@ def _true_map(scene: Any) -> np.ndarray:
 
 
 def _estimate(scene: Any, X_kf: np.ndarray, cfg: VoConfig = CFG, baseline: float = 1.0,
-              T_prev: np.ndarray | None = None, stage: MotionStage | None = None
+              T_prev: np.ndarray | None = None, stage: MotionStage | None = None, cam: CameraModel | None = None
               ) -> tuple[Motion | None, FrameStats, list[float]]:
     """Run selection and the motion stage as the pipeline does; also return the dt the scale stage was
-    asked for. ``stage``: a motion stage that saw earlier frames against the same keyframe."""
-    kf = _keyframe(scene, X_kf)
+    asked for. ``stage``: a motion stage that saw earlier frames against the same keyframe; ``cam``: the
+    calibration the pipeline has (default: the scene's true one)."""
+    kf = _keyframe(scene, X_kf, cam)
     cam = kf.camera
     xn_cur = cam.normalize(scene.uv_cur_obs)
     asked: list[float] = []
@@ -243,6 +244,42 @@ def test_rotation_scene_is_rotation_only_with_zero_translation(rotation_scene, w
     assert st.median_parallax_deg < CFG.rotation_only_parallax_deg
     assert asked == []
     assert any(r.startswith("pure rotation: homography explains the motion") for r in st.reasons)
+
+
+@pytest.mark.parametrize(("focal_scale", "with_map"), [(0.9, False), (1.1, False), (0.95, True), (1.2, False)])
+def test_a_rotation_seen_through_a_wrong_focal_length_is_rotation_only_and_says_so(
+        rotation_scene, focal_scale: float, with_map: bool) -> None:
+    """fx and fy of the calibration off by focal_scale: the 4.7 deg rotation leaves 0.23-0.71 deg of
+    "parallax" under it (a plane and a translation, once); H is a rotation under the true focal length,
+    which the reason names (within 1.5 %), and the position is held."""
+    s = rotation_scene
+    K_wrong = np.array(s.K, dtype=np.float64)
+    K_wrong[:2, :2] *= focal_scale
+    m, st, asked = _estimate(s, _true_map(s) if with_map else _no_map(s), cam=CameraModel.create(640, 480, K_wrong, []))
+    assert st.median_parallax_deg > CFG.rotation_only_parallax_deg  # taken for parallax without the check
+    assert m is not None and m.state is TrackingState.ROTATION_ONLY and m.new_map is None
+    _check_motion(m)
+    np.testing.assert_array_equal(m.t_cur_kf, 0.0)
+    assert _rot_err_deg(m, s) < 0.1  # the rotation under the focal length H says
+    assert asked == []
+    (reason,) = [r for r in st.reasons if r.startswith("pure rotation if the focal length were")]
+    assert float(reason.split()[7]) == pytest.approx(1.0 / focal_scale, rel=0.015)
+    assert "check the camera calibration" in reason
+
+
+@pytest.mark.parametrize("scene_name", ["general_scene", "planar_scene"])
+def test_a_translating_camera_is_not_taken_for_a_rotation_under_another_focal_length(
+        scene_name: str, request: pytest.FixtureRequest) -> None:
+    """Translation over a plane or a 3-D scene, with the calibration 10 % off either way: its parallax
+    is no rotation's under any plausible focal length; the check leaves the frame alone."""
+    s = request.getfixturevalue(scene_name)
+    for focal_scale in (0.9, 1.0, 1.1):
+        K_wrong = np.array(s.K, dtype=np.float64)
+        K_wrong[:2, :2] *= focal_scale
+        for X_kf in (_no_map(s), _true_map(s)):
+            m, st, _ = _estimate(s, X_kf, cam=CameraModel.create(640, 480, K_wrong, []))
+            assert m is not None and m.state is not TrackingState.ROTATION_ONLY
+            assert not any("focal length" in r for r in st.reasons)
 
 
 # --- (d) refusals say why -------------------------------------------------------------------------

@@ -13,10 +13,10 @@ REPO = Path(__file__).resolve().parents[2]
 BAG = REPO / "bags" / "general_motion" / "bag"
 
 
-def _run(tmp_path: Path, *opts: str) -> list[dict]:
+def _run(tmp_path: Path, *opts: str, bag: Path = BAG) -> list[dict]:
     out = tmp_path / "out"
     done = subprocess.run([sys.executable, str(REPO / "scripts" / "perturbed_replay.py"), *opts, "--", "replay",
-                           str(BAG), "--output", str(out), "--no-progress"], capture_output=True, text=True,
+                           str(bag), "--output", str(out), "--no-progress"], capture_output=True, text=True,
                           timeout=600, check=False)
     # Frames left out by --start / --every are what the replay reports as not read (exit status 3).
     assert done.returncode == 0 or (done.returncode == 3 and "could be read" in done.stderr), done.stderr
@@ -35,3 +35,16 @@ def test_an_exposure_step_is_reported_where_it_happens(tmp_path: Path) -> None:
     said = [i for i, r in enumerate(records) if "exposure changed: the image was scaled by 1.6" in r["reason"]]
     assert said == [5]
     assert all(r["has_pose"] for r in records)
+
+
+def test_a_rotating_camera_with_a_wrong_focal_length_moves_nowhere_and_names_the_focal_length(tmp_path: Path) -> None:
+    """pure_rotation with camera_info's fx and fy x 0.9: before the focal check it initialised a planar
+    map and moved on 36 frames. Now every frame holds the position at the origin, and the rotation-only
+    frames the calibration makes look like parallax name the true focal length (1 / 0.9 of it)."""
+    records = _run(tmp_path, "--focal-scale", "0.9", bag=REPO / "bags" / "pure_rotation" / "bag")
+    assert len(records) == 52 and all(r["has_pose"] for r in records)
+    assert all(r["position"] == [0.0, 0.0, 0.0] for r in records)
+    assert sum(r["state"] == "rotation_only" for r in records) >= 45
+    named = [float(r["reason"].split()[7]) for r in records if r["reason"].startswith("pure rotation if the focal")]
+    assert len(named) >= 30
+    assert all(abs(ratio * 0.9 - 1.0) < 0.01 for ratio in named)

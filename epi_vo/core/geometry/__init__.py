@@ -28,10 +28,12 @@ from epi_vo.core.geometry.models import (
 )
 from epi_vo.core.geometry.pose import (
     PlanarSolution,
+    focal_for_rotation,
     homography_solutions,
     parallax_deg,
     pose_from_homography,
     recover_pose,
+    refine_focal_for_rotation,
     refine_pose_pnp,
     rotation_from_homography,
 )
@@ -53,6 +55,7 @@ __all__ = [
     "essential_pose_covariance",
     "estimate_essential",
     "estimate_homography",
+    "focal_for_rotation",
     "fundamental_from_essential",
     "fuse",
     "homogeneous",
@@ -63,6 +66,7 @@ __all__ = [
     "pose_from_homography",
     "ray_depths",
     "recover_pose",
+    "refine_focal_for_rotation",
     "refine_pose_pnp",
     "rh_ratio",
     "rotation_from_homography",
