@@ -136,6 +136,9 @@ class FrameResult:
     moving_fraction: float = 0.0  # of the tracked features
     moving_region: tuple[int, int, int, int] | None = None  # x0, y0, x1, y1 (px) of the movers, None: none
     static_score: float = math.nan  # fraction of tracked features the "no camera motion" hypothesis explains
+    # The focal length (x the calibration's) under which this frame's motion is a pure rotation, when the
+    # calibration's made it look like parallax (the reason says "check the camera calibration"); else NaN
+    focal_ratio: float = math.nan
     # 6x6 covariance (odometry frame, position first) of the motion since the previous frame, for the
     # twist; None when the frame has no pose or no previous frame with one
     step_covariance: F64 | None = None
@@ -213,11 +216,12 @@ class FrameResult:
             "n_moving": self.n_moving,
             "moving_fraction": num(self.moving_fraction),
             "moving_region": list(self.moving_region) if self.moving_region is not None else None,
+            "focal_ratio": num(self.focal_ratio),
         }
 
 
 STAT_FIELDS = ("rh", "inlier_ratio", "median_parallax_deg", "positive_depth_ratio", "median_reproj_err_px",
-                "relative_scale")
+                "relative_scale", "focal_ratio")
 
 
 @dataclass
@@ -235,6 +239,7 @@ class FrameStats:
     median_reproj_err_px: float = math.nan
     relative_scale: float = math.nan
     static_score: float = math.nan
+    focal_ratio: float = math.nan
     n_moving: int = 0
     moving_region: tuple[int, int, int, int] | None = None
     points_w: F64 = field(default_factory=lambda: np.zeros((0, 3)))

@@ -288,6 +288,7 @@ class MotionStage:
         angle = rotation_angle_deg(R_f)
         if not (par_f < cfg.rotation_only_parallax_deg and angle >= cfg.min_rotation_for_rotation_only_deg):
             return None
+        st.focal_ratio = ratio
         st.reasons.append(f"pure rotation if the focal length were {ratio:.3f} x the calibration's (parallax "
                           f"{par_f:.2f} deg instead of {st.median_parallax_deg:.2f}, rotation {angle:.1f} deg): "
                           "check the camera calibration; translation not observable, position held")

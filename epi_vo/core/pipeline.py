@@ -641,7 +641,7 @@ class VoPipeline:
             timings_ms=dict(st.timings),
             reason="; ".join(st.reasons), matches=st.matches, scale=self._scale.status(), n_moving=st.n_moving,
             moving_fraction=st.n_moving / st.n_tracked if st.n_tracked else 0.0, moving_region=st.moving_region,
-            static_score=st.static_score)
+            static_score=st.static_score, focal_ratio=st.focal_ratio)
         self._index += 1
         return res
 

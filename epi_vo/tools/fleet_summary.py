@@ -32,7 +32,7 @@ from typing import Any
 
 from epi_vo.core.errors import OutputError
 from epi_vo.core.frame import Model, TrackingState
-from epi_vo.tools.replay import STATS_FILE, ReplaySummary
+from epi_vo.tools.replay import CALIBRATION_NOTE, STATS_FILE, ReplaySummary
 
 STATUS_FILE = "status.json"
 SUMMARY_CSV = "summary.csv"
@@ -63,7 +63,7 @@ class BagRow:
     name: str  # the output directory's name under the fleet's output
     bag: str
     status: BagStatus
-    reason: str  # one line; empty when ok
+    reason: str  # one line; empty when ok (unless the replay asks to check the camera calibration)
     run: str  # this run: "replayed", "skipped: complete", "report only", "not run", or "" (summarize)
     output_dir: str
     summary: ReplaySummary | None = None  # None when the replay did not finish
@@ -81,7 +81,9 @@ def status_of(summary: ReplaySummary) -> tuple[BagStatus, str]:
         return BagStatus.FAILED, line or "every frame was rejected"
     if summary.has_problems:
         return BagStatus.PROBLEMS, line
-    return BagStatus.OK, ""
+    # A bag that replayed cleanly may still say that its calibration looks wrong (rotation-only frames
+    # that are pure only under another focal length): a fleet operator wants to see that in the row.
+    return BagStatus.OK, next((n for n in summary.notes if n.startswith(CALIBRATION_NOTE)), "")
 
 
 def read_stats(directory: Path) -> ReplaySummary | None:

@@ -172,6 +172,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     rejected: collections.Counter[str] = collections.Counter()
     first_rejected: dict[str, int] = {}
     n_frames = n_pose = n_kf = 0
+    focal_ratios: list[float] = []  # frames that are a pure rotation only under another focal length
     path_length = 0.0
     last_pos: np.ndarray | None = None
     metric_from: int | None = None
@@ -207,6 +208,8 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                 states[result.state.value] += 1
                 models[result.model.value] += 1
                 n_kf += int(result.is_keyframe)
+                if math.isfinite(result.focal_ratio):
+                    focal_ratios.append(result.focal_ratio)
                 for k, v in result.timings_ms.items():
                     stage_times[k].append(v)
                 record = result.to_record()
@@ -245,6 +248,9 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     elif n_frames > bag.frame_count:
         notes.append(f"the bag announces {bag.frame_count} images on {bag.image_topic}, {n_frames} were read "
                      "(its metadata understates the count)")
+    if focal_ratios:
+        notes.append(f"{CALIBRATION_NOTE}: {len(focal_ratios)} frames are a pure rotation only under a "
+                     f"focal length {np.median(focal_ratios):.3f} x camera_info's (median; per frame: focal_ratio)")
     metrics, gt_source, held = None, "", 0
     if gt is not None:
         gt_source = gt[0]
@@ -270,6 +276,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
 
 
 STATS_FILE = "stats.json"
+CALIBRATION_NOTE = "check the camera calibration"  # how the note on rotation-only frames under another focal begins
 
 
 def write_stats(out: Path, summary: ReplaySummary) -> None:

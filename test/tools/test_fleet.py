@@ -8,6 +8,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -22,7 +23,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from epi_vo.cli import main
 from epi_vo.tools.fleet import find_bags, is_fleet, output_names
-from epi_vo.tools.fleet_summary import MAX_EXIT_CODE, BagRow, BagStatus, exit_code
+from epi_vo.tools.fleet_summary import MAX_EXIT_CODE, BagRow, BagStatus, exit_code, row_from_directory
 from epi_vo.tools.replay import run_replay
 
 REPO = Path(__file__).resolve().parents[2]
@@ -169,6 +170,25 @@ def test_summarize_rebuilds_the_summary(fleet_run: tuple[Path, int], tmp_path: P
     rows = _summary(single)
     assert rows["planar"]["status"] == "ok" and rows["planar"]["frames"] == "30"
     assert rows["lost"]["status"] == "incomplete" and "stats.json" in rows["lost"]["reason"]
+
+
+def test_a_clean_bag_whose_replay_asks_to_check_the_calibration_says_so_in_its_row(
+        fleet_run: tuple[Path, int], tmp_path: Path) -> None:
+    """The replay's note on rotation-only frames that are pure only under another focal length becomes the
+    reason of an ok row (``status_of``, as a fleet records it at the bag's end and ``summarize`` reads a
+    single-bag output); other notes do not."""
+    out, _ = fleet_run
+    copy = tmp_path / "planar"
+    shutil.copytree(out / "planar", copy)
+    (copy / "status.json").unlink()  # a single-bag replay's directory
+    assert row_from_directory(copy).status is BagStatus.OK and row_from_directory(copy).reason == ""
+    note = ("check the camera calibration: 44 frames are a pure rotation only under a focal length 1.111 x "
+            "camera_info's (median; per frame: focal_ratio)")
+    stats = json.loads((copy / "stats.json").read_text())
+    stats["notes"] = ["the bag announces 29 images on /camera/image_raw, 30 were read", note]
+    (copy / "stats.json").write_text(json.dumps(stats))
+    row = row_from_directory(copy)
+    assert row.status is BagStatus.OK and row.reason == note
 
 
 def test_summarize_of_nothing_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import statistics
 import subprocess
 import sys
 from pathlib import Path
@@ -45,6 +46,11 @@ def test_a_rotating_camera_with_a_wrong_focal_length_moves_nowhere_and_names_the
     assert len(records) == 52 and all(r["has_pose"] for r in records)
     assert all(r["position"] == [0.0, 0.0, 0.0] for r in records)
     assert sum(r["state"] == "rotation_only" for r in records) >= 45
-    named = [float(r["reason"].split()[7]) for r in records if r["reason"].startswith("pure rotation if the focal")]
-    assert len(named) >= 30
+    named = [r["focal_ratio"] for r in records if r["reason"].startswith("pure rotation if the focal length were")]
+    assert len(named) >= 30 and None not in named
     assert all(abs(ratio * 0.9 - 1.0) < 0.01 for ratio in named)
+    assert sum(r["focal_ratio"] is not None for r in records) == len(named)
+    notes = json.loads((tmp_path / "out" / "stats.json").read_text())["notes"]
+    assert [n for n in notes if n.startswith("check the camera calibration")] == [
+        f"check the camera calibration: {len(named)} frames are a pure rotation only under a focal length "
+        f"{statistics.median(named):.3f} x camera_info's (median; per frame: focal_ratio)"]
