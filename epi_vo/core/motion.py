@@ -268,9 +268,15 @@ class MotionStage:
         at 5 deg of rotation) and was taken for parallax, a plane and a translation. When H is a rotation
         under a focal length within ``FOCAL_SUSPECT_RANGE`` of the calibration's and at least
         ``FOCAL_SUSPECT_MIN_OFF`` away from it, and the parallax under that focal length is below
-        ``rotation_only_parallax_deg``, the motion is that rotation (position held). Homographies of a
-        translating camera over a plane are rotations under no plausible focal length (none, or 0.02-0.15 x
-        the calibration's, on every H frame of the bundled bags and KITTI)."""
+        ``rotation_only_parallax_deg``, the motion is that rotation (position held) before a map exists;
+        with a map the map's points decide and the reason says what else the motion could be.
+
+        The ambiguity is real for one kind of scene: a plane facing the camera seen while the camera turns
+        about a point off its centre (a pan plus a sideways shift) is, to first order, a pure rotation
+        under a focal length sqrt(1 + L / d) x the true one (lever arm L, distance d: 0.3 m before a wall 2
+        m away, 1.07 x). Hence the map's say once there is one. Homographies of a camera translating over
+        a floor or across a tilted plane are rotations under no plausible focal length (none, or 0.02-0.66
+        x the calibration's: every H frame of the bundled bags and KITTI, a robot turning over a floor)."""
         cfg = self.cfg
         K = ctx.kf.camera.K
         f = geo.focal_for_rotation(H, K)
@@ -289,9 +295,15 @@ class MotionStage:
         if not (par_f < cfg.rotation_only_parallax_deg and angle >= cfg.min_rotation_for_rotation_only_deg):
             return None
         st.focal_ratio = ratio
-        st.reasons.append(f"pure rotation if the focal length were {ratio:.3f} x the calibration's (parallax "
-                          f"{par_f:.2f} deg instead of {st.median_parallax_deg:.2f}, rotation {angle:.1f} deg): "
-                          "check the camera calibration; translation not observable, position held")
+        what = (f"pure rotation if the focal length were {ratio:.3f} x the calibration's (parallax {par_f:.2f} deg "
+                f"instead of {st.median_parallax_deg:.2f}, rotation {angle:.1f} deg; or a wall-like plane seen while "
+                "turning about a point off the camera): check the camera calibration")
+        if self.has_map(ctx.kf):
+            # The map's points decide the pose, as without the check (a robot turning in place before a
+            # wall 2 m away, the camera 0.3 m off the axis: 1.07 x); the frame says what else it could be.
+            st.reasons.append(f"{what}; pose from the map")
+            return None
+        st.reasons.append(f"{what}; no map from it: translation not observable, position held")
         return Motion(TrackingState.ROTATION_ONLY, R_f, np.zeros(3), covm.block(1e-6, rot_cov), in_h)
 
     def _plane_by_views(self, ctx: MotionContext, H: F64, in_h: NDArray[np.bool_], st: FrameStats

@@ -172,7 +172,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     rejected: collections.Counter[str] = collections.Counter()
     first_rejected: dict[str, int] = {}
     n_frames = n_pose = n_kf = 0
-    focal_ratios: list[float] = []  # frames that are a pure rotation only under another focal length
+    focal_ratios: list[float] = []  # frames that fit a pure rotation under another focal length
     path_length = 0.0
     last_pos: np.ndarray | None = None
     metric_from: int | None = None
@@ -249,7 +249,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
         notes.append(f"the bag announces {bag.frame_count} images on {bag.image_topic}, {n_frames} were read "
                      "(its metadata understates the count)")
     if focal_ratios:
-        notes.append(f"{CALIBRATION_NOTE}: {len(focal_ratios)} frames are a pure rotation only under a "
+        notes.append(f"{CALIBRATION_NOTE}: {len(focal_ratios)} frames fit a pure rotation under a "
                      f"focal length {np.median(focal_ratios):.3f} x camera_info's (median; per frame: focal_ratio)")
     metrics, gt_source, held = None, "", 0
     if gt is not None:

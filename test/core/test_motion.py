@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -246,25 +247,63 @@ def test_rotation_scene_is_rotation_only_with_zero_translation(rotation_scene, w
     assert any(r.startswith("pure rotation: homography explains the motion") for r in st.reasons)
 
 
-@pytest.mark.parametrize(("focal_scale", "with_map"), [(0.9, False), (1.1, False), (0.95, True), (1.2, False)])
+@pytest.mark.parametrize("focal_scale", [0.9, 1.1, 0.95, 1.2])
 def test_a_rotation_seen_through_a_wrong_focal_length_is_rotation_only_and_says_so(
-        rotation_scene, focal_scale: float, with_map: bool) -> None:
+        rotation_scene, focal_scale: float) -> None:
     """fx and fy of the calibration off by focal_scale: the 4.7 deg rotation leaves 0.23-0.71 deg of
     "parallax" under it (a plane and a translation, once); H is a rotation under the true focal length,
-    which the reason names (within 1.5 %), and the position is held."""
+    which the reason and ``focal_ratio`` name (within 1.5 %), and the position is held. With a map, the
+    map's points decide the pose and the reason says what else it could be."""
     s = rotation_scene
     K_wrong = np.array(s.K, dtype=np.float64)
     K_wrong[:2, :2] *= focal_scale
-    m, st, asked = _estimate(s, _true_map(s) if with_map else _no_map(s), cam=CameraModel.create(640, 480, K_wrong, []))
+    cam = CameraModel.create(640, 480, K_wrong, [])
+    m, st, asked = _estimate(s, _no_map(s), cam=cam)
     assert st.median_parallax_deg > CFG.rotation_only_parallax_deg  # taken for parallax without the check
     assert m is not None and m.state is TrackingState.ROTATION_ONLY and m.new_map is None
     _check_motion(m)
     np.testing.assert_array_equal(m.t_cur_kf, 0.0)
     assert _rot_err_deg(m, s) < 0.1  # the rotation under the focal length H says
     assert asked == []
+    assert st.focal_ratio == pytest.approx(1.0 / focal_scale, rel=0.015)
     (reason,) = [r for r in st.reasons if r.startswith("pure rotation if the focal length were")]
-    assert float(reason.split()[7]) == pytest.approx(1.0 / focal_scale, rel=0.015)
-    assert "check the camera calibration" in reason
+    assert f"{st.focal_ratio:.3f} x the calibration's" in reason and "check the camera calibration" in reason
+    assert reason.endswith("position held")
+    m, st, _ = _estimate(s, _true_map(s), cam=cam)
+    assert m is not None and m.state is TrackingState.TRACKING
+    assert st.focal_ratio == pytest.approx(1.0 / focal_scale, rel=0.015)
+    assert any(r.startswith("pure rotation if the focal length were") and r.endswith("pose from the map")
+               for r in st.reasons)
+
+
+def test_a_turn_about_a_point_off_the_camera_before_a_wall_waits_without_a_map_and_tracks_with_one() -> None:
+    """The ambiguous case: a wall 2 m ahead, the camera 0.3 m in front of the axis it turns about by 6 deg
+    (a pan plus a 3 cm sideways shift), calibration right. Its homography is a pure rotation under 1.07 x
+    the focal length. Without a map the position is held (no translation is justified either way) and the
+    reason names both readings; with the wall's points as a map, the pose is the map's, translation included."""
+    rng = np.random.default_rng(7)
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+    uv_ref = rng.uniform([10.0, 10.0], [630.0, 470.0], size=(200, 2))
+    X_ref = np.column_stack([(uv_ref - K[:2, 2]) / 500.0 * 2.0, np.full(200, 2.0)])
+    a = math.radians(6.0)
+    R = np.array([[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]])
+    pivot = np.array([0.0, 0.0, -0.3])
+    t = pivot - R @ pivot
+    X_cur = X_ref @ R.T + t
+    uv_cur = X_cur[:, :2] / X_cur[:, 2:] * 500.0 + K[:2, 2]
+    scene = SimpleNamespace(K=K, n=200, X_ref=X_ref, R_cur_ref=R, t_cur_ref=t,
+                            uv_ref_obs=uv_ref + rng.normal(0.0, 0.3, (200, 2)),
+                            uv_cur_obs=uv_cur + rng.normal(0.0, 0.3, (200, 2)))
+    m, st, _ = _estimate(scene, _no_map(scene))
+    assert m is not None and m.state is TrackingState.ROTATION_ONLY
+    np.testing.assert_array_equal(m.t_cur_kf, 0.0)
+    assert st.focal_ratio == pytest.approx(math.sqrt(1.0 + 0.3 / 2.0), rel=0.02)
+    assert any("or a wall-like plane seen while turning about a point off the camera" in r for r in st.reasons)
+    m, st, _ = _estimate(scene, _true_map(scene))
+    assert m is not None and m.state is TrackingState.TRACKING
+    assert _rot_err_deg(m, scene) < 0.1
+    assert _dir_err_deg(m.t_cur_kf, t) < 5.0
+    assert np.linalg.norm(m.t_cur_kf) == pytest.approx(MAP_SCALE * np.linalg.norm(t), rel=0.1)
 
 
 @pytest.mark.parametrize("scene_name", ["general_scene", "planar_scene"])

@@ -182,7 +182,7 @@ def test_a_clean_bag_whose_replay_asks_to_check_the_calibration_says_so_in_its_r
     shutil.copytree(out / "planar", copy)
     (copy / "status.json").unlink()  # a single-bag replay's directory
     assert row_from_directory(copy).status is BagStatus.OK and row_from_directory(copy).reason == ""
-    note = ("check the camera calibration: 44 frames are a pure rotation only under a focal length 1.111 x "
+    note = ("check the camera calibration: 44 frames fit a pure rotation under a focal length 1.111 x "
             "camera_info's (median; per frame: focal_ratio)")
     stats = json.loads((copy / "stats.json").read_text())
     stats["notes"] = ["the bag announces 29 images on /camera/image_raw, 30 were read", note]

@@ -52,5 +52,5 @@ def test_a_rotating_camera_with_a_wrong_focal_length_moves_nowhere_and_names_the
     assert sum(r["focal_ratio"] is not None for r in records) == len(named)
     notes = json.loads((tmp_path / "out" / "stats.json").read_text())["notes"]
     assert [n for n in notes if n.startswith("check the camera calibration")] == [
-        f"check the camera calibration: {len(named)} frames are a pure rotation only under a focal length "
+        f"check the camera calibration: {len(named)} frames fit a pure rotation under a focal length "
         f"{statistics.median(named):.3f} x camera_info's (median; per frame: focal_ratio)"]
