@@ -80,6 +80,7 @@ MAP_INFO_SIGMA_FACTOR = math.sqrt(2.0)  # map points' reprojections count as thi
 # carry the previous pair's image noise)
 FOCAL_SUSPECT_RANGE = (0.8, 1.25)  # focal lengths (x the calibration's) a rotation-only view may suggest ...
 FOCAL_SUSPECT_MIN_OFF = 0.03  # ... at least this far from it (closer: within the estimate's noise)
+FOCAL_RATIO_SIGMA = 0.01  # of that focal length, relative (its estimates scatter 0.3-0.8 %, tests and bag)
 STATIC_KEEP = 0.6  # a static camera stays static down to this share of static_min_fraction
 
 
@@ -304,7 +305,10 @@ class MotionStage:
             st.reasons.append(f"{what}; pose from the map")
             return None
         st.reasons.append(f"{what}; no map from it: translation not observable, position held")
-        return Motion(TrackingState.ROTATION_ONLY, R_f, np.zeros(3), covm.block(1e-6, rot_cov), in_h)
+        # The rotation also carries the focal length's error (a rotation under a focal length off by e is off
+        # by about e x its angle): FOCAL_RATIO_SIGMA of it.
+        rot_var = rot_cov + (FOCAL_RATIO_SIGMA * math.radians(angle)) ** 2
+        return Motion(TrackingState.ROTATION_ONLY, R_f, np.zeros(3), covm.block(1e-6, rot_var), in_h)
 
     def _plane_by_views(self, ctx: MotionContext, H: F64, in_h: NDArray[np.bool_], st: FrameStats
                         ) -> tuple[str, tuple[F64, F64, geo.Triangulation] | None, float]:

@@ -269,6 +269,8 @@ def test_a_rotation_seen_through_a_wrong_focal_length_is_rotation_only_and_says_
     (reason,) = [r for r in st.reasons if r.startswith("pure rotation if the focal length were")]
     assert f"{st.focal_ratio:.3f} x the calibration's" in reason and "check the camera calibration" in reason
     assert reason.endswith("position held")
+    # The rotation's variance carries the focal length's 1 %: about 1 % of the 4.7 deg rotation, per axis.
+    assert np.sqrt(np.diag(m.cov_rel)[3:]) == pytest.approx(np.full(3, 0.01 * math.radians(4.7)), rel=0.1)
     m, st, _ = _estimate(s, _true_map(s), cam=cam)
     assert m is not None and m.state is TrackingState.TRACKING
     assert st.focal_ratio == pytest.approx(1.0 / focal_scale, rel=0.015)
