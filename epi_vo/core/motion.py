@@ -80,6 +80,7 @@ MAP_INFO_SIGMA_FACTOR = math.sqrt(2.0)  # map points' reprojections count as thi
 # carry the previous pair's image noise)
 FOCAL_SUSPECT_RANGE = (0.8, 1.25)  # focal lengths (x the calibration's) a rotation-only view may suggest ...
 FOCAL_SUSPECT_MIN_OFF = 0.03  # ... at least this far from it (closer: within the estimate's noise)
+FOCAL_HINT_AGREE = 0.01  # a later frame's estimate this close to the last one taken: the same focal length
 FOCAL_RATIO_SIGMA = 0.01  # of that focal length, relative (its estimates scatter 0.3-0.8 %, tests and bag)
 STATIC_KEEP = 0.6  # a static camera stays static down to this share of static_min_fraction
 
@@ -93,6 +94,7 @@ class MotionStage:
         # An ambiguous planar initialisation: (keyframe stamp, plane normals of its valid solutions at the
         # first such frame, frames waited).
         self._plane_views: tuple[int, list[F64], int] | None = None
+        self._focal_hint: float | None = None  # the last focal ratio a rotation was taken under (see below)
 
     def estimate(self, ctx: MotionContext, sel: ModelSelection, st: FrameStats) -> Motion | None:
         """The pose from the winning model; ``st.model`` says which one it was."""
@@ -285,7 +287,7 @@ class MotionStage:
         if f is None or not 0.85 * lo <= f / K[0, 0] <= 1.15 * hi:
             return None
         ratio = geo.refine_focal_for_rotation(H, K, f, ctx.kf.uv[ctx.rows][in_h], ctx.uv_cur[in_h]) / K[0, 0]
-        if not lo <= ratio <= hi or abs(ratio - 1.0) < FOCAL_SUSPECT_MIN_OFF:
+        if not lo <= ratio <= hi:
             return None
         K_f = K.copy()
         K_f[:2, :2] *= ratio  # normalised coordinates under K_f: xn / ratio
@@ -295,7 +297,26 @@ class MotionStage:
         angle = rotation_angle_deg(R_f)
         if not (par_f < cfg.rotation_only_parallax_deg and angle >= cfg.min_rotation_for_rotation_only_deg):
             return None
-        st.focal_ratio = ratio
+        # The rotation also carries the focal length's error (a rotation under a focal length off by e is off
+        # by about e x its angle): FOCAL_RATIO_SIGMA of it.
+        rotation = Motion(TrackingState.ROTATION_ONLY, R_f, np.zeros(3),
+                          covm.block(1e-6, rot_cov + (FOCAL_RATIO_SIGMA * math.radians(angle)) ** 2), in_h)
+        # Once a rotation was taken under another focal length, later frames agreeing with it within
+        # FOCAL_HINT_AGREE name it too, also a little closer to the calibration's than FOCAL_SUSPECT_MIN_OFF (a
+        # focal length 3 % off is estimated at 2.9-3.4 % from frame to frame).
+        hint = self._focal_hint
+        agrees = hint is not None and abs(ratio - hint) <= FOCAL_HINT_AGREE
+        if abs(ratio - 1.0) < FOCAL_SUSPECT_MIN_OFF * (0.5 if agrees else 1.0):
+            # Within the calibration's tolerance: a rotation, without blaming the calibration (fx x 0.98 or
+            # 0.97: frames at 0.15-0.5 deg of "parallax" otherwise waited as a plane, the orientation held).
+            if self.has_map(ctx.kf):
+                return None
+            st.reasons.append(f"pure rotation: homography explains the motion under a focal length {ratio:.3f} x "
+                              f"the calibration's, within its tolerance (parallax {par_f:.2f} deg instead of "
+                              f"{st.median_parallax_deg:.2f}, rotation {angle:.1f} deg); translation not observable, "
+                              "position held")
+            return rotation
+        st.focal_ratio = self._focal_hint = ratio
         what = (f"pure rotation if the focal length were {ratio:.3f} x the calibration's (parallax {par_f:.2f} deg "
                 f"instead of {st.median_parallax_deg:.2f}, rotation {angle:.1f} deg; or a wall-like plane seen while "
                 "turning about a point off the camera): check the camera calibration")
@@ -305,10 +326,7 @@ class MotionStage:
             st.reasons.append(f"{what}; pose from the map")
             return None
         st.reasons.append(f"{what}; no map from it: translation not observable, position held")
-        # The rotation also carries the focal length's error (a rotation under a focal length off by e is off
-        # by about e x its angle): FOCAL_RATIO_SIGMA of it.
-        rot_var = rot_cov + (FOCAL_RATIO_SIGMA * math.radians(angle)) ** 2
-        return Motion(TrackingState.ROTATION_ONLY, R_f, np.zeros(3), covm.block(1e-6, rot_var), in_h)
+        return rotation
 
     def _plane_by_views(self, ctx: MotionContext, H: F64, in_h: NDArray[np.bool_], st: FrameStats
                         ) -> tuple[str, tuple[F64, F64, geo.Triangulation] | None, float]:
