@@ -30,3 +30,8 @@ def test_metric_row_counts_the_held_poses_and_judges_the_metric_ones() -> None:
     held_col = table[0].split().index("held")
     assert table[2].split()[held_col] == "0"
     assert table[3].split()[held_col] == str(row.held_poses)
+    # The per-frame time: median and 95th percentile of the records' totals (no bound on their size: speed
+    # is the benchmark's figure, not a test's).
+    p95_col = table[0].split().index("p95ms")
+    assert math.isfinite(vo.ms_p95) and vo.ms_p95 >= vo.ms_per_frame > 0
+    assert table[2].split()[p95_col] == f"{vo.ms_p95:.2f}"
