@@ -68,6 +68,8 @@ class VoConfig:
     ransac_confidence: float = _knob(0.999, "robust estimator confidence", 0.5, 0.999999)
     ransac_max_iters: int = _knob(1000, "robust estimator iteration cap", 10, 100000)
     score_sigma_px: float = _knob(1.0, "pixel noise sigma of the ORB-SLAM style chi-square scoring", 0.05, 50.0)
+    pixel_noise_px: float = _knob(0.8, "image noise of the tracked features (1 sigma, px) behind the published "
+                                  "covariance (the scoring gates use score_sigma_px)", 0.01, 50.0)
     rh_threshold: float = _knob(0.45, "choose H when RH = S_H / (S_H + S_E) exceeds this", 0.0, 1.0)
     min_inliers: int = _knob(25, "fewer model inliers than this: the frame gives no pose", 8, 10000)
 

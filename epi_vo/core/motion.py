@@ -158,7 +158,7 @@ class MotionStage:
         st.model = Model.STATIC
         st.reasons.append(f"camera static: {fraction:.0%} of tracked features did not move, spread over "
                           f"{spread:.0%} of the image; {what}; pose held")
-        rot_cov = covm.rotation_var(cfg.score_sigma_px, K.K[0, 0], max(st.n_inliers, 1))
+        rot_cov = covm.rotation_var(cfg.pixel_noise_px, K.K[0, 0], max(st.n_inliers, 1))
         return Motion(TrackingState.STATIC, np.eye(3), np.zeros(3), covm.block(1e-6, rot_cov), still)
 
     def _from_essential(self, ctx: MotionContext, E: F64, in_e: NDArray[np.bool_], st: FrameStats,
@@ -174,7 +174,7 @@ class MotionStage:
             st.reasons.append(f"too few inliers after cheirality ({st.n_inliers} < {cfg.min_inliers}, RH "
                               f"{st.rh:.2f})")
             return None
-        rot_cov = covm.rotation_var(cfg.score_sigma_px, K[0, 0], st.n_inliers)
+        rot_cov = covm.rotation_var(cfg.pixel_noise_px, K[0, 0], st.n_inliers)
         if not self.has_map(kf):
             return self._initialize(ctx, R, t_dir, inl, st, "essential matrix")
         return self._track_with_map(ctx, R, t_dir, inl, st, rot_cov, plane)
@@ -191,7 +191,7 @@ class MotionStage:
         if st.n_inliers < cfg.min_inliers:
             st.reasons.append(f"too few homography inliers ({st.n_inliers} < {cfg.min_inliers})")
             return None
-        rot_cov = covm.rotation_var(cfg.score_sigma_px, K[0, 0], st.n_inliers)
+        rot_cov = covm.rotation_var(cfg.pixel_noise_px, K[0, 0], st.n_inliers)
         zero = np.zeros(3)
         if st.median_parallax_deg < cfg.rotation_only_parallax_deg:
             angle = rotation_angle_deg(R_h)
@@ -393,7 +393,7 @@ class MotionStage:
         K = ctx.kf.camera.K
         xn_kf, xn_cur = ctx.kf.xn[ctx.rows], ctx.xn_cur
         zero = np.zeros(3)
-        rot_cov = covm.rotation_var(cfg.score_sigma_px, K[0, 0], max(st.n_inliers, 1))
+        rot_cov = covm.rotation_var(cfg.pixel_noise_px, K[0, 0], max(st.n_inliers, 1))
         hold = Motion(TrackingState.INITIALIZING, R, zero, covm.block(1e-6, rot_cov), inl)
         if st.median_parallax_deg < cfg.init_min_parallax_deg:
             st.reasons.append(f"low parallax ({st.median_parallax_deg:.2f} deg < {cfg.init_min_parallax_deg}): "
@@ -424,7 +424,7 @@ class MotionStage:
         # isotropic form, with the rotation from the inliers' count.
         baseline = float(np.linalg.norm(t))
         cov = None if planar else geo.essential_pose_covariance(
-            R, t_dir, xn_kf[inl], xn_cur[inl], cfg.score_sigma_px / K[0, 0], baseline, cfg.scale_drift_per_keyframe**2)
+            R, t_dir, xn_kf[inl], xn_cur[inl], cfg.pixel_noise_px / K[0, 0], baseline, cfg.scale_drift_per_keyframe**2)
         if not planar:
             undetermined = _undetermined(cov, t, cfg)
             if undetermined:
@@ -465,7 +465,7 @@ class MotionStage:
             # map (whose depths carry the previous pairs' noise): take them, with the map's scale.
             par_rad = math.radians(st.median_parallax_deg)
             n = max(st.n_inliers, 1)
-            dir_var = (cfg.score_sigma_px / (K[0, 0] * par_rad)) ** 2 / n
+            dir_var = (cfg.pixel_noise_px / (K[0, 0] * par_rad)) ** 2 / n
             scale_var = est.rel_spread**2 / max(est.n_used, 1)
             trans_var = est.scale**2 * (dir_var + scale_var)
             disagree = self._map_disagrees(ctx, X, R, t0, st, plane)
@@ -523,7 +523,7 @@ class MotionStage:
         rotation and direction coupled, the scale's dependence on the direction included."""
         cfg = self.cfg
         cov = geo.essential_pose_covariance(R, t_dir, ctx.kf.xn[ctx.rows][inl], ctx.xn_cur[inl],
-                                            cfg.score_sigma_px / ctx.kf.camera.K[0, 0], est.scale,
+                                            cfg.pixel_noise_px / ctx.kf.camera.K[0, 0], est.scale,
                                             est.rel_spread**2 / max(est.n_used, 1),
                                             (X[has_depth], ctx.xn_cur[has_depth]))
         return fallback if cov is None or not np.all(np.isfinite(cov)) else cov
@@ -533,7 +533,7 @@ class MotionStage:
         pose: on a plane E's five parameters are poorly conditioned (the two-fold ambiguity's direction),
         while the map points (off the degeneracy) fix it. Independent to first order; the map points'
         reprojections count as MAP_INFO_SIGMA_FACTOR noisier than the image noise."""
-        sigma_n = self.cfg.score_sigma_px * MAP_INFO_SIGMA_FACTOR / ctx.kf.camera.K[0, 0]
+        sigma_n = self.cfg.pixel_noise_px * MAP_INFO_SIGMA_FACTOR / ctx.kf.camera.K[0, 0]
         info = geo.map_information(R, t, X, xn, sigma_n)
         fused = None if info is None else geo.fuse(cov, info)
         return cov if fused is None else fused

@@ -88,7 +88,7 @@ class VoPipeline:
         # VO units: the map's log-scale variance and its covariance with the position (_scale_drift_cov)
         self._scale_var = 0.0
         self._cov_ps = np.zeros(3)
-        self._window = WindowedMap(self.cfg.ba_window_keyframes, self.cfg.ba_every_keyframes, self.cfg.score_sigma_px)
+        self._window = WindowedMap(self.cfg.ba_window_keyframes, self.cfg.ba_every_keyframes, self.cfg.pixel_noise_px)
         self._next_id = 0  # the next feature track id
         self._mover_ids = np.zeros(0, np.int64)  # sorted ids of tracks judged to move on their own
         self._anchor: sc.WindowAnchor | None = None  # the scale source's anchor of the newest keyframe step

@@ -174,3 +174,21 @@ def test_tracking_ahead_gives_the_records_of_tracking_in_line(frames: list[tuple
     ra, rb = r.to_record(), plain[2].to_record()
     ra.pop("timings_ms"), rb.pop("timings_ms")
     assert ra == rb
+
+
+def test_pixel_noise_scales_the_covariance_and_nothing_else(frames: list[tuple[int, np.ndarray, CameraModel]]
+                                                            ) -> None:
+    """``pixel_noise_px`` is the covariance's image noise, apart from the scoring gates (``score_sigma_px``):
+    halving it leaves every pose and decision as it was and divides the image-noise part of the covariance
+    by four (the rotation's entirely; the position keeps its scale-drift part)."""
+    a = _run(VoPipeline(dataclasses.replace(VoConfig(), pixel_noise_px=0.8)), frames)
+    b = _run(VoPipeline(dataclasses.replace(VoConfig(), pixel_noise_px=0.4)), frames)
+    assert [(r.state, r.model, r.is_keyframe) for r in a] == [(r.state, r.model, r.is_keyframe) for r in b]
+    for ra, rb in zip(a, b, strict=True):
+        np.testing.assert_array_equal(ra.T_w_c, rb.T_w_c)
+    ratio = np.array([np.diag(ra.covariance) / np.diag(rb.covariance)
+                      for ra, rb in zip(a, b, strict=True) if ra.state is TrackingState.TRACKING])
+    assert len(ratio) >= 40
+    assert np.all(ratio > 1.0 - 1e-9) and np.all(ratio < 4.0 + 1e-6)
+    np.testing.assert_allclose(np.median(ratio[:, 3:], axis=0), 4.0, rtol=0.02)  # rotation: image noise only
+    assert np.all(np.median(ratio[:, :3], axis=0) > 1.05)  # position: partly
