@@ -531,9 +531,13 @@ class MotionStage:
     def _with_map_information(self, ctx: MotionContext, R: F64, t: F64, X: F64, xn: F64, cov: F64) -> F64:
         """E's covariance on a plane-dominated view, fused with what the map points say about the same
         pose: on a plane E's five parameters are poorly conditioned (the two-fold ambiguity's direction),
-        while the map points (off the degeneracy) fix it. Independent to first order; the map points'
-        reprojections count as MAP_INFO_SIGMA_FACTOR noisier than the image noise."""
-        sigma_n = self.cfg.pixel_noise_px * MAP_INFO_SIGMA_FACTOR / ctx.kf.camera.K[0, 0]
+        while the map points (off the degeneracy) fix it. Independent to first order. The map points'
+        reprojections carry the noise their own residuals show, as on the map-PnP frames around this
+        one (RMS per axis, at least PNP_MIN_SIGMA_PX), MAP_INFO_SIGMA_FACTOR more for their depths."""
+        fx = ctx.kf.camera.K[0, 0]
+        rms = geo.reprojection_rms(R, t, X, xn)
+        sigma_n = MAP_INFO_SIGMA_FACTOR * max(rms if rms is not None else self.cfg.pixel_noise_px / fx,
+                                              geo.PNP_MIN_SIGMA_PX / fx)
         info = geo.map_information(R, t, X, xn, sigma_n)
         fused = None if info is None else geo.fuse(cov, info)
         return cov if fused is None else fused

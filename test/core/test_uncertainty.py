@@ -147,3 +147,17 @@ def test_step_covariance_predicts_the_spread_of_rotation_between_consecutive_fra
         assert np.all((r > 0.5) & (r < 2.0)), r
     if chained:
         assert np.all(ratio(between, (covs[0] + covs[1]) / 4) > 1.3)
+
+
+def test_reprojection_rms_is_the_per_axis_rms_of_the_points_in_front() -> None:
+    rng = np.random.default_rng(3)
+    X = np.column_stack([rng.uniform(-2, 2, 200), rng.uniform(-1, 1, 200), rng.uniform(4, 9, 200)])
+    R, t = cv2.Rodrigues(np.array([0.02, -0.03, 0.01]))[0], np.array([0.1, 0.0, -0.2])
+    Xc = X @ R.T + t
+    xn = Xc[:, :2] / Xc[:, 2:3]
+    assert geo.reprojection_rms(R, t, X, xn) == pytest.approx(0.0, abs=1e-12)
+    noise = rng.normal(0.0, 1e-3, xn.shape)
+    behind = np.vstack([X, [[0.0, 0.0, -5.0]]])  # a point behind the camera does not count
+    rms = geo.reprojection_rms(R, t, behind, np.vstack([xn + noise, [[5.0, 5.0]]]))
+    assert rms == pytest.approx(float(np.sqrt(np.mean(noise**2))), rel=1e-9)
+    assert geo.reprojection_rms(R, t, np.array([[0.0, 0.0, -5.0]]), np.zeros((1, 2))) is None

@@ -27,6 +27,7 @@ from epi_vo.core.geometry.models import (
     transfer_errors_sq,
 )
 from epi_vo.core.geometry.pose import (
+    PNP_MIN_SIGMA_PX,
     PlanarSolution,
     focal_for_rotation,
     homography_solutions,
@@ -38,12 +39,13 @@ from epi_vo.core.geometry.pose import (
     rotation_from_homography,
 )
 from epi_vo.core.geometry.triangulation import ScaleEstimate, Triangulation, scale_from_points, triangulate
-from epi_vo.core.geometry.uncertainty import essential_pose_covariance, fuse, map_information
+from epi_vo.core.geometry.uncertainty import essential_pose_covariance, fuse, map_information, reprojection_rms
 
 __all__ = [
     "CHI2_1DOF",
     "CHI2_2DOF",
     "F64",
+    "PNP_MIN_SIGMA_PX",
     "ROBUST_METHOD_FLAGS",
     "Mask",
     "PlanarSolution",
@@ -68,6 +70,7 @@ __all__ = [
     "recover_pose",
     "refine_focal_for_rotation",
     "refine_pose_pnp",
+    "reprojection_rms",
     "rh_ratio",
     "rotation_from_homography",
     "sampson_distance_sq",

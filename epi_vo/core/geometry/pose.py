@@ -120,6 +120,7 @@ def refine_focal_for_rotation(H: F64, K: F64, f0: float, uv_ref: F64, uv_cur: F6
     return 0.5 * (lo + hi)
 
 
+PNP_MIN_SIGMA_PX = 0.05  # floor of the a posteriori image noise behind refine_pose_pnp's covariance (px per axis)
 FOCAL_SEARCH_STEPS = 24  # golden-section steps over +-15 %: the bracket shrinks to ~1e-5 of the focal length
 
 
@@ -244,7 +245,7 @@ def refine_pose_pnp(X_ref: F64, uv_cur: F64, K: F64, R_cur_ref: F64, t_cur_ref: 
     proj, J = cv2.projectPoints(obj[keep], rvec, tvec, K, zero_d)
     J = J[:, :6]
     res = proj.reshape(-1, 2) - uv_cur[keep]
-    sigma2 = max(float(np.mean(res**2)), 0.05**2)
+    sigma2 = max(float(np.mean(res**2)), PNP_MIN_SIGMA_PX**2)  # per axis
     try:
         cov = sigma2 * np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:

@@ -16,6 +16,8 @@ plane perpendicular to it. The returned 6x6 is over (c, phi), position first, as
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -179,6 +181,19 @@ def map_information(R_cur_kf: F64, t_cur_kf: F64, X_kf: F64, xn_cur: F64, sigma_
     J = ((proj[1:] - proj[0]) / h).reshape(6, -1).T  # (2m, 6)
     info = np.einsum("ni,nj->ij", J, J) * (X_kf.shape[0] / rows.size) / sigma_n**2
     return info if np.all(np.isfinite(info)) else None
+
+
+def reprojection_rms(R_cur_kf: F64, t_cur_kf: F64, X_kf: F64, xn_cur: F64) -> float | None:
+    """RMS per axis of the reprojection residuals (normalised units) of the map points ``X_kf`` (M, 3;
+    keyframe frame) in front of the camera at (R_cur_kf, t_cur_kf), seen at ``xn_cur`` (M, 2); None
+    when no point is in front."""
+    Xc = X_kf @ R_cur_kf.T + t_cur_kf
+    front = Xc[:, 2] > 0
+    if not np.any(front):
+        return None
+    res = Xc[front, :2] / Xc[front, 2:3] - xn_cur[front]
+    rms = math.sqrt(float(np.mean(res**2)))
+    return rms if math.isfinite(rms) else None
 
 
 def fuse(cov: F64, info: F64) -> F64 | None:
