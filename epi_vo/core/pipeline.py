@@ -59,6 +59,7 @@ from epi_vo.core.frame import (
     frozen,
 )
 from epi_vo.core.keyframe import Keyframe, make_keyframe
+from epi_vo.core.map_scale import MapScaleCovariance
 from epi_vo.core.mapping import keyframe_map
 from epi_vo.core.odometry import rotate_covariance
 from epi_vo.core.selection import ModelSelector
@@ -83,11 +84,7 @@ class VoPipeline:
         self._motion = mo.MotionStage(self.cfg)
         self._wheel = sc.WheelOdometry()
         self._scale = sc.source_from_config(self.cfg, self._wheel)
-        self._map_origin_w = np.zeros(3)  # where the current map was initialised (odometry frame)
-        self._map_origin_cov = np.zeros((6, 6))  # and the pose covariance it started from
-        # VO units: the map's log-scale variance and its covariance with the position (_scale_drift_cov)
-        self._scale_var = 0.0
-        self._cov_ps = np.zeros(3)
+        self._map_scale = MapScaleCovariance(self.cfg.scale_drift_per_keyframe)
         self._window = WindowedMap(self.cfg.ba_window_keyframes, self.cfg.ba_every_keyframes, self.cfg.pixel_noise_px)
         self._next_id = 0  # the next feature track id
         self._mover_ids = np.zeros(0, np.int64)  # sorted ids of tracks judged to move on their own
@@ -353,12 +350,8 @@ class VoPipeline:
         prev = self._rel_prev
         self._rel_prev = (kf.stamp_ns, cov)
         cov = covm.step(cov, prev[1] if prev is not None and prev[0] == kf.stamp_ns else None)
-        # The step's length carries the map's scale error: the scale source's uncertainty once metric,
-        # else the drift accumulated over the map's keyframes (a random walk of scale_drift_per_keyframe).
-        if self._scale.established:
-            rel = self._scale.rel_std
-        else:
-            rel = math.sqrt(max(self._scale_var, self.cfg.scale_drift_per_keyframe**2))
+        # The step's length carries the map's scale error (``MapScaleCovariance.step_rel_std``).
+        rel = self._map_scale.step_rel_std(self._scale)
         return cov + np.pad(np.outer(step_w, step_w) * rel**2, (0, 3))
 
     # ---------------------------------------------------------------------------------------------
@@ -380,7 +373,8 @@ class VoPipeline:
         cov = self._cov_w_c.copy()
         if motion.state is TrackingState.TRACKING:
             d = self._T_w_c[:3, 3] - kf.T_w_kf[:3, 3]
-            cov[:3, :3] += self._scale_drift_cov(motion, d, float(np.linalg.norm(t)))
+            cov[:3, :3] += self._map_scale.keyframe_cov(self._scale, motion.new_map is not None, d,
+                                                        float(np.linalg.norm(t)))
         ids_tracked = kf.ids[rows] if kf.ids is not None else None
         self._set_keyframe(gray, camera, stamp_ns, cov, pts_cur, X_cur, orb_cur, ids_tracked)
         if motion.state is TrackingState.TRACKING:
@@ -388,27 +382,6 @@ class VoPipeline:
         else:
             self._window.clear()
         return True
-
-    def _scale_drift_cov(self, motion: mo.Motion, d: F64, step: float) -> F64:
-        """Position covariance a keyframe step ``d`` (odometry frame) adds through the map's scale error.
-
-        Metric: the scale filter's relative standard deviation times the step (isotropic). VO units: the
-        map's log-scale is a random walk of ``scale_drift_per_keyframe`` per keyframe, and one scale error
-        moves every later step alike, so the position error it causes grows coherently along the path
-        (the scale variance and its covariance with the position are carried, as an EKF augmented with
-        the scale would): var_p += d d^T var_s + c d^T + d c^T, c += d var_s, var_s += q.
-        """
-        q = self.cfg.scale_drift_per_keyframe**2
-        if self._scale.established:
-            return np.eye(3) * (self._scale.filter.rel_std * step) ** 2
-        if motion.new_map is not None:
-            # The first baseline's length (E's covariance along it) is the map's scale error itself.
-            self._scale_var, self._cov_ps = q, d * q
-            return np.zeros((3, 3))
-        vs, c = self._scale_var, self._cov_ps
-        self._cov_ps = c + d * vs
-        self._scale_var = vs + q
-        return np.outer(d, d) * vs + np.outer(c, d) + np.outer(d, c)
 
     def _adjust_window(self, st: FrameStats, ids_tracked: NDArray[np.int64] | None) -> None:
         """Windowed bundle adjustment (``epi_vo.core.window``) when it is due: the new keyframe, and the
@@ -439,8 +412,7 @@ class VoPipeline:
         the step translation ``t_cur_kf`` as corrected."""
         t = motion.t_cur_kf
         if motion.new_map is not None:
-            self._map_origin_w = kf.T_w_kf[:3, 3].copy()
-            self._map_origin_cov = kf.cov_w_kf.copy()
+            self._map_scale.set_origin(kf.T_w_kf[:3, 3], kf.cov_w_kf)
             self._scale.on_new_map()
         was_metric = self._scale.established
         step = sc.KeyframeStep(X_cur, float(np.linalg.norm(t)), kf.stamp_ns, stamp_ns)
@@ -455,20 +427,11 @@ class VoPipeline:
             self._jumped = True
             self._window.clear()
             self._T_w_c = self._T_w_c.copy()
-            d = factor * (self._T_w_c[:3, 3] - self._map_origin_w)
-            self._T_w_c[:3, 3] = self._map_origin_w + d
-            self._cov_w_c = self._metric_covariance(factor, d)
+            origin = self._map_scale.origin_w
+            d = factor * (self._T_w_c[:3, 3] - origin)
+            self._T_w_c[:3, 3] = origin + d
+            self._cov_w_c = self._map_scale.metric_covariance(self._scale, self._cov_w_c, factor, d)
         return X_cur * factor, t
-
-    def _metric_covariance(self, factor: float, d: F64) -> F64:
-        """The pose covariance when the map's VO units become metres: what the map added since its origin
-        (not the covariance of the held pose it started from) is rescaled with the positions, and the
-        scale source's own uncertainty lies along the displacement ``d`` from the map's origin."""
-        base = self._map_origin_cov
-        J = np.diag([factor] * 3 + [1.0] * 3)
-        cov = base + J @ (self._cov_w_c - base) @ J.T
-        cov[:3, :3] += np.outer(d, d) * self._scale.filter.rel_std ** 2
-        return 0.5 * (cov + cov.T)
 
     def _set_keyframe(self, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int, cov_w: F64,
                       pts_tracked: F32, X_tracked: F64, orb_cur: fe.OrbFeatures | None,
@@ -502,8 +465,7 @@ class VoPipeline:
         cov = self._handover_cov(stamp_ns)
         self._set_keyframe(gray, camera, stamp_ns, cov, np.zeros((0, 2), np.float32), np.zeros((0, 3)),
                            None)
-        self._map_origin_w = self._T_w_c[:3, 3].copy()
-        self._map_origin_cov = cov.copy()
+        self._map_scale.set_origin(self._T_w_c[:3, 3], cov)
         self._last_pos_w = self._T_w_c[:3, 3].copy()
         st.timings["frontend"] = _ms(t0)
         self._cov_w_c = cov
@@ -517,8 +479,7 @@ class VoPipeline:
         self._cov_w_c = cov
         self._set_keyframe(gray, camera, stamp_ns, cov, np.zeros((0, 2), np.float32), np.zeros((0, 3)),
                            orb_cur)
-        self._map_origin_w = self._T_w_c[:3, 3].copy()
-        self._map_origin_cov = cov.copy()
+        self._map_scale.set_origin(self._T_w_c[:3, 3], cov)
         self._last_pos_w = self._T_w_c[:3, 3].copy()
         self._fail_count = 0
 
@@ -560,13 +521,6 @@ class VoPipeline:
             self._good_rates = (step / dt, turn / dt)
         self._good = (stamp_ns, self._T_w_c.copy(), self._cov_w_c.copy())
 
-    def _systematic_scale_cov(self, p_w: F64) -> F64:
-        """Position covariance of the scale source's systematic error (``ScaleSource.systematic_rel``):
-        it scales the whole path of the current map about its origin, so it grows with the distance from
-        there, not as a random walk. Added to what is published (and handed over to the next map)."""
-        d = p_w - self._map_origin_w
-        return np.outer(d, d) * self._scale.systematic_rel**2
-
     def _handover_cov(self, stamp_ns: int) -> F64:
         """Covariance of the held pose a new map starts from (a restart, a reset, a jump back in time).
 
@@ -582,7 +536,7 @@ class VoPipeline:
         speed, rate = self._good_rates
         cov = good[2].copy()
         if self._scale.established:
-            cov[:3, :3] += self._systematic_scale_cov(good[1][:3, 3])
+            cov[:3, :3] += self._map_scale.systematic(self._scale, good[1][:3, 3])
         cov[:3, :3] += np.eye(3) * (speed * gap_s) ** 2
         cov[3:, 3:] += np.eye(3) * (rate * gap_s) ** 2
         return covm.floored(cov)
@@ -618,11 +572,11 @@ class VoPipeline:
             # Metres were asked for and the scale is not known yet: the position holds where the map
             # started (nothing in VO units is published as metres) and its covariance says so.
             T_out = T_out.copy()
-            T_out[:3, 3] = self._map_origin_w
+            T_out[:3, 3] = self._map_scale.origin_w
             cov[:3, :3] += np.eye(3) * self.cfg.lost_position_variance
             st.reasons.append("metric scale not established yet: position held")
         elif self._scale.established:
-            cov[:3, :3] += self._systematic_scale_cov(T_out[:3, 3])
+            cov[:3, :3] += self._map_scale.systematic(self._scale, T_out[:3, 3])
         cov = covm.floored(cov)
         st.timings["total"] = _ms(t_start)
         kf = self._kf

@@ -1,0 +1,82 @@
+"""The map's scale in the pose covariance (numpy only).
+
+A monocular map knows its translation up to one scale. How uncertain that scale is, and how its error
+moves the published position, depends on whether a scale source established metres:
+
+* VO units: the map's log-scale is a random walk of ``scale_drift_per_keyframe`` per keyframe. One scale
+  error moves every later step alike, so the position error it causes grows coherently along the path:
+  the scale variance and its covariance with the position are carried, as an EKF augmented with the scale
+  would (``keyframe_cov``).
+* Metric: the scale filter's relative standard deviation times each keyframe step, and, once, the
+  rescaling of what the map accumulated in VO units when metres are established (``metric_covariance``);
+  the source's systematic error scales the whole path about the map's origin (``systematic``).
+
+``VoPipeline`` owns one ``MapScaleCovariance`` and tells it where each map starts (``set_origin``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from epi_vo.core.scale import ScaleSource
+
+F64 = NDArray[np.float64]
+
+
+class MapScaleCovariance:
+    """The scale part of the pose covariance of the current map (see module doc)."""
+
+    def __init__(self, drift_per_keyframe: float) -> None:
+        self.q = drift_per_keyframe**2
+        self.origin_w = np.zeros(3)  # where the current map was initialised (odometry frame)
+        self.origin_cov = np.zeros((6, 6))  # and the pose covariance it started from
+        self.var = 0.0  # VO units: the map's log-scale variance ...
+        self.cov_ps = np.zeros(3)  # ... and its covariance with the position
+
+    def set_origin(self, origin_w: F64, origin_cov: F64) -> None:
+        """A map starts at ``origin_w`` with the pose covariance ``origin_cov``."""
+        self.origin_w = np.array(origin_w, dtype=np.float64)
+        self.origin_cov = np.array(origin_cov, dtype=np.float64)
+
+    def step_rel_std(self, scale: ScaleSource) -> float:
+        """Relative standard deviation of one step's length through the map's scale: the scale source's
+        once metric, else the drift accumulated over the map's keyframes (at least one keyframe's)."""
+        if scale.established:
+            return scale.rel_std
+        return math.sqrt(max(self.var, self.q))
+
+    def keyframe_cov(self, scale: ScaleSource, new_map: bool, d: F64, step: float) -> F64:
+        """Position covariance a keyframe step ``d`` (odometry frame; length ``step`` in map units) adds
+        through the map's scale error. Metric: the scale filter's relative standard deviation times the
+        step (isotropic). VO units: var_p += d d^T var_s + c d^T + d c^T, c += d var_s, var_s += q; on a
+        new map the first baseline's length (E's covariance along it) is the map's scale error itself."""
+        q = self.q
+        if scale.established:
+            return np.eye(3) * (scale.filter.rel_std * step) ** 2
+        if new_map:
+            self.var, self.cov_ps = q, d * q
+            return np.zeros((3, 3))
+        vs, c = self.var, self.cov_ps
+        self.cov_ps = c + d * vs
+        self.var = vs + q
+        return np.outer(d, d) * vs + np.outer(c, d) + np.outer(d, c)
+
+    def metric_covariance(self, scale: ScaleSource, cov_w_c: F64, factor: float, d: F64) -> F64:
+        """The pose covariance when the map's VO units become metres: what the map added since its origin
+        (not the covariance of the held pose it started from) is rescaled with the positions by ``factor``,
+        and the scale source's own uncertainty lies along the displacement ``d`` from the map's origin."""
+        base = self.origin_cov
+        J = np.diag([factor] * 3 + [1.0] * 3)
+        cov = base + J @ (cov_w_c - base) @ J.T
+        cov[:3, :3] += np.outer(d, d) * scale.filter.rel_std ** 2
+        return 0.5 * (cov + cov.T)
+
+    def systematic(self, scale: ScaleSource, p_w: F64) -> F64:
+        """Position covariance of the scale source's systematic error (``ScaleSource.systematic_rel``):
+        it scales the whole path of the current map about its origin, so it grows with the distance from
+        there, not as a random walk."""
+        d = p_w - self.origin_w
+        return np.outer(d, d) * scale.systematic_rel**2
