@@ -43,8 +43,9 @@ from rclpy.parameter import Parameter
 from epi_vo.core.diagnostics import DiagnosticLevel
 from epi_vo.core.errors import ConfigError
 from epi_vo.core.status import summary_status
-from epi_vo.ros.node import VoNodeBase, run_node
+from epi_vo.ros.node import VoNodeBase
 from epi_vo.ros.node_params import declare_all, effective_parameters_text, warn_undeclared_overrides
+from epi_vo.ros.node_run import run_node
 from epi_vo.ros.node_tf import TransformLookup
 
 __all__ = ["VoLifecycleNode", "main"]

@@ -31,25 +31,21 @@ from __future__ import annotations
 import collections
 import dataclasses
 import math
-import sys
 import threading
 import time
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-import rclpy
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, TransformStamped
 from nav_msgs.msg import Odometry, Path
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, PointField
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from std_srvs.srv import Trigger
 
 from epi_vo.core import covariance as covm
@@ -57,7 +53,7 @@ from epi_vo.core.camera import CameraModelCache
 from epi_vo.core.config import VoConfig
 from epi_vo.core.debug_image import draw_matches
 from epi_vo.core.diagnostics import DiagnosticLevel, DiagnosticStatusRecord
-from epi_vo.core.errors import CameraModelError, ConfigError, EpiVoError
+from epi_vo.core.errors import CameraModelError, EpiVoError
 from epi_vo.core.frame import FrameResult
 from epi_vo.core.odometry import OdometryConverter, T_base_cam_from_params, status_pose
 from epi_vo.core.pipeline import VoPipeline
@@ -67,6 +63,7 @@ from epi_vo.io import msgconv
 from epi_vo.io.association import CameraInfoAssociator, Ready
 from epi_vo.io.node_options import NodeOptions, changed_names
 from epi_vo.ros.node_params import check_change, declare_all, effective_parameters_text, warn_undeclared_overrides
+from epi_vo.ros.node_run import bgr_image_msg, point_cloud_msg, run_node, stamp_msg
 from epi_vo.ros.node_tf import Extrinsic, ExtrinsicResolver, TransformLookup, make_tf2_lookup, make_tf_broadcaster
 
 __all__ = ["NodeOptions", "VoNode", "main"]
@@ -341,7 +338,7 @@ class VoNodeBase:
                 # Bad input in this frame: it is accounted for like any other (held pose, reason).
                 self.get_logger().warning(f"frame rejected: {exc}", throttle_duration_sec=5.0)
                 r = self._anchored(self._pipeline.reject(item.stamp_ns, str(exc)))
-                self._publish(r, _stamp_msg(r.stamp_ns), None)
+                self._publish(r, stamp_msg(r.stamp_ns), None)
             except Exception as exc:  # never let one frame kill the node; say what happened
                 # Not an input problem: a defect. The pipeline's state may be half-updated, so tracking
                 # restarts from the held pose; the status says it was an internal error.
@@ -349,7 +346,7 @@ class VoNodeBase:
                 self._pipeline.reset(f"internal error in the previous frame ({type(exc).__name__}): tracking "
                                      "restarted from the last pose")
                 r = self._anchored(self._pipeline.reject(item.stamp_ns, f"internal error: {exc!r}"))
-                self._publish(r, _stamp_msg(r.stamp_ns), None)
+                self._publish(r, stamp_msg(r.stamp_ns), None)
             finally:
                 with self._cv:
                     self._busy = False
@@ -451,7 +448,7 @@ class VoNodeBase:
         if "time jumped backwards" in result.reason:
             self.get_logger().warning(result.reason)
             self._converter.reset_twist()
-        self._publish(result, _stamp_msg(result.stamp_ns), gray)
+        self._publish(result, stamp_msg(result.stamp_ns), gray)
 
     # -- output -------------------------------------------------------------------------------------------
     def _hardware_id(self) -> str:
@@ -508,10 +505,10 @@ class VoNodeBase:
                 self._tf.sendTransform(tf)
         if r.points_w.shape[0]:
             T = self._converter.T_base_cam
-            self._pub_points.publish(_point_cloud(odom.header, r.points_w @ T[:3, :3].T + T[:3, 3]))
+            self._pub_points.publish(point_cloud_msg(odom.header, r.points_w @ T[:3, :3].T + T[:3, 3]))
         self._publish_status(self._frame_status(r), self._diagnostics_stamp())
         if self._pub_debug is not None and gray is not None:
-            self._pub_debug.publish(_bgr_image(odom.header, draw_matches(r, gray)))
+            self._pub_debug.publish(bgr_image_msg(odom.header, draw_matches(r, gray)))
 
     def _input_values(self) -> tuple[tuple[str, str], ...]:
         with self._lock:
@@ -623,34 +620,6 @@ class VoNode(VoNodeBase, Node):
         super().destroy_node()
 
 
-def _stamp_msg(stamp_ns: int) -> Time:
-    """A frame result's stamp as a ROS time (results carry valid stamps only)."""
-    sec, nanosec = msgconv.ns_to_ros_time(stamp_ns)
-    return Time(sec=sec, nanosec=nanosec)
-
-
-def _point_cloud(header: Any, points: np.ndarray) -> PointCloud2:
-    f = msgconv.point_cloud2_fields(points)
-    msg = PointCloud2()
-    msg.header = header
-    msg.height, msg.width = f["height"], f["width"]
-    msg.fields = [PointField(name=p.name, offset=p.offset, datatype=p.datatype, count=p.count) for p in f["fields"]]
-    msg.is_bigendian, msg.point_step, msg.row_step = f["is_bigendian"], f["point_step"], f["row_step"]
-    msg.data = bytes(f["data"])
-    msg.is_dense = f["is_dense"]
-    return msg
-
-
-def _bgr_image(header: Any, img: np.ndarray) -> Image:
-    msg = Image()
-    msg.header = header
-    msg.height, msg.width = img.shape[:2]
-    msg.encoding = "bgr8"
-    msg.step = img.shape[1] * 3
-    msg.data = img.tobytes()
-    return msg
-
-
 HELP_TEXT = """usage: vo_node [--ros-args --params-file FILE -p NAME:=VALUE -r FROM:=TO ...]
 
 Monocular visual odometry node (epi_vo). Subscribes camera/image_raw (+ /compressed) and
@@ -658,38 +627,6 @@ camera/camera_info; publishes vo/odometry, vo/points, vo/path, /diagnostics; ser
 Its parameters, with their defaults (the same file as `epi-vo params` and config/epi_vo.yaml):
 
 """
-
-
-def help_requested(argv: list[str]) -> bool:
-    """``--help`` / ``-h`` before any ``--ros-args`` (after it, the arguments are ROS's)."""
-    user_args = argv[:argv.index("--ros-args")] if "--ros-args" in argv else argv
-    return "--help" in user_args or "-h" in user_args
-
-
-def run_node(make_node: Callable[[], Node], program: str, help_text: str, args: list[str] | None) -> None:
-    """The entry point of vo_node and vo_lifecycle_node: ``--help`` prints ``help_text`` and the parameters
-    and exits 0 before rclpy starts (no DDS touched); bad parameters exit 2 naming every one; else spin
-    until Ctrl-C or an external shutdown."""
-    argv = sys.argv[1:] if args is None else list(args)
-    if help_requested(argv):
-        from epi_vo.io.params import to_params_yaml
-
-        sys.stdout.write(help_text + to_params_yaml(VoConfig(), node=NodeOptions()))
-        sys.exit(0)
-    rclpy.init(args=args)
-    try:
-        node = make_node()
-    except ConfigError as exc:
-        print(f"{program}: error: {exc}", file=sys.stderr)
-        rclpy.try_shutdown()
-        sys.exit(2)
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
 
 
 def main(args: list[str] | None = None) -> None:

@@ -1,0 +1,81 @@
+"""What ``vo_node`` and ``vo_lifecycle_node`` share outside the node itself: the ROS messages built from
+a frame result (stamp, point cloud, debug image) and the entry point that runs a node (``--help``
+without DDS, bad parameters as exit 2, spin until Ctrl-C)."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import rclpy
+from builtin_interfaces.msg import Time
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from sensor_msgs.msg import Image, PointCloud2, PointField
+
+from epi_vo.core.config import VoConfig
+from epi_vo.core.errors import ConfigError
+from epi_vo.io import msgconv
+from epi_vo.io.node_options import NodeOptions
+
+
+def stamp_msg(stamp_ns: int) -> Time:
+    """A frame result's stamp as a ROS time (results carry valid stamps only)."""
+    sec, nanosec = msgconv.ns_to_ros_time(stamp_ns)
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def point_cloud_msg(header: Any, points: np.ndarray) -> PointCloud2:
+    f = msgconv.point_cloud2_fields(points)
+    msg = PointCloud2()
+    msg.header = header
+    msg.height, msg.width = f["height"], f["width"]
+    msg.fields = [PointField(name=p.name, offset=p.offset, datatype=p.datatype, count=p.count) for p in f["fields"]]
+    msg.is_bigendian, msg.point_step, msg.row_step = f["is_bigendian"], f["point_step"], f["row_step"]
+    msg.data = bytes(f["data"])
+    msg.is_dense = f["is_dense"]
+    return msg
+
+
+def bgr_image_msg(header: Any, img: np.ndarray) -> Image:
+    msg = Image()
+    msg.header = header
+    msg.height, msg.width = img.shape[:2]
+    msg.encoding = "bgr8"
+    msg.step = img.shape[1] * 3
+    msg.data = img.tobytes()
+    return msg
+
+
+def help_requested(argv: list[str]) -> bool:
+    """``--help`` / ``-h`` before any ``--ros-args`` (after it, the arguments are ROS's)."""
+    user_args = argv[:argv.index("--ros-args")] if "--ros-args" in argv else argv
+    return "--help" in user_args or "-h" in user_args
+
+
+def run_node(make_node: Callable[[], Node], program: str, help_text: str, args: list[str] | None) -> None:
+    """The entry point of vo_node and vo_lifecycle_node: ``--help`` prints ``help_text`` and the parameters
+    and exits 0 before rclpy starts (no DDS touched); bad parameters exit 2 naming every one; else spin
+    until Ctrl-C or an external shutdown."""
+    argv = sys.argv[1:] if args is None else list(args)
+    if help_requested(argv):
+        from epi_vo.io.params import to_params_yaml
+
+        sys.stdout.write(help_text + to_params_yaml(VoConfig(), node=NodeOptions()))
+        sys.exit(0)
+    rclpy.init(args=args)
+    try:
+        node = make_node()
+    except ConfigError as exc:
+        print(f"{program}: error: {exc}", file=sys.stderr)
+        rclpy.try_shutdown()
+        sys.exit(2)
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
