@@ -254,8 +254,7 @@ class VoPipeline:
         if gain != 1.0:
             st.reasons.append(f"exposure changed: the image was scaled by {gain:.2f} to track it")
         nxt, self._next = self._next, None
-        if nxt is not None and self._orb is None and nxt[1].shape == gray.shape:
-            self._ahead.start(nxt[0], gray, nxt[1], pts_cur, self.cfg)  # tracking into the next image
+        ahead = nxt is not None and self._orb is None and nxt[1].shape == gray.shape  # track into the next image
         xn_cur = camera.normalize(pts_cur)
         uv_cur = camera.to_pixels(xn_cur)
         st.timings["frontend"] = _ms(t0)
@@ -269,6 +268,8 @@ class VoPipeline:
         use = ~excluded
         n_use = int(np.count_nonzero(use))
         if n_use < self.cfg.min_inliers:
+            if ahead:
+                self._ahead.start(nxt[0], gray, nxt[1], pts_cur, self.cfg)
             st.reasons.append(f"too few tracked features ({n_use} < {self.cfg.min_inliers}"
                               + (f", {st.n_tracked - n_use} on moving objects)" if n_use < st.n_tracked else ")"))
         else:
@@ -283,6 +284,11 @@ class VoPipeline:
             if sel.H is not None:
                 st.H = sel.H
             st.timings["models"] = _ms(t0)
+            if ahead:
+                # Tracking into the next image starts after the models, not before them: H's worker then
+                # has the second core to itself while E runs here (both threads would otherwise share it,
+                # and this one wait), and KLT overlaps the pose, the map and the replay's writing.
+                self._ahead.start(nxt[0], gray, nxt[1], pts_cur, self.cfg)
             ctx = mo.MotionContext(kf, rows_u, xn_u, uv_u, self._T_cur_kf_prev, self._scale.initial_baseline)
             motion = self._motion.estimate(ctx, sel, st)
             if motion is not None and not mo.is_finite(motion):
