@@ -286,8 +286,8 @@ class KltAhead:
     the job is for that image only.
     """
 
-    def __init__(self) -> None:
-        self._pool: ThreadPoolExecutor | None = None
+    def __init__(self, pool: ThreadPoolExecutor | None = None) -> None:
+        self._pool = pool  # one worker (shared: a job queues behind what was submitted before), or its own
         self._job: tuple[object, NDArray[np.uint8], F32, Future[tuple[F32, Mask, float, float]]] | None = None
 
     def start(self, key: object, gray_from: NDArray[np.uint8], gray_to: NDArray[np.uint8], pts: F32,

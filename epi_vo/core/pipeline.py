@@ -37,6 +37,7 @@ import dataclasses
 import logging
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
@@ -102,8 +103,11 @@ class VoPipeline:
         self._rows = np.zeros(0, np.int64)  # keyframe row of each live track
         self._pts_prev = np.zeros((0, 2), np.float32)
         self._gray_prev: NDArray[np.uint8] | None = None  # previous image, for KLT
-        self._ahead = fe.KltAhead()
-        self._select = ModelSelector()
+        # One worker thread beside this one: H while E runs here, then tracking into the next image
+        # (queued behind H, so the two never share the second core and H is back when E is done).
+        worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="epi_vo_worker")
+        self._ahead = fe.KltAhead(worker)
+        self._select = ModelSelector(worker)
         self._key: object = None  # the image ``process`` was given (before downscaling)
         self._next: tuple[object, NDArray[np.uint8]] | None = None  # see ``announce_next``
         self._T_cur_kf_prev = np.eye(4)
@@ -277,18 +281,14 @@ class VoPipeline:
             t0 = time.perf_counter()
             rows_u, xn_u, uv_u = (rows, xn_cur, uv_cur) if n_use == rows.shape[0] else \
                 (rows[use], xn_cur[use], uv_cur[use])
-            sel = self._select(kf.uv[rows_u], uv_u, kf.camera.K, self.cfg)
+            start_ahead = (lambda: self._ahead.start(nxt[0], gray, nxt[1], pts_cur, self.cfg)) if ahead else None
+            sel = self._select(kf.uv[rows_u], uv_u, kf.camera.K, self.cfg, start_ahead)
             st.rh = sel.rh
             if sel.F is not None:
                 st.F = sel.F
             if sel.H is not None:
                 st.H = sel.H
             st.timings["models"] = _ms(t0)
-            if ahead:
-                # Tracking into the next image starts after the models, not before them: H's worker then
-                # has the second core to itself while E runs here (both threads would otherwise share it,
-                # and this one wait), and KLT overlaps the pose, the map and the replay's writing.
-                self._ahead.start(nxt[0], gray, nxt[1], pts_cur, self.cfg)
             ctx = mo.MotionContext(kf, rows_u, xn_u, uv_u, self._T_cur_kf_prev, self._scale.initial_baseline)
             motion = self._motion.estimate(ctx, sel, st)
             if motion is not None and not mo.is_finite(motion):

@@ -9,6 +9,7 @@ before a map exists (a static camera must not build a map from something moving 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -38,16 +39,19 @@ class ModelSelection:
     inliers_static: Mask | None = None  # features that did not move
 
 
-def select_model(uv_kf: F64, uv_cur: F64, K: F64, cfg: VoConfig, pool: ThreadPoolExecutor | None = None
-                 ) -> ModelSelection:
+def select_model(uv_kf: F64, uv_cur: F64, K: F64, cfg: VoConfig, pool: ThreadPoolExecutor | None = None,
+                 then: Callable[[], None] | None = None) -> ModelSelection:
     """Estimate and score E and H on (N, 2) undistorted pixel correspondences keyframe -> current.
 
     With ``pool``, H is estimated and scored on its worker while E is estimated here: both OpenCV
     estimators release the GIL and are seeded the same on any thread, so the result is identical.
+    ``then`` is called once H is on its way (before E): work it queues on the same worker runs after H.
     """
     h_job: Future[tuple[F64 | None, tuple[float, Mask | None]]] | None = None
     if pool is not None:
         h_job = pool.submit(_homography, uv_kf, uv_cur, cfg)
+    if then is not None:
+        then()
     E, _ = geo.estimate_essential(uv_kf, uv_cur, K, cfg.essential_method, cfg.ransac_threshold_px,
                                   cfg.ransac_confidence, cfg.ransac_max_iters)
     H, (s_h, in_h) = h_job.result() if h_job is not None else _homography(uv_kf, uv_cur, cfg)
@@ -72,13 +76,15 @@ def _homography(uv_kf: F64, uv_cur: F64, cfg: VoConfig) -> tuple[F64 | None, tup
 
 
 class ModelSelector:
-    """``select_model`` with its own worker thread for H (E and H overlap on two cores: ~0.6 ms a frame
-    less at 200 points on this project's machine). The worker starts with the first call."""
+    """``select_model`` with a worker thread for H (E and H overlap on two cores: ~0.6 ms a frame less at
+    200 points on this project's machine): ``pool`` (one worker, shared with other jobs that should queue
+    behind H), or its own, started with the first call."""
 
-    def __init__(self) -> None:
-        self._pool: ThreadPoolExecutor | None = None
+    def __init__(self, pool: ThreadPoolExecutor | None = None) -> None:
+        self._pool = pool
 
-    def __call__(self, uv_kf: F64, uv_cur: F64, K: F64, cfg: VoConfig) -> ModelSelection:
+    def __call__(self, uv_kf: F64, uv_cur: F64, K: F64, cfg: VoConfig, then: Callable[[], None] | None = None
+                 ) -> ModelSelection:
         if self._pool is None:
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="epi_vo_models")
-        return select_model(uv_kf, uv_cur, K, cfg, self._pool)
+        return select_model(uv_kf, uv_cur, K, cfg, self._pool, then)
