@@ -856,6 +856,46 @@ def test_output_bag_writes_the_bytes_rosbags_would(tmp_path: Path) -> None:
         assert g == e, f"message {i}"
 
 
+def test_a_growing_and_sliding_path_is_written_as_rosbags_would(tmp_path: Path) -> None:
+    """/vo/path as replay writes it, a path that grows, then drops its oldest poses at its length limit,
+    changes its frame id, or has an old pose changed: the bytes of rosbags' serialisation every time."""
+    types = T
+
+    def header(stamp: int, frame_id: str) -> object:
+        return types["std_msgs/msg/Header"](stamp=types["builtin_interfaces/msg/Time"](
+            sec=stamp // 10**9, nanosec=stamp % 10**9), frame_id=frame_id)
+
+    rng = np.random.default_rng(11)
+    n = 40
+    stamps_all = 10**9 + 10**7 * np.arange(n)
+    xyz_all, quats_all = rng.normal(size=(n, 3)), rng.normal(size=(n, 4))
+    calls: list[tuple[int, str, np.ndarray, np.ndarray, np.ndarray]] = []
+    for i in range(1, n):  # grows to 12 poses, then slides
+        lo = max(0, i - 12)
+        calls.append((int(stamps_all[i]), "odom", stamps_all[lo:i + 1], xyz_all[lo:i + 1], quats_all[lo:i + 1]))
+    last = calls[-1]
+    calls.append((last[0] + 1, "odom_frame", last[2], last[3], last[4]))  # another frame id
+    changed = last[3].copy()
+    changed[3] += 1.0
+    calls.append((last[0] + 2, "odom_frame", last[2], changed, last[4]))  # an old pose moved
+    calls.append((last[0] + 3, "odom_frame", last[2][5:], changed[5:], last[4][5:]))  # 5 dropped at once
+    path = tmp_path / "out.mcap"
+    expected = []
+    with OutputBag(path) as out:
+        for stamp, frame_id, stamps, xyz, quats in calls:
+            out.write_path(stamp, frame_id, stamps, xyz, quats)
+            expected.append(bytes(TS.serialize_cdr(types["nav_msgs/msg/Path"](header=header(stamp, frame_id), poses=[
+                types["geometry_msgs/msg/PoseStamped"](header=header(int(s), frame_id), pose=types[
+                    "geometry_msgs/msg/Pose"](position=types["geometry_msgs/msg/Point"](*map(float, p)),
+                                              orientation=types["geometry_msgs/msg/Quaternion"](*map(float, q))))
+                for s, p, q in zip(stamps, xyz, quats, strict=True)]), "nav_msgs/msg/Path", little_endian=True)))
+    with path.open("rb") as stream:
+        got = [m.data for _, _, m in make_reader(stream).iter_messages(log_time_order=False)]
+    assert len(got) == len(expected) == n + 2
+    for i, (g, e) in enumerate(zip(got, expected, strict=True)):
+        assert g == e, f"message {i}"
+
+
 def test_output_bag_path_stamps_are_checked(tmp_path: Path) -> None:
     with OutputBag(tmp_path / "output.mcap") as out:
         with pytest.raises(BagError, match=r"/vo/path: stamp -5 ns is not a valid ROS time"):
