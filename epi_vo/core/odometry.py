@@ -150,6 +150,16 @@ def status_pose(converter: OdometryConverter, result: FrameResult, frame: str, c
     its diagnostics status: one frame convention in the node, the replay and every tool."""
     T_odom_base = converter.base_pose(result.T_w_c)
     cov = rotate_covariance(result.covariance, converter.T_base_cam[:3, :3])
-    return StatusPose(frame, child_frame, tuple(float(v) for v in T_odom_base[:3, 3]),  # type: ignore[arg-type]
-                      tuple(float(v) for v in quat_xyzw_from_rotation(T_odom_base[:3, :3])),  # type: ignore
+    return _status_pose(frame, child_frame, T_odom_base[:3, 3], quat_xyzw_from_rotation(T_odom_base[:3, :3]), cov)
+
+
+def sample_status_pose(sample: OdometrySample, frame: str, child_frame: str) -> StatusPose:
+    """``status_pose`` of the frame ``sample`` was converted from (``OdometryConverter.convert``): the same
+    values, without converting the pose again."""
+    return _status_pose(frame, child_frame, sample.position, sample.quat_xyzw, sample.pose_covariance)
+
+
+def _status_pose(frame: str, child_frame: str, position: F64, quat_xyzw: F64, cov: F64) -> StatusPose:
+    return StatusPose(frame, child_frame, tuple(float(v) for v in position),  # type: ignore[arg-type]
+                      tuple(float(v) for v in quat_xyzw),  # type: ignore[arg-type]
                       tuple(float(v) for v in np.diag(cov)))

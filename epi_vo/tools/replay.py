@@ -36,7 +36,7 @@ from epi_vo.core.camera import CameraModel, CameraModelCache
 from epi_vo.core.config import VoConfig
 from epi_vo.core.errors import BagError, EpiVoError, Interrupted, OutputError
 from epi_vo.core.frame import FrameResult
-from epi_vo.core.odometry import OdometryConverter, status_pose
+from epi_vo.core.odometry import OdometryConverter, sample_status_pose, status_pose
 from epi_vo.core.pipeline import VoPipeline
 from epi_vo.core.status import frame_status
 from epi_vo.io import bagio, outbag, tum
@@ -559,7 +559,7 @@ def _write_outputs(obag: outbag.OutputBag, converter: OdometryConverter, result:
         path_poses.append(result.stamp_ns, sample.position, sample.quat_xyzw)
         obag.write_path(result.stamp_ns, ODOM_FRAME, *path_poses.window())
     obag.write_diagnostics(result.stamp_ns, [frame_status(
-        result, "epi_vo", "replay", status_pose(converter, result, ODOM_FRAME, BASE_FRAME), record)])
+        result, "epi_vo", "replay", sample_status_pose(sample, ODOM_FRAME, BASE_FRAME), record)])
 
 
 def _ground_truth(bag: bagio.CameraBag, gt_tum: str | Path | None

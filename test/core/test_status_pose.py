@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import dataclasses
 
+import cv2
 import numpy as np
 import pytest
 
 from epi_vo.core.diagnostics import DiagnosticLevel
 from epi_vo.core.errors import EpiVoError
 from epi_vo.core.frame import FrameResult
-from epi_vo.core.odometry import OdometryConverter
+from epi_vo.core.odometry import OdometryConverter, sample_status_pose, status_pose
 from epi_vo.core.pipeline import VoPipeline
 from epi_vo.core.status import CAMERA_POSITION_FRAME, StatusPose, frame_status, summary_status
 from epi_vo.core.transforms import make_T
@@ -62,3 +63,15 @@ def test_summary_status() -> None:
         "/robot1/vo_node: summary", DiagnosticLevel.WARN, "waiting for TF", "cam", (("image_transport", "compressed"),))
     with pytest.raises(EpiVoError, match="diagnostic values must be"):
         summary_status("/vo_node", "cam", DiagnosticLevel.OK, "ok", (("n", 3),))  # type: ignore[arg-type]
+
+
+def test_the_status_pose_of_a_converted_sample_is_the_frames_status_pose() -> None:
+    """Replay takes the status pose from the odometry sample it converted (``sample_status_pose``): the
+    values ``status_pose`` computes from the frame, to the bit, for a rotated, uncertain pose."""
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(6, 6))
+    r = dataclasses.replace(_result(), T_w_c=make_T(cv2.Rodrigues(np.array([0.3, -0.2, 0.9]))[0],
+                                                    [1.5, -2.0, 0.25]), covariance=A @ A.T)
+    conv = OdometryConverter()
+    s = conv.convert(r.stamp_ns, r.T_w_c, r.covariance, True)
+    assert sample_status_pose(s, "odom", "base_link") == status_pose(conv, r, "odom", "base_link")
