@@ -6,6 +6,8 @@ applies before it takes an estimate into its held state.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -63,6 +65,30 @@ def step(cov_rel: F64, prev_rel: F64 | None) -> F64:
     the rotation between frames within 0.7-1.3x; one tracking step's share is 1.4-2.2x too narrow).
     """
     return cov_rel.copy() if prev_rel is None else cov_rel + prev_rel
+
+
+def twist_noise_ratio(track_noise_px: float, fb_factor: float, floor_px: float, pixel_noise_px: float) -> float:
+    """How much of ``pixel_noise_px`` the image noise behind a twist's rotation is: ``fb_factor`` x the
+    frame's measured tracking noise (``features.fb_noise_px``), at least ``floor_px``, never more than
+    ``pixel_noise_px`` (1.0 when not measured or ``fb_factor`` is 0).
+
+    The twist is the motion between two consecutive frames: its error is the tracking noise between
+    them, which the frame measures. The pose's error also carries the map's and the keyframe chain's,
+    which it does not: the pose keeps ``pixel_noise_px``. Forward-backward KLT is blind to LK's error
+    from a patch deformed by perspective (it comes back the same way), so the factor is large: the
+    angular twist errors of the bundled renders and KITTI are 4.8-15 x their forward-backward RMS.
+    """
+    if not (fb_factor > 0.0 and math.isfinite(track_noise_px) and pixel_noise_px > 0.0):
+        return 1.0
+    return min(max(fb_factor * track_noise_px, floor_px), pixel_noise_px) / pixel_noise_px
+
+
+def with_rotation_scaled(cov: F64, ratio: float) -> F64:
+    """``cov`` with its rotation's standard deviations scaled by ``ratio`` (correlations kept)."""
+    if ratio == 1.0:
+        return cov
+    d = np.array([1.0, 1.0, 1.0, ratio, ratio, ratio])
+    return cov * np.outer(d, d)
 
 
 def floored(cov: F64) -> F64:

@@ -6,9 +6,11 @@ float32 pixel coordinates of the raw image (before undistortion), as OpenCV's tr
 
 from __future__ import annotations
 
+import math
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -120,8 +122,26 @@ EXPOSURE_MIN_TRACKS = 20
 EXPOSURE_MAX_TRACKS = 100
 
 
+class KltTracks(NamedTuple):
+    """``track_klt``'s result: the tracked points (N, 2), the tracks kept, the exposure gain the current
+    image was tracked with, and each point's forward-backward error (N,) in pixels."""
+
+    pts: F32
+    ok: Mask
+    gain: float
+    fb: NDArray[np.float32]
+
+
+def fb_noise_px(fb: NDArray[np.float32]) -> float:
+    """Per-axis RMS (px) of the forward-backward errors of the kept tracks: the tracking noise this
+    frame shows (NaN without tracks). LK's error from a patch deformed by perspective comes back the
+    same way and cancels in it, so the real tracking error is several times larger (see
+    ``VoConfig.twist_noise_fb_factor``)."""
+    return math.sqrt(float(np.mean(np.square(fb, dtype=np.float64))) / 2.0) if fb.size else math.nan
+
+
 def track_klt(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_prev: F32, cfg: VoConfig,
-              gain: float | None = None) -> tuple[F32, Mask, float]:
+              gain: float | None = None) -> KltTracks:
     """Pyramidal Lucas-Kanade with a forward-backward check, tracked again on the current image scaled
     to the previous one's exposure when the two differ (``EXPOSURE_MIN_LEVELS``).
 
@@ -132,25 +152,27 @@ def track_klt(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_pre
     (1.0: none) without judging again.
 
     Returns the tracked points (N, 2), a mask of tracks that converged both ways, came back within
-    ``cfg.klt_max_fb_error_px`` of where they started and stayed inside the image, and the gain the
-    current image was tracked with.
+    ``cfg.klt_max_fb_error_px`` of where they started and stayed inside the image, the gain the
+    current image was tracked with and the forward-backward errors.
     """
     n = pts_prev.shape[0]
     if n == 0:
-        return np.zeros((0, 2), np.float32), np.zeros(0, bool), 1.0 if gain is None else gain
+        return KltTracks(np.zeros((0, 2), np.float32), np.zeros(0, bool), 1.0 if gain is None else gain,
+                         np.zeros(0, np.float32))
     if gain is not None:
         img = gray_cur if gain == 1.0 else cv2.convertScaleAbs(gray_cur, alpha=gain, beta=0.0)
-        return (*_klt_both_ways(gray_prev, img, pts_prev, cfg), gain)
-    p1, ok = _klt_both_ways(gray_prev, gray_cur, pts_prev, cfg)
+        p1, ok, fb = _klt_both_ways(gray_prev, img, pts_prev, cfg)
+        return KltTracks(p1, ok, gain, fb)
+    p1, ok, fb = _klt_both_ways(gray_prev, gray_cur, pts_prev, cfg)
     lead = slice(0, EXPOSURE_MAX_TRACKS)
     lead_ok = ok[lead]
     measured = exposure_change(gray_prev, gray_cur, pts_prev[lead][lead_ok], p1[lead][lead_ok])
     if measured is not None:
         mapped = cv2.convertScaleAbs(gray_cur, alpha=measured, beta=0.0)
-        p1_m, ok_m = _klt_both_ways(gray_prev, mapped, pts_prev, cfg)
+        p1_m, ok_m, fb_m = _klt_both_ways(gray_prev, mapped, pts_prev, cfg)
         if np.count_nonzero(ok_m[lead]) >= np.count_nonzero(lead_ok):
-            return p1_m, ok_m, measured
-    return p1, ok, 1.0
+            return KltTracks(p1_m, ok_m, measured, fb_m)
+    return KltTracks(p1, ok, 1.0, fb)
 
 
 def _patch_means(gray: NDArray[np.uint8], pts: F32, r: int = 2) -> NDArray[np.float64]:
@@ -195,7 +217,7 @@ def exposure_change(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], p
 
 
 def _klt_both_ways(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_prev: F32,
-                   cfg: VoConfig) -> tuple[F32, Mask]:
+                   cfg: VoConfig) -> tuple[F32, Mask, NDArray[np.float32]]:
     win = (cfg.klt_window_px, cfg.klt_window_px)
     p0 = pts_prev.reshape(-1, 1, 2).astype(np.float32)
     p1, st1, _ = cv2.calcOpticalFlowPyrLK(gray_prev, gray_cur, p0, None, winSize=win, maxLevel=cfg.klt_levels,
@@ -211,7 +233,7 @@ def _klt_both_ways(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pt
     h, w = gray_cur.shape[:2]
     inside = (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
     ok = (st1.reshape(-1) == 1) & (st2.reshape(-1) == 1) & (fb <= cfg.klt_max_fb_error_px) & inside
-    return p1.astype(np.float32), ok
+    return p1.astype(np.float32), ok, fb.astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -265,10 +287,10 @@ def match_orb(desc_ref: NDArray[np.uint8], desc_cur: NDArray[np.uint8], ratio: f
 
 
 def _timed_klt(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_prev: F32, cfg: VoConfig
-               ) -> tuple[F32, Mask, float, float]:
+               ) -> tuple[KltTracks, float]:
     t0 = time.perf_counter()
-    pts, ok, gain = track_klt(gray_prev, gray_cur, pts_prev, cfg)
-    return pts, ok, gain, (time.perf_counter() - t0) * 1e3
+    tracks = track_klt(gray_prev, gray_cur, pts_prev, cfg)
+    return tracks, (time.perf_counter() - t0) * 1e3
 
 
 class KltAhead:
@@ -288,7 +310,7 @@ class KltAhead:
 
     def __init__(self, pool: ThreadPoolExecutor | None = None) -> None:
         self._pool = pool  # one worker (shared: a job queues behind what was submitted before), or its own
-        self._job: tuple[object, NDArray[np.uint8], F32, Future[tuple[F32, Mask, float, float]]] | None = None
+        self._job: tuple[object, NDArray[np.uint8], F32, Future[tuple[KltTracks, float]]] | None = None
 
     def start(self, key: object, gray_from: NDArray[np.uint8], gray_to: NDArray[np.uint8], pts: F32,
               cfg: VoConfig) -> None:
@@ -297,9 +319,9 @@ class KltAhead:
         self._job = (key, gray_from, pts, self._pool.submit(_timed_klt, gray_from, gray_to, pts, cfg))
 
     def take(self, key: object, gray_from: NDArray[np.uint8], gray_to: NDArray[np.uint8], pts_prev: F32,
-             cfg: VoConfig) -> tuple[F32, Mask, float, float] | None:
-        """``track_klt(gray_from, gray_to, pts_prev)`` (points, mask, exposure gain) and the milliseconds
-        the worker spent on it, when the started job covers it (None: track now)."""
+             cfg: VoConfig) -> tuple[KltTracks, float] | None:
+        """``track_klt(gray_from, gray_to, pts_prev)`` and the milliseconds the worker spent on it, when
+        the started job covers it (None: track now)."""
         job, self._job = self._job, None
         if job is None:
             return None
@@ -310,21 +332,23 @@ class KltAhead:
                 or (n < EXPOSURE_MAX_TRACKS and pts_prev.shape[0] > n):
             future.cancel()
             return None
-        pts, ok, gain, ms = future.result()  # an OpenCV error is raised here, at the frame it belongs to
+        tracks, ms = future.result()  # an OpenCV error is raised here, at the frame it belongs to
         if pts_prev.shape[0] > n:
             t0 = time.perf_counter()
-            more, ok_more, _ = track_klt(gray_from, gray_to, pts_prev[n:], cfg, gain=gain)
-            pts, ok = np.vstack([pts, more]), np.concatenate([ok, ok_more])
+            more = track_klt(gray_from, gray_to, pts_prev[n:], cfg, gain=tracks.gain)
+            tracks = KltTracks(np.vstack([tracks.pts, more.pts]), np.concatenate([tracks.ok, more.ok]), tracks.gain,
+                               np.concatenate([tracks.fb, more.fb]))
             ms += (time.perf_counter() - t0) * 1e3
-        return pts, ok, gain, ms
+        return tracks, ms
 
 
 def track(gray: NDArray[np.uint8], cfg: VoConfig, orb: cv2.ORB | None, gray_prev: NDArray[np.uint8] | None,
           pts_prev: F32, rows_prev: NDArray[np.int64], kf_descriptors: NDArray[np.uint8] | None,
           ahead: tuple[KltAhead, object] | None = None
-          ) -> tuple[F32, NDArray[np.int64], OrbFeatures | None, float, float]:
+          ) -> tuple[F32, NDArray[np.int64], OrbFeatures | None, float, float, float]:
     """Correspondences keyframe -> current image: (current raw pixels, keyframe rows, ORB features, ms of
-    KLT done ahead on the worker thread, the exposure gain the image was tracked with (1.0: unchanged)).
+    KLT done ahead on the worker thread, the exposure gain the image was tracked with (1.0: unchanged),
+    the tracking noise the kept tracks' forward-backward errors show (``fb_noise_px``; NaN for ORB)).
 
     KLT (``orb`` None) follows the previous frame's points ``pts_prev`` (keyframe rows ``rows_prev``)
     into ``gray``, taking what ``ahead`` (the tracker and this image's key) started for it; ORB detects
@@ -333,9 +357,10 @@ def track(gray: NDArray[np.uint8], cfg: VoConfig, orb: cv2.ORB | None, gray_prev
     if orb is None:
         assert gray_prev is not None
         got = ahead[0].take(ahead[1], gray_prev, gray, pts_prev, cfg) if ahead is not None else None
-        pts, ok, gain, ms = got if got is not None else (*track_klt(gray_prev, gray, pts_prev, cfg), 0.0)
-        return pts[ok], rows_prev[ok], None, ms, gain
+        tracks, ms = got if got is not None else (track_klt(gray_prev, gray, pts_prev, cfg), 0.0)
+        ok = tracks.ok
+        return tracks.pts[ok], rows_prev[ok], None, ms, tracks.gain, fb_noise_px(tracks.fb[ok])
     feats = detect_orb(orb, gray, cfg)
     assert kf_descriptors is not None
     i_kf, i_cur = match_orb(kf_descriptors, feats.descriptors, cfg.orb_ratio)
-    return feats.pts[i_cur], i_kf, OrbFeatures(feats.pts, feats.descriptors), 0.0, 1.0
+    return feats.pts[i_cur], i_kf, OrbFeatures(feats.pts, feats.descriptors), 0.0, 1.0, math.nan

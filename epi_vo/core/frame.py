@@ -139,6 +139,9 @@ class FrameResult:
     # The focal length (x the calibration's) under which this frame's motion is a pure rotation, when the
     # calibration's made it look like parallax (the reason says "check the camera calibration"); else NaN
     focal_ratio: float = math.nan
+    # The image noise the KLT tracks show this frame: per-axis RMS of their forward-backward errors (px;
+    # NaN with ORB or without tracks). It sets the twist's rotation uncertainty (``VoPipeline``)
+    track_noise_px: float = math.nan
     # 6x6 covariance (odometry frame, position first) of the motion since the previous frame, for the
     # twist; None when the frame has no pose or no previous frame with one
     step_covariance: F64 | None = None
@@ -217,11 +220,12 @@ class FrameResult:
             "moving_fraction": num(self.moving_fraction),
             "moving_region": list(self.moving_region) if self.moving_region is not None else None,
             "focal_ratio": num(self.focal_ratio),
+            "track_noise_px": num(self.track_noise_px),
         }
 
 
 STAT_FIELDS = ("rh", "inlier_ratio", "median_parallax_deg", "positive_depth_ratio", "median_reproj_err_px",
-                "relative_scale", "focal_ratio")
+                "relative_scale", "focal_ratio", "track_noise_px")
 
 
 @dataclass
@@ -240,6 +244,7 @@ class FrameStats:
     relative_scale: float = math.nan
     static_score: float = math.nan
     focal_ratio: float = math.nan
+    track_noise_px: float = math.nan
     n_moving: int = 0
     moving_region: tuple[int, int, int, int] | None = None
     points_w: F64 = field(default_factory=lambda: np.zeros((0, 3)))

@@ -253,8 +253,9 @@ class VoPipeline:
 
         kf = self._kf
         # features
-        pts_cur, rows, orb_cur, ahead_ms, gain = fe.track(gray, self.cfg, self._orb, self._gray_prev, self._pts_prev,
-                                                          self._rows, kf.descriptors, (self._ahead, self._key))
+        pts_cur, rows, orb_cur, ahead_ms, gain, st.track_noise_px = fe.track(
+            gray, self.cfg, self._orb, self._gray_prev, self._pts_prev, self._rows, kf.descriptors,
+            (self._ahead, self._key))
         if gain != 1.0:
             st.reasons.append(f"exposure changed: the image was scaled by {gain:.2f} to track it")
         nxt, self._next = self._next, None
@@ -326,7 +327,7 @@ class VoPipeline:
             self._T_w_c = T_w_c
             self._cov_w_c = covm.compose(kf.cov_w_kf, kf.T_w_kf, motion.cov_rel, motion.t_cur_kf,
                                          motion.R_cur_kf)
-            step_cov = self._step_covariance(kf, motion.cov_rel, T_w_c[:3, 3] - self._last_pos_w)
+            step_cov = self._step_covariance(kf, motion.cov_rel, T_w_c[:3, 3] - self._last_pos_w, st.track_noise_px)
             self._last_pos_w = T_w_c[:3, 3].copy()
             self._T_cur_kf_prev = T_cur_kf
             if state is TrackingState.TRACKING:
@@ -348,14 +349,18 @@ class VoPipeline:
         return dataclasses.replace(self._result(stamp_ns, state, has_pose, is_kf, st, t_start),
                                    step_covariance=None if step_cov is None else frozen(covm.floored(step_cov)))
 
-    def _step_covariance(self, kf: Keyframe, cov_rel: F64, step_w: F64) -> F64:
+    def _step_covariance(self, kf: Keyframe, cov_rel: F64, step_w: F64, track_noise_px: float) -> F64:
         """Covariance of the motion since the previous frame (odometry frame) from both frames' poses
         relative to the keyframe (``covariance.step``); against a new keyframe (the previous frame) only
-        this frame's counts."""
+        this frame's counts. Its rotation takes the image noise the frame's tracks show
+        (``covariance.twist_noise_ratio``) instead of ``pixel_noise_px``."""
         cov = rotate_covariance(cov_rel, kf.T_w_kf[:3, :3])
         prev = self._rel_prev
         self._rel_prev = (kf.stamp_ns, cov)
         cov = covm.step(cov, prev[1] if prev is not None and prev[0] == kf.stamp_ns else None)
+        cov = covm.with_rotation_scaled(cov, covm.twist_noise_ratio(track_noise_px, self.cfg.twist_noise_fb_factor,
+                                                                    self.cfg.twist_noise_floor_px,
+                                                                    self.cfg.pixel_noise_px))
         # The step's length carries the map's scale error (``MapScaleCovariance.step_rel_std``).
         rel = self._map_scale.step_rel_std(self._scale)
         return cov + np.pad(np.outer(step_w, step_w) * rel**2, (0, 3))
@@ -601,7 +606,7 @@ class VoPipeline:
             timings_ms=dict(st.timings),
             reason="; ".join(st.reasons), matches=st.matches, scale=self._scale.status(), n_moving=st.n_moving,
             moving_fraction=st.n_moving / st.n_tracked if st.n_tracked else 0.0, moving_region=st.moving_region,
-            static_score=st.static_score, focal_ratio=st.focal_ratio)
+            static_score=st.static_score, focal_ratio=st.focal_ratio, track_noise_px=st.track_noise_px)
         self._index += 1
         return res
 

@@ -209,3 +209,25 @@ def test_is_finite() -> None:
         v = np.zeros(3)
         v[1] = bad
         assert not covm.is_finite(ok, v)
+
+
+def test_the_twist_noise_ratio_follows_the_measured_tracking_noise_within_its_bounds() -> None:
+    # 8 x 0.05 px = 0.4 px of the configured 0.8
+    assert covm.twist_noise_ratio(0.05, 8.0, 0.3, 0.8) == pytest.approx(0.5)
+    assert covm.twist_noise_ratio(0.01, 8.0, 0.3, 0.8) == pytest.approx(0.3 / 0.8)  # floor
+    assert covm.twist_noise_ratio(0.5, 8.0, 0.3, 0.8) == 1.0  # never above pixel_noise_px
+    assert covm.twist_noise_ratio(math.nan, 8.0, 0.3, 0.8) == 1.0  # not measured (ORB)
+    assert covm.twist_noise_ratio(0.05, 0.0, 0.3, 0.8) == 1.0  # switched off
+
+
+def test_with_rotation_scaled_scales_the_rotation_and_keeps_the_correlations() -> None:
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(6, 6))
+    cov = A @ A.T
+    got = covm.with_rotation_scaled(cov, 0.5)
+    np.testing.assert_allclose(got[:3, :3], cov[:3, :3])
+    np.testing.assert_allclose(got[3:, 3:], 0.25 * cov[3:, 3:])
+    np.testing.assert_allclose(got[:3, 3:], 0.5 * cov[:3, 3:])
+    corr = lambda c: c / np.sqrt(np.outer(np.diag(c), np.diag(c)))  # noqa: E731
+    np.testing.assert_allclose(corr(got), corr(cov))
+    assert covm.with_rotation_scaled(cov, 1.0) is cov

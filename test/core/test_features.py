@@ -47,14 +47,14 @@ def test_klt_follows_the_points_across_an_exposure_step(texture: np.ndarray, poi
     40 % darker step at frame 20 (2026-11-23), every run lost a frame and KITTI ended at 0.60 % ATE
     (0.17 % now)."""
     cur = _moved(texture, gain)
-    pts, ok, used = fe.track_klt(texture, cur, points, CFG)
+    pts, ok, used, _ = fe.track_klt(texture, cur, points, CFG)
     assert used == pytest.approx(1.0 / gain, rel=0.03)
     err = np.linalg.norm(pts - (points + SHIFT), axis=1)
     assert np.count_nonzero(ok) >= 0.95 * len(points)
     assert float(np.median(err[ok])) < 0.12 and float(np.max(err[ok])) < 0.3  # 1.5: clipping biases the gain
 
     monkeypatch.setattr(fe, "EXPOSURE_MIN_LEVELS", math.inf)  # without the second attempt
-    pts_raw, ok_raw, _ = fe.track_klt(texture, cur, points, CFG)
+    pts_raw, ok_raw, _, _ = fe.track_klt(texture, cur, points, CFG)
     err_raw = np.linalg.norm(pts_raw - (points + SHIFT), axis=1)
     assert np.count_nonzero(ok_raw) < 0.5 * len(points) or float(np.median(err_raw[ok_raw])) > 0.5
 
@@ -75,7 +75,7 @@ def test_the_unchanged_exposure_is_tracked_once(texture: np.ndarray, points: np.
     calls = []
     real = fe._klt_both_ways
     monkeypatch.setattr(fe, "_klt_both_ways", lambda *a: calls.append(1) or real(*a))
-    pts, ok, used = fe.track_klt(texture, _moved(texture, 1.0), points, CFG)
+    pts, ok, used, _ = fe.track_klt(texture, _moved(texture, 1.0), points, CFG)
     assert len(calls) == 1 and used == 1.0 and np.count_nonzero(ok) >= 0.95 * len(points)
     assert float(np.median(np.linalg.norm(pts - (points + SHIFT), axis=1)[ok])) < 0.05
 
@@ -88,15 +88,16 @@ def test_klt_done_ahead_equals_klt_in_line_across_an_exposure_step(texture: np.n
     at least EXPOSURE_MAX_TRACKS rows ahead the exposure is judged the same way; with fewer, the job is
     dropped and the frame tracks in line."""
     cur = _moved(texture, 0.6)
-    in_line, ok_in_line, _ = fe.track_klt(texture, cur, points, CFG)
+    in_line = fe.track_klt(texture, cur, points, CFG)
     ahead = fe.KltAhead()
     key = object()
     ahead.start(key, texture, cur, points[:n_ahead], CFG)
     got = ahead.take(key, texture, cur, points, CFG)
     if n_ahead >= fe.EXPOSURE_MAX_TRACKS:
         assert got is not None
-        np.testing.assert_array_equal(got[0], in_line)
-        np.testing.assert_array_equal(got[1], ok_in_line)
+        tracks, _ = got
+        for a, b in zip(tracks, in_line, strict=True):  # points, kept, gain and forward-backward errors
+            np.testing.assert_array_equal(a, b)
     else:
         assert got is None
 
@@ -130,3 +131,22 @@ def test_patches_changing_while_the_image_does_not_are_no_exposure_change(textur
     # The same patches with the whole image darker by as much: an exposure change.
     darker = np.clip(np.round(cur.astype(np.float64) * 0.85), 0, 255).astype(np.uint8)
     assert fe.exposure_change(texture, darker, points, pts_cur) == pytest.approx(1.0 / 0.85, rel=0.03)
+
+
+def test_the_tracking_noise_is_the_per_axis_rms_of_the_kept_tracks_forward_backward_errors(
+        texture: np.ndarray, points: np.ndarray) -> None:
+    """``fe.track`` reports the noise its tracks show (``track_noise_px``, which sets the twist's rotation
+    uncertainty): small on a clean shift, larger when both images carry sensor noise."""
+    assert fe.fb_noise_px(np.array([3.0, 4.0, 0.0, 0.0], np.float32)) == pytest.approx(math.sqrt(25 / 4 / 2))
+    assert math.isnan(fe.fb_noise_px(np.zeros(0, np.float32)))
+    rows = np.arange(len(points))
+    clean = fe.track(_moved(texture, 1.0), CFG, None, texture, points, rows, None)
+    rng = np.random.default_rng(0)
+
+    def noisy(img: np.ndarray) -> np.ndarray:
+        return np.clip(img + rng.normal(0.0, 6.0, img.shape), 0, 255).astype(np.uint8)
+
+    dirty = fe.track(noisy(_moved(texture, 1.0)), CFG, None, noisy(texture), points, rows, None)
+    assert len(clean[1]) >= 0.95 * len(points) and len(dirty[1]) >= 0.9 * len(points)
+    assert 0.0 < clean[5] < 0.005, clean[5]
+    assert dirty[5] > 5.0 * clean[5], (clean[5], dirty[5])

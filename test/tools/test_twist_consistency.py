@@ -91,5 +91,10 @@ def test_bag_twist_covariance_matches_its_errors(bag: str, params: dict, max_mea
     # Cautious rather than overconfident: on ground_robot the linear twist carries the camera height's
     # 2 % (camera_height_rel_sigma), which this exactly mounted bag does not show (NEES ~0.25).
     assert 0.15 < r.mean_linear < max_mean, r.mean_linear
-    assert r.mean_angular < max_mean, r.mean_angular
+    # The angular twist takes the image noise the tracks show (8 x their forward-backward RMS, at least
+    # 0.3 px): 1.2-1.9 here; with the configured 0.8 px it was 0.39-0.78, 1.6-2.6x too cautious in sigma.
+    assert 1.0 < r.mean_angular < max_mean, r.mean_angular
     assert r.inside_linear_percent >= 80.0 and r.inside_angular_percent >= 90.0
+    tracking = [x for x in records if x["state"] == "tracking"]
+    noise = [x["track_noise_px"] for x in tracking]
+    assert all(n is not None and 0.005 < n < 0.2 for n in noise)  # the renders' KLT: 0.02-0.1 px per axis
