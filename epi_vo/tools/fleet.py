@@ -69,11 +69,24 @@ def is_bag(path: Path) -> bool:
 
 
 def _bags_in(directory: Path) -> list[Path]:
-    """The bags directly in ``directory`` (sub-directories that are bags, .mcap / .db3 files)."""
+    """The bags directly in ``directory`` (sub-directories that are bags, .mcap / .db3 files), and the
+    storage files of a sub-directory without metadata.yaml: a recorder that died (power cut, kill -9)
+    leaves its bag directory without it, and such a bag must get its row (replayed from the file, or
+    failed with its reason), not be passed over."""
     try:
-        return sorted(c for c in directory.iterdir() if is_bag(c))
+        children = sorted(directory.iterdir())
     except OSError:
         return []
+    found = []
+    for c in children:
+        if is_bag(c):
+            found.append(c)
+        elif c.is_dir():
+            try:
+                found += sorted(f for f in c.iterdir() if f.is_file() and f.suffix in BAG_SUFFIXES)
+            except OSError:
+                continue
+    return found
 
 
 def is_fleet(args: Sequence[str]) -> bool:

@@ -299,3 +299,24 @@ def test_interrupt_leaves_finished_bags_valid(fleet_dir: Path, tmp_path: Path) -
     # summarize sees the interrupted bag for what it is.
     assert main(["summarize", str(out)]) == 1
     assert _summary(out)["b_long"]["status"] == "interrupted"
+
+
+def test_a_bag_directory_without_metadata_gets_its_row(fleet_dir: Path, tmp_path: Path) -> None:
+    """A recorder that died leaves its bag directory without metadata.yaml: a directory of bags still
+    finds its storage file, which replays (here: a good one) or fails with its reason (a truncated one),
+    instead of being passed over in silence."""
+    day = tmp_path / "day"
+    (day / "crashed_good").mkdir(parents=True)
+    (day / "crashed_bad").mkdir()
+    (day / "notes").mkdir()
+    (day / "notes" / "readme.txt").write_text("not a bag")
+    shutil.copy(next((fleet_dir / "planar").glob("*.mcap")), day / "crashed_good" / "crashed_good_0.mcap")
+    (day / "crashed_bad" / "crashed_bad_0.mcap").write_bytes(b"\x89MCAP0\r\n truncated by a power cut")
+    assert [p.name for p in find_bags([str(day)])] == ["crashed_bad_0.mcap", "crashed_good_0.mcap"]
+    out = tmp_path / "out"
+    rc = main(["replay", str(day), "--output", str(out), "--jobs", "1", "--no-progress"])
+    rows = _summary(out)
+    assert set(rows) == {"crashed_bad_0", "crashed_good_0"}
+    assert rows["crashed_good_0"]["status"] == "ok" and int(rows["crashed_good_0"]["frames"]) == 30
+    assert rows["crashed_bad_0"]["status"] == "failed" and rows["crashed_bad_0"]["reason"]
+    assert rc == 1
