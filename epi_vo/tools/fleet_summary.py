@@ -174,8 +174,8 @@ _MODELS = [m.value for m in Model]
 CSV_COLUMNS = ["name", "bag", "status", "reason", "run", "frames", "with_pose_percent", "keyframes",
                *(f"state_{s}" for s in _STATES), *(f"model_{m}" for m in _MODELS), "scale_source",
                "metric_scale", "metric_from_frame", "units", "gt_source", "ate_rmse", "ate_percent_of_path",
-               "rpe_rot_deg_per_frame", "rpe_trans_rmse", "ms_per_frame", "end_to_end_fps", "wall_s",
-               "output_dir", "report"]
+               "rpe_rot_deg_per_frame", "rpe_trans_rmse", "nees_pos", "nees_rot", "nees_twist_linear",
+               "nees_twist_angular", "ms_per_frame", "end_to_end_fps", "wall_s", "output_dir", "report"]
 
 
 def csv_record(row: BagRow) -> dict[str, str]:
@@ -193,7 +193,9 @@ def csv_record(row: BagRow) -> dict[str, str]:
                   "units": s.units, "gt_source": s.gt_source,
                   "ate_rmse": _num(m.get("ate_rmse"), 6), "ate_percent_of_path": _num(m.get("ate_percent_of_path"), 4),
                   "rpe_rot_deg_per_frame": _num(m.get("rpe_rot_deg_per_frame"), 5),
-                  "rpe_trans_rmse": _num(m.get("rpe_trans_rmse"), 6), "ms_per_frame": _num(s.ms_per_frame, 3),
+                  "rpe_trans_rmse": _num(m.get("rpe_trans_rmse"), 6),
+                  **{k: _num(m.get(k), 3) for k in ("nees_pos", "nees_rot", "nees_twist_linear", "nees_twist_angular")},
+                  "ms_per_frame": _num(s.ms_per_frame, 3),
                   "end_to_end_fps": _num(s.end_to_end_fps, 1), "wall_s": _num(s.wall_s, 3)}
     return {c: str(cells.get(c, "")) for c in CSV_COLUMNS}
 

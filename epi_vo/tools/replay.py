@@ -36,11 +36,12 @@ from epi_vo.core.camera import CameraModel, CameraModelCache
 from epi_vo.core.config import VoConfig
 from epi_vo.core.errors import BagError, EpiVoError, Interrupted, OutputError
 from epi_vo.core.frame import FrameResult
-from epi_vo.core.odometry import OdometryConverter, sample_status_pose, status_pose
+from epi_vo.core.odometry import OdometryConverter, OdometrySample, sample_status_pose, status_pose
 from epi_vo.core.pipeline import VoPipeline
 from epi_vo.core.status import frame_status
 from epi_vo.io import bagio, outbag, tum
 from epi_vo.io.msgconv import decode_frame, ns_to_ros_time
+from epi_vo.tools.consistency import OdometryLog, consistency_metrics, format_consistency
 
 if TYPE_CHECKING:
     from epi_vo.tools.evaluation import TrajectoryMetrics
@@ -177,6 +178,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     last_pos: np.ndarray | None = None
     metric_from: int | None = None
     units = "vo"
+    odo_log: OdometryLog | None = None  # with ground truth
 
     try:
         with stop_on_signals() as stop, \
@@ -190,6 +192,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
             gt = _ground_truth(bag, gt_tum)
             if gt is not None:  # kept beside the estimate so that reports can be made from DIR alone
                 tum.write_tum(out / "groundtruth.tum", *gt[1])
+                odo_log = OdometryLog()  # what /vo/odometry carried, for the covariance's consistency
             wheel = _WheelFeed(bag.read_wheel_odometry(), pipeline, cfg.wheel_odometry_timeout_s)
             decoded = _Decoded()
             for frame, next_frame in with_next(bag.iter_frames()):
@@ -227,7 +230,9 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                         path_length += float(np.linalg.norm(p - last_pos))
                     last_pos = p.copy()
                 if not result.skipped:  # a skipped frame gets its record and status, but no pose
-                    _write_outputs(obag, converter, result, path_poses, record)
+                    sample = _write_outputs(obag, converter, result, path_poses, record)
+                    if odo_log is not None:
+                        odo_log.add(sample, record)
                 else:
                     obag.write_diagnostics(result.stamp_ns, [frame_status(
                         result, "epi_vo", "replay", status_pose(converter, result, ODOM_FRAME, BASE_FRAME), record)])
@@ -259,6 +264,11 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
             metrics = asdict(m)
         except EpiVoError as exc:
             notes.append(f"evaluation skipped: {exc}")
+        if metrics is not None and odo_log is not None:
+            try:
+                metrics.update(consistency_metrics(odo_log, gt[1], ODOM_FRAME, BASE_FRAME))
+            except EpiVoError as exc:
+                notes.append(f"covariance consistency not evaluated: {exc}")
     totals = stage_times.get("total", [0.0])
     wall_s = time.perf_counter() - started
     summary = ReplaySummary(
@@ -544,7 +554,7 @@ class _PathWindow:
 
 
 def _write_outputs(obag: outbag.OutputBag, converter: OdometryConverter, result: FrameResult,
-                   path_poses: _PathWindow, record: dict[str, Any] | None = None) -> None:
+                   path_poses: _PathWindow, record: dict[str, Any] | None = None) -> OdometrySample:
     sample = converter.convert(result.stamp_ns, result.T_w_c, result.covariance, result.has_pose,
                                      result.step_covariance)
     obag.write_odometry(result.stamp_ns, ODOM_FRAME, BASE_FRAME, sample.position, sample.quat_xyzw,
@@ -560,6 +570,7 @@ def _write_outputs(obag: outbag.OutputBag, converter: OdometryConverter, result:
         obag.write_path(result.stamp_ns, ODOM_FRAME, *path_poses.window())
     obag.write_diagnostics(result.stamp_ns, [frame_status(
         result, "epi_vo", "replay", sample_status_pose(sample, ODOM_FRAME, BASE_FRAME), record)])
+    return sample
 
 
 def _ground_truth(bag: bagio.CameraBag, gt_tum: str | Path | None
@@ -611,6 +622,9 @@ def format_summary(s: ReplaySummary) -> str:
         if s.units == "m":
             lines.append(f"  metric        step scale {_f(m['step_scale_median'])} (estimate / GT, median)  ATE "
                          f"{_f(m['ate_se3_percent_of_path'])} % of path with SE(3) alignment only")
+        line = format_consistency(m)
+        if line is not None:
+            lines.append(line)
     lines.extend(f"  note: {n}" for n in s.notes)
     lines.extend(f"  rejected: {r}" for r in s.rejected)
     lines.extend(f"  skipped: {m}" for m in s.skipped_messages)

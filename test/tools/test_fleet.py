@@ -102,10 +102,12 @@ def test_one_row_per_bag_and_the_broken_one_failed(fleet_run: tuple[Path, int]) 
         assert int(r["frames"]) == 30 and float(r["with_pose_percent"]) > 80
         assert int(r["keyframes"]) >= 2 and int(r["state_tracking"]) > 0
         assert float(r["ate_percent_of_path"]) < 10 and float(r["rpe_rot_deg_per_frame"]) < 0.2  # ground truth in bag
+        assert 0.1 < float(r["nees_pos"]) < 20 and 0.1 < float(r["nees_twist_angular"]) < 20  # the covariance judged
         assert r["scale_source"] == "none" and r["metric_scale"] == "no"
         assert float(r["ms_per_frame"]) > 0 and float(r["end_to_end_fps"]) > 0
     broken = rows["zz_broken"]
     assert broken["status"] == "failed" and "zz_broken.mcap" in broken["reason"] and broken["frames"] == ""
+    assert broken["nees_pos"] == ""
     md = (out / "summary.md").read_text()
     assert "3 bag(s): 2 ok, 1 failed" in md and md.count("\n| ") == 4  # header + three rows
     assert not (out / "index.html").exists()  # only with --report
