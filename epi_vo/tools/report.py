@@ -28,7 +28,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from epi_vo.core.config import config_fields, field_doc
-from epi_vo.core.errors import EvaluationError, ReportError
+from epi_vo.core.errors import BagError, EvaluationError, ReportError
+from epi_vo.io.odometry_bag import read_odometry
 from epi_vo.tools.evaluation import NeesResult, replay_dir_nees
 from epi_vo.tools.report_data import (
     NO_SIM3,
@@ -62,6 +63,7 @@ from epi_vo.tools.report_movers import (
     static_spans,
 )
 from epi_vo.tools.report_plots import draw_errors, draw_nees, draw_scale, draw_timeline, draw_trajectory
+from epi_vo.tools.twist_consistency import TwistNees, replay_twist_nees
 
 _log = logging.getLogger(__name__)
 
@@ -149,6 +151,16 @@ def run_nees(run: Run) -> tuple[NeesResult | None, str]:
         return None, f"not computed: {exc}"
 
 
+def run_twist_nees(run: Run) -> TwistNees | None:
+    """The published twist's consistency (``twist_consistency``), None without ground truth or output.mcap."""
+    if run.gt is None or not (run.directory / "output.mcap").is_file():
+        return None
+    try:
+        return replay_twist_nees(list(run.records), read_odometry(run.directory / "output.mcap"), run.gt)
+    except (EvaluationError, BagError):
+        return None
+
+
 def run(args: argparse.Namespace) -> int:
     """``epi-vo report DIR``: write the report and print the HTML's path."""
     print(write_report(args.dir))
@@ -230,7 +242,7 @@ def render_html(run: Run, figs: RunFigures, span_list: Sequence[Span], alignment
             rows.append(("poses evaluated", e(figs.metrics_note)))
     else:
         rows.append(("ATE / RPE", f"<span class=\"muted\">{e(figs.metrics_note)}</span>"))
-    rows += _nees_rows(nees, nees_note)
+    rows += _nees_rows(nees, nees_note, run_twist_nees(run) if nees is not None else None)
     parts.append(_kv_table(rows))
     notes = [str(n) for n in stats.get("notes", []) or []]
     if alignment is not None and alignment.kind is not AlignmentKind.SIM3:
@@ -281,7 +293,7 @@ def render_html(run: Run, figs: RunFigures, span_list: Sequence[Span], alignment
     return "\n".join(parts)
 
 
-def _nees_rows(nees: NeesResult | None, note: str) -> list[tuple[str, str]]:
+def _nees_rows(nees: NeesResult | None, note: str, twist: TwistNees | None = None) -> list[tuple[str, str]]:
     """Summary rows of the covariance consistency (already-escaped HTML)."""
     if nees is None:
         why = html.escape(note or "not computed")
@@ -294,7 +306,12 @@ def _nees_rows(nees: NeesResult | None, note: str) -> list[tuple[str, str]]:
             ("NEES rotation (3 dof)", f"mean {fmt_num(nees.mean_nees_rot)}, {fmt_num(nees.inside_rot_percent, '.1f')}"
                                       " % inside the 99 % bound"),
             ("NEES frames", f"{nees.evaluated} tracking frames evaluated ({how}, anchored at the odometry "
-                            f"origin); skipped: {skipped}")]
+                            f"origin); skipped: {skipped}")] + ([] if twist is None or not twist.nees_linear.size else [
+        ("NEES twist (3 dof each)",
+         f"linear velocity mean {fmt_num(twist.mean_linear)}, {fmt_num(twist.inside_linear_percent, '.1f')} % "
+         f"inside; angular velocity mean {fmt_num(twist.mean_angular)}, "
+         f"{fmt_num(twist.inside_angular_percent, '.1f')} % inside ({twist.nees_linear.size} pairs of consecutive "
+         "tracking frames, against the ground truth's motion between them)")])
 
 
 def _mover_section(movers: Sequence[MoverSpan], statics: Sequence[StaticSpan]) -> str:

@@ -128,6 +128,13 @@ def test_report_has_the_nees_figure_with_ground_truth(moving_mover: Path) -> Non
     recs = [json.loads(line) for line in (moving_mover / "frames.jsonl").read_text().splitlines()]
     n_tracking = sum(r["state"] == "tracking" for r in recs)
     assert f"{n_tracking} tracking frames evaluated (Sim(3)" in page
+    # The twist's consistency too: the replay's own figures (stats.json), read back from output.mcap.
+    twist = page[page.index("NEES twist (3 dof each)"):]
+    lin = float(twist.split("linear velocity mean ", 1)[1].split(",", 1)[0])
+    ang = float(twist.split("angular velocity mean ", 1)[1].split(",", 1)[0])
+    stats = json.loads((moving_mover / "stats.json").read_text())["metrics"]
+    assert lin == pytest.approx(stats["nees_twist_linear"], abs=0.0051)
+    assert ang == pytest.approx(stats["nees_twist_angular"], abs=0.0051)
     # The timeline has its seventh panel (movers): a taller picture.
     import cv2
     h, w = cv2.imread(str(moving_mover / "report" / "timeline.png")).shape[:2]
