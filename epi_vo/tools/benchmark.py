@@ -16,7 +16,8 @@ only (no scale), as % of the path: the figures that say whether the output is me
 Covariance consistency (epi_vo rows): the mean NEES of the position and of the rotation (3 dof each, ideal
 3) of the tracking frames against the covariance published in /vo/odometry, and the % of them inside the
 chi-square 3-dof 99 % bound (11.345), after the one global scale (Sim(3) anchored at the odometry origin;
-SE(3) once metric scale is established): :func:`epi_vo.tools.evaluation.replay_nees`. ``e2e fps`` is the
+SE(3) once metric scale is established), and the same for the twist: the replay's own figures
+(:mod:`epi_vo.tools.consistency`, ``ReplaySummary.metrics``). ``e2e fps`` is the
 replay's end-to-end rate (reading, decoding, VO, writing: ``ReplaySummary.end_to_end_fps``).
 """
 
@@ -36,12 +37,10 @@ from epi_vo.core.errors import EpiVoError, OutputError
 from epi_vo.core.transforms import quat_xyzw_from_rotation
 from epi_vo.io import bagio, tum
 from epi_vo.io.msgconv import decode_frame
-from epi_vo.io.odometry_bag import read_odometry
 from epi_vo.io.params import load_config
-from epi_vo.tools.evaluation import NeesResult, StampedPoses, evaluate_trajectory, metric_poses, replay_nees
+from epi_vo.tools.evaluation import StampedPoses, evaluate_trajectory, metric_poses
 from epi_vo.tools.reference import ReferencePipeline
 from epi_vo.tools.replay import run_replay
-from epi_vo.tools.twist_consistency import TwistNees, replay_twist_nees
 
 
 @dataclass(frozen=True)
@@ -127,14 +126,13 @@ def _metrics_row(name: str, pipeline: str, frames: int, n_pose: int, ms: float, 
 def bench_epi_vo(name: str, bag: Path, gt_path: Path, cfg: VoConfig, label: str = "epi_vo") -> BenchRow:
     gt = tum.read_tum(gt_path)
     with tempfile.TemporaryDirectory() as tmp:
-        summary = run_replay(bag, tmp, cfg, lookahead=False)  # per-frame times as a live node has them
+        # KLT in line: per-frame times as a live node has them; the replay judges its covariance itself
+        summary = run_replay(bag, tmp, cfg, gt_tum=gt_path, lookahead=False)
         stamps, positions, quats = tum.read_tum(Path(tmp) / "trajectory.tum")
         records = [json.loads(line) for line in (Path(tmp) / "frames.jsonl").read_text(encoding="utf-8").splitlines()
                    if line.strip()]
         evaluated, held = metric_poses((stamps, positions, quats), records)  # the metric ones, once metres
-        nees = _nees(Path(tmp), records, gt)
         totals = [r["timings_ms"]["total"] for r in records if "total" in r.get("timings_ms", {})]
-        twist = _twist_nees(Path(tmp), records, gt)
     row = _metrics_row(name, label, summary.frames, summary.frames_with_pose, summary.ms_per_frame,
                        stamps, positions, quats, gt, evaluated)
     if summary.units != "m":  # VO units: the metric figures say nothing
@@ -142,31 +140,15 @@ def bench_epi_vo(name: str, bag: Path, gt_path: Path, cfg: VoConfig, label: str 
     # end_to_end_fps: a newer ReplaySummary field; an older summary has none (n/a).
     row = dataclasses.replace(row, e2e_fps=float(getattr(summary, "end_to_end_fps", math.nan) or math.nan),
                               held_poses=held, ms_p95=_p95(totals))
-    if nees is not None:
-        row = dataclasses.replace(row, nees_pos=nees.mean_nees_pos, nees_pos_inside_percent=nees.inside_pos_percent,
-                                  nees_rot=nees.mean_nees_rot, nees_rot_inside_percent=nees.inside_rot_percent,
-                                  nees_frames=nees.evaluated)
-    if twist is not None:
-        row = dataclasses.replace(row, nees_twist_lin=twist.mean_linear, nees_twist_ang=twist.mean_angular,
-                                  nees_twist_lin_inside_percent=twist.inside_linear_percent,
-                                  nees_twist_ang_inside_percent=twist.inside_angular_percent)
+    m = summary.metrics or {}
+    if "nees_frames" in m:  # tools.consistency: the published pose and twist against the ground truth
+        row = dataclasses.replace(row, nees_pos=m["nees_pos"], nees_pos_inside_percent=m["nees_pos_inside_percent"],
+                                  nees_rot=m["nees_rot"], nees_rot_inside_percent=m["nees_rot_inside_percent"],
+                                  nees_frames=m["nees_frames"], nees_twist_lin=m["nees_twist_linear"],
+                                  nees_twist_ang=m["nees_twist_angular"],
+                                  nees_twist_lin_inside_percent=m["nees_twist_linear_inside_percent"],
+                                  nees_twist_ang_inside_percent=m["nees_twist_angular_inside_percent"])
     return row
-
-
-def _twist_nees(out: Path, records: list[dict], gt: tuple[np.ndarray, np.ndarray, np.ndarray]) -> TwistNees | None:
-    """Twist covariance consistency of the replay in ``out``; None when it cannot be evaluated."""
-    try:
-        return replay_twist_nees(records, read_odometry(out / "output.mcap"), gt)
-    except (EpiVoError, OSError, ValueError, np.linalg.LinAlgError):
-        return None
-
-
-def _nees(out: Path, records: list[dict], gt: tuple[np.ndarray, np.ndarray, np.ndarray]) -> NeesResult | None:
-    """Covariance consistency of the replay in ``out`` against ``gt``; None when it cannot be evaluated."""
-    try:
-        return replay_nees(records, read_odometry(out / "output.mcap"), gt)
-    except (EpiVoError, OSError, ValueError):
-        return None
 
 
 def bench_reference(name: str, bag_path: Path, gt_path: Path) -> BenchRow:
