@@ -48,7 +48,7 @@ from numpy.typing import NDArray
 
 from epi_vo.core.errors import EpiVoError, EvaluationError
 from epi_vo.core.odometry import default_T_base_cam
-from epi_vo.core.transforms import invert_T, make_T, quat_xyzw_from_rotation, rotation_from_quat_xyzw
+from epi_vo.core.transforms import invert_T
 from epi_vo.io import tum
 from epi_vo.io.odometry_bag import OdometryTrack, read_odometry
 
@@ -418,14 +418,35 @@ def _inside_percent(a: NDArray[np.float64], bound: float) -> float:
 
 
 def rotation_vectors(R: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(M, 3, 3) rotation matrices -> (M, 3) rotation vectors (axis * angle, rad), angle in [0, pi]."""
-    out = np.zeros((R.shape[0], 3))
-    for i, Ri in enumerate(R):
-        q = quat_xyzw_from_rotation(Ri)  # w >= 0
-        v, w = q[:3], q[3]
-        n = float(np.linalg.norm(v))
-        out[i] = 2.0 * v if n < 1e-12 else v * (2.0 * math.atan2(n, w) / n)
-    return out
+    """(M, 3, 3) rotation matrices -> (M, 3) rotation vectors (axis * angle, rad), angle in [0, pi].
+
+    Vectorised Shepperd (as ``transforms.quat_xyzw_from_rotation``, per matrix the same pivot: the
+    largest of the trace and the diagonal), then the angle from atan2 of the vector and scalar parts."""
+    R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
+    if not np.all(np.isfinite(R)):
+        raise EpiVoError("rotation_vectors: non-finite rotation matrix")
+    r00, r11, r22 = R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]
+    trace = r00 + r11 + r22
+    pivot = np.argmax(np.stack([trace, r00, r11, r22], axis=1), axis=1)
+    q = np.empty((R.shape[0], 4))
+    for p, (a, b, c) in enumerate(((1.0, 1.0, 1.0), (1.0, -1.0, -1.0), (-1.0, 1.0, -1.0), (-1.0, -1.0, 1.0))):
+        m = pivot == p
+        if not np.any(m):
+            continue
+        Rm = R[m]
+        s = 2.0 * np.sqrt(np.maximum(1.0 + a * Rm[:, 0, 0] + b * Rm[:, 1, 1] + c * Rm[:, 2, 2], 0.0))
+        d21, d02, d10 = Rm[:, 2, 1] - Rm[:, 1, 2], Rm[:, 0, 2] - Rm[:, 2, 0], Rm[:, 1, 0] - Rm[:, 0, 1]
+        s01, s02, s12 = Rm[:, 0, 1] + Rm[:, 1, 0], Rm[:, 0, 2] + Rm[:, 2, 0], Rm[:, 1, 2] + Rm[:, 2, 1]
+        cols = ((d21 / s, d02 / s, d10 / s, 0.25 * s), (0.25 * s, s01 / s, s02 / s, d21 / s),
+                (s01 / s, 0.25 * s, s12 / s, d02 / s), (s02 / s, s12 / s, 0.25 * s, d10 / s))[p]
+        q[m] = np.stack(cols, axis=1)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q[q[:, 3] < 0.0] *= -1.0  # w >= 0: the angle in [0, pi]
+    v, w = q[:, :3], q[:, 3]
+    n = np.linalg.norm(v, axis=1)
+    small = n < 1e-12
+    factor = np.where(small, 2.0, 2.0 * np.arctan2(n, w) / np.where(small, 1.0, n))
+    return v * factor[:, None]
 
 
 def _quadratic_forms(e: NDArray[np.float64], P: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -547,11 +568,24 @@ def nearest_rows(sorted_stamps: NDArray[np.float64], stamps: NDArray[np.float64]
 
 
 def poses_from_xyz_quat(positions: NDArray[np.float64], quats_xyzw: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(N, 3) positions and (N, 4) x, y, z, w quaternions -> (N, 4, 4) homogeneous poses."""
-    n = positions.shape[0]
-    T = np.tile(np.eye(4), (n, 1, 1))
-    for i in range(n):
-        T[i] = make_T(rotation_from_quat_xyzw(quats_xyzw[i]), positions[i])
+    """(N, 3) positions and (N, 4) x, y, z, w quaternions (normalised here) -> (N, 4, 4) homogeneous poses,
+    as ``transforms.make_T(transforms.rotation_from_quat_xyzw(q), p)`` row by row. EpiVoError for a
+    non-finite value or a (near) zero quaternion."""
+    p = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    q = np.asarray(quats_xyzw, dtype=np.float64).reshape(-1, 4)
+    if p.shape[0] != q.shape[0]:
+        raise EpiVoError(f"poses_from_xyz_quat: {p.shape[0]} positions, {q.shape[0]} quaternions")
+    if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
+        raise EpiVoError("poses_from_xyz_quat: non-finite position or quaternion")
+    norm = np.linalg.norm(q, axis=1)
+    if np.any(norm < 1e-12):
+        raise EpiVoError("poses_from_xyz_quat: a quaternion has (near) zero norm, cannot be normalised")
+    x, y, z, w = (q / norm[:, None]).T
+    T = np.tile(np.eye(4), (p.shape[0], 1, 1))
+    T[:, 0, 0], T[:, 0, 1], T[:, 0, 2] = 1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - z * w), 2.0 * (x * z + y * w)
+    T[:, 1, 0], T[:, 1, 1], T[:, 1, 2] = 2.0 * (x * y + z * w), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - x * w)
+    T[:, 2, 0], T[:, 2, 1], T[:, 2, 2] = 2.0 * (x * z - y * w), 2.0 * (y * z + x * w), 1.0 - 2.0 * (x * x + y * y)
+    T[:, :3, 3] = p
     return T
 
 

@@ -339,3 +339,33 @@ def test_replay_nees_needs_odometry_paired_with_ground_truth(tmp_path: Path) -> 
 def _tum(path: Path) -> tuple[F64, F64, F64]:
     a = np.loadtxt(path)
     return a[:, 0], a[:, 1:4], a[:, 4:8]
+
+
+def test_vectorised_pose_helpers_equal_the_per_pose_transforms() -> None:
+    """poses_from_xyz_quat and rotation_vectors (vectorised for the replay's own NEES) give what
+    transforms.make_T / rotation_from_quat_xyzw / quat_xyzw_from_rotation give pose by pose, near 0 and pi
+    and for unnormalised quaternions too; bad input is an error naming the problem."""
+    from epi_vo.core.errors import EpiVoError
+    from epi_vo.core.transforms import make_T, quat_xyzw_from_rotation, rotation_from_quat_xyzw
+
+    rng = np.random.default_rng(5)
+    q = rng.normal(size=(200, 4)) * rng.uniform(0.1, 3.0, size=(200, 1))
+    p = rng.normal(size=(200, 3))
+    T = poses_from_xyz_quat(p, q)
+    for i in range(200):
+        np.testing.assert_allclose(T[i], make_T(rotation_from_quat_xyzw(q[i]), p[i]), atol=1e-14)
+    rv = rng.normal(size=(300, 3))
+    rv *= (rng.uniform(0.0, math.pi, size=(300, 1)) / np.linalg.norm(rv, axis=1, keepdims=True))
+    rv[:20] *= 1e-9  # near zero
+    rv[20:40] *= (math.pi - 1e-7) / np.linalg.norm(rv[20:40], axis=1, keepdims=True)  # near pi
+    R = Rotation.from_rotvec(rv).as_matrix()
+    out = rotation_vectors(R)
+    for i in range(300):
+        qi = quat_xyzw_from_rotation(R[i])
+        n = np.linalg.norm(qi[:3])
+        expect = 2.0 * qi[:3] if n < 1e-12 else qi[:3] * (2.0 * math.atan2(n, qi[3]) / n)
+        np.testing.assert_allclose(out[i], expect, atol=1e-12)
+    with pytest.raises(EpiVoError, match="zero norm"):
+        poses_from_xyz_quat(p[:2], np.array([[0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 0.0, 0.0]]))
+    with pytest.raises(EpiVoError, match="non-finite"):
+        poses_from_xyz_quat(np.array([[np.nan, 0.0, 0.0]]), q[:1])
