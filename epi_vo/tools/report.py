@@ -121,18 +121,21 @@ def _write_report(run: Run) -> Path:
     else:
         scale_png.unlink(missing_ok=True)
     nees, nees_note = run_nees(run)
+    twist = run_twist_nees(run) if nees is not None else None
     nees_png = png_dir / "nees.png"
     if nees is not None and nees.evaluated:  # no tracking frame (a static or rotating camera): the summary says so
         frame_range = (int(tl.frame_index[0]), int(tl.frame_index[-1]))
-        pngs.append((draw_nees(nees, span_list, tl.keyframe_index, nees_png, frame_range, movers),
+        pngs.append((draw_nees(nees, span_list, tl.keyframe_index, nees_png, frame_range, movers, twist),
                      "Covariance consistency: per tracking frame, the normalised estimation error squared of the "
                      "position and of the rotation against the covariance published in /vo/odometry (3 dof, log "
                      "scale), after the one global scale (Sim(3) anchored at the odometry origin; SE(3) with metric "
-                     "scale). A consistent covariance gives a mean of 3 and 99 % of the frames below the dashed "
-                     "bound."))
+                     "scale); below, the same for the published twist's linear and angular velocity against the "
+                     "ground truth's motion since the previous frame. A consistent covariance gives a mean of 3 "
+                     "and 99 % of the frames below the dashed bound."))
     else:
         nees_png.unlink(missing_ok=True)
     page = render_html(run, run_figures(run), span_list, views.alignment, pngs, nees=nees, nees_note=nees_note,
+                       twist=twist,
                        movers=movers, statics=static_spans(run, span_list, mseries))
     out = run.directory / REPORT_HTML
     out.write_text(page, encoding="utf-8")
@@ -194,7 +197,8 @@ window.addEventListener('load', function () {
 
 def render_html(run: Run, figs: RunFigures, span_list: Sequence[Span], alignment: GtAlignment | None,
                 pngs: Sequence[tuple[Path, str]], *, nees: NeesResult | None = None, nees_note: str = "",
-                movers: Sequence[MoverSpan] = (), statics: Sequence[StaticSpan] = ()) -> str:
+                movers: Sequence[MoverSpan] = (), statics: Sequence[StaticSpan] = (),
+                twist: TwistNees | None = None) -> str:
     """The report page: inline CSS, PNGs as base64 data URIs, no external resource."""
     e = html.escape
     stats = run.stats or {}
@@ -242,7 +246,7 @@ def render_html(run: Run, figs: RunFigures, span_list: Sequence[Span], alignment
             rows.append(("poses evaluated", e(figs.metrics_note)))
     else:
         rows.append(("ATE / RPE", f"<span class=\"muted\">{e(figs.metrics_note)}</span>"))
-    rows += _nees_rows(nees, nees_note, run_twist_nees(run) if nees is not None else None)
+    rows += _nees_rows(nees, nees_note, twist)
     parts.append(_kv_table(rows))
     notes = [str(n) for n in stats.get("notes", []) or []]
     if alignment is not None and alignment.kind is not AlignmentKind.SIM3:

@@ -34,6 +34,7 @@ from epi_vo.tools.report_data import (
     fmt_num,
 )
 from epi_vo.tools.report_movers import MoverSeries, MoverSpan
+from epi_vo.tools.twist_consistency import TwistNees
 
 _log = logging.getLogger(__name__)
 
@@ -260,17 +261,24 @@ def draw_errors(err: ErrorSeries, span_list: Sequence[Span], keyframes: NDArray[
 
 
 def draw_nees(nees: NeesResult, span_list: Sequence[Span], keyframes: NDArray[np.int64], path: Path,
-              frame_range: tuple[int, int], movers: Sequence[MoverSpan] = ()) -> Path:
+              frame_range: tuple[int, int], movers: Sequence[MoverSpan] = (), twist: TwistNees | None = None) -> Path:
     """nees.png: per-frame position and rotation NEES (log y) with the chi-square 3-dof 99 % bound and the
-    consistent mean 3; frames not evaluated (not tracking) are gaps."""
-    fig = Figure(figsize=(13, 7.5), dpi=100)
-    fig.subplots_adjust(left=0.065, right=0.985, top=0.9, bottom=0.08, hspace=0.35)
-    axes = fig.subplots(2, 1, sharex=True)
-    x = nees.frame_index
-    for ax, y, name, mean, inside in ((axes[0], nees.nees_pos, "position", nees.mean_nees_pos,
-                                       nees.inside_pos_percent),
-                                      (axes[1], nees.nees_rot, "rotation", nees.mean_nees_rot,
-                                       nees.inside_rot_percent)):
+    consistent mean 3; frames not evaluated (not tracking) are gaps. With ``twist`` (its ``frame_index``
+    known), two more panels: the linear and angular velocity's NEES against the published twist."""
+    panels = [(nees.frame_index, nees.nees_pos, "position", nees.mean_nees_pos, nees.inside_pos_percent,
+               "tracking frames"),
+              (nees.frame_index, nees.nees_rot, "rotation", nees.mean_nees_rot, nees.inside_rot_percent,
+               "tracking frames")]
+    if twist is not None and twist.frame_index.size == twist.nees_linear.size > 0:
+        panels += [(twist.frame_index, twist.nees_linear, "linear velocity", twist.mean_linear,
+                    twist.inside_linear_percent, "twists"),
+                   (twist.frame_index, twist.nees_angular, "angular velocity", twist.mean_angular,
+                    twist.inside_angular_percent, "twists")]
+    fig = Figure(figsize=(13, 3.75 * len(panels)), dpi=100)
+    fig.subplots_adjust(left=0.065, right=0.985, top=1.0 - 0.2 / len(panels), bottom=0.16 / len(panels),
+                        hspace=0.35)
+    axes = fig.subplots(len(panels), 1, sharex=True)
+    for ax, (x, y, name, mean, inside, what) in zip(axes, panels, strict=True):
         ok = np.isfinite(y) & (y > 0)
         if ok.any():
             ax.plot(*_break_at_gaps(x[ok], y[ok]), "-", color="#1f77b4", marker=".", ms=4, lw=1.0,
@@ -287,7 +295,7 @@ def draw_nees(nees: NeesResult, span_list: Sequence[Span], keyframes: NDArray[np
             ax.set_yticks([])
         ax.set_ylabel("NEES (3 dof)")
         ax.set_title(f"{name} NEES against the published covariance: mean {fmt_num(mean)}, "
-                     f"{fmt_num(inside, '.1f')} % inside the 99 % bound ({x.size} tracking frames)")
+                     f"{fmt_num(inside, '.1f')} % inside the 99 % bound ({x.size} {what})")
         _shade(ax, span_list, keyframes, movers)
         ax.grid(True, alpha=0.3, which="both")
     axes[-1].set_xlabel("frame index")

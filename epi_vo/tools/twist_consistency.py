@@ -13,7 +13,8 @@ jumped to metres, ...) is not evaluated.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import dataclasses
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -34,6 +35,10 @@ class TwistNees:
     nees_angular: NDArray[np.float64]
     scale: float
     bound: float = CHI2_3DOF_99
+    # (M,) per judged twist the odometry message it is (the later of the pair), and that frame's record
+    # index (``replay_twist_nees``; empty without the records)
+    rows: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    frame_index: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
 
     @property
     def mean_linear(self) -> float:
@@ -80,7 +85,7 @@ def twist_consistency(odometry: OdometryTrack, T_g_base_gt: NDArray[np.float64],
     e_w = w - w_gt
     nees_v = np.einsum("ki,ki->k", e_v, np.linalg.solve(C[:, :3, :3] * s * s, e_v[..., None])[..., 0])
     nees_w = np.einsum("ki,ki->k", e_w, np.linalg.solve(C[:, 3:, 3:], e_w[..., None])[..., 0])
-    return TwistNees(nees_v, nees_w, s)
+    return TwistNees(nees_v, nees_w, s, rows=idx.astype(np.int64))
 
 
 def poses_at(gt_stamps_s: NDArray[np.float64], gt_pos: NDArray[np.float64], gt_quat: NDArray[np.float64],
@@ -101,4 +106,7 @@ def replay_twist_nees(records: list[dict], odometry: OdometryTrack,
         evaluate &= np.array([bool(by_stamp.get(int(t), {}).get("metric_scale")) for t in odometry.stamps_ns], bool)
     gt_s, gt_p, gt_q = (np.asarray(a, dtype=np.float64) for a in gt)
     T_gt = poses_at(gt_s, gt_p, gt_q, odometry.stamps_ns, invert_T(default_T_base_cam()))
-    return twist_consistency(odometry, T_gt, evaluate, metric=metric)
+    r = twist_consistency(odometry, T_gt, evaluate, metric=metric)
+    index = np.array([int(by_stamp.get(int(odometry.stamps_ns[k]), {}).get("index", -1)) for k in r.rows],
+                     np.int64)
+    return dataclasses.replace(r, frame_index=index)

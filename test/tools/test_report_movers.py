@@ -135,6 +135,10 @@ def test_report_has_the_nees_figure_with_ground_truth(moving_mover: Path) -> Non
     stats = json.loads((moving_mover / "stats.json").read_text())["metrics"]
     assert lin == pytest.approx(stats["nees_twist_linear"], abs=0.0051)
     assert ang == pytest.approx(stats["nees_twist_angular"], abs=0.0051)
+    # nees.png: position, rotation, linear and angular velocity, one panel each (3.75 in x 100 dpi)
+    import cv2
+    h, _ = cv2.imread(str(moving_mover / "report" / "nees.png")).shape[:2]
+    assert h == 1500
     # The timeline has its seventh panel (movers): a taller picture.
     import cv2
     h, w = cv2.imread(str(moving_mover / "report" / "timeline.png")).shape[:2]

@@ -95,6 +95,10 @@ def test_bag_twist_covariance_matches_its_errors(bag: str, params: dict, max_mea
     # 0.3 px): 1.2-1.9 here; with the configured 0.8 px it was 0.39-0.78, 1.6-2.6x too cautious in sigma.
     assert 1.0 < r.mean_angular < max_mean, r.mean_angular
     assert r.inside_linear_percent >= 80.0 and r.inside_angular_percent >= 90.0
+    # each judged twist names its frame: a tracking frame whose predecessor tracked too
+    state = {x["index"]: x["state"] for x in records}
+    assert r.frame_index.size == r.nees_linear.size and np.all(np.diff(r.frame_index) > 0)
+    assert all(state[int(i)] == "tracking" and state[int(i) - 1] == "tracking" for i in r.frame_index)
     tracking = [x for x in records if x["state"] == "tracking"]
     noise = [x["track_noise_px"] for x in tracking]
     assert all(n is not None and 0.005 < n < 0.2 for n in noise)  # the renders' KLT: 0.02-0.1 px per axis
