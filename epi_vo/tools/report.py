@@ -4,7 +4,7 @@ file that embeds the PNGs as data URIs and needs nothing else.
 Lengths are labelled in the run's units (``stats.json`` ``units``: metres once a metric scale source was
 established, VO units otherwise). ``scale.png`` is drawn only for a run with a metric scale source
 (``scale_source`` other than none); errors.png and nees.png (covariance consistency,
-:func:`epi_vo.tools.evaluation.replay_dir_nees`) only with ground truth. Static spans (state ``static``)
+:func:`epi_vo.tools.evaluation.replay_nees`, and the twist's) only with ground truth. Static spans (state ``static``)
 are shaded like the other states; spans with movers in view (:mod:`epi_vo.tools.report_movers`) are a
 magenta band along the bottom of every timeline panel, and both are listed with what moved.
 
@@ -28,9 +28,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from epi_vo.core.config import config_fields, field_doc
-from epi_vo.core.errors import BagError, EvaluationError, ReportError
+from epi_vo.core.errors import EpiVoError, EvaluationError, ReportError
 from epi_vo.io.odometry_bag import read_odometry
-from epi_vo.tools.evaluation import NeesResult, replay_dir_nees
+from epi_vo.tools.evaluation import NeesResult, replay_nees
 from epi_vo.tools.report_data import (
     NO_SIM3,
     REPORT_HTML,
@@ -120,8 +120,7 @@ def _write_report(run: Run) -> Path:
                      ("; below, the camera's pitch and roll to the floor." if scale.has_floor else ".")))
     else:
         scale_png.unlink(missing_ok=True)
-    nees, nees_note = run_nees(run)
-    twist = run_twist_nees(run) if nees is not None else None
+    nees, nees_note, twist = run_nees(run)
     nees_png = png_dir / "nees.png"
     if nees is not None and nees.evaluated:  # no tracking frame (a static or rotating camera): the summary says so
         frame_range = (int(tl.frame_index[0]), int(tl.frame_index[-1]))
@@ -142,26 +141,27 @@ def _write_report(run: Run) -> Path:
     return out
 
 
-def run_nees(run: Run) -> tuple[NeesResult | None, str]:
-    """The run's covariance consistency and, when there is none, why (no ground truth, no output.mcap, ...)."""
+def run_nees(run: Run) -> tuple[NeesResult | None, str, TwistNees | None]:
+    """The run's covariance consistency (pose; and twist, None when it cannot be judged) and, when there
+    is none, why (no ground truth, no output.mcap, ...). output.mcap is read once for both."""
     if run.gt is None:
-        return None, "no ground truth"
+        return None, "no ground truth", None
     if not (run.directory / "output.mcap").is_file():
-        return None, "no output.mcap (the published covariance)"
+        return None, "no output.mcap (the published covariance)", None
     try:
-        return replay_dir_nees(run.directory), ""
+        odometry = read_odometry(run.directory / "output.mcap")
+    except EpiVoError as exc:
+        return None, f"not computed: cannot read {run.directory / 'output.mcap'}: {exc}", None
+    records = list(run.records)
+    try:
+        nees = replay_nees(records, odometry, run.gt)
     except EvaluationError as exc:
-        return None, f"not computed: {exc}"
-
-
-def run_twist_nees(run: Run) -> TwistNees | None:
-    """The published twist's consistency (``twist_consistency``), None without ground truth or output.mcap."""
-    if run.gt is None or not (run.directory / "output.mcap").is_file():
-        return None
+        return None, f"not computed: {exc}", None
     try:
-        return replay_twist_nees(list(run.records), read_odometry(run.directory / "output.mcap"), run.gt)
-    except (EvaluationError, BagError):
-        return None
+        twist = replay_twist_nees(records, odometry, run.gt)
+    except (EvaluationError, ValueError, np.linalg.LinAlgError):
+        twist = None
+    return nees, "", twist
 
 
 def run(args: argparse.Namespace) -> int:
