@@ -46,6 +46,13 @@ class Motion:
     # Correspondences judged to move on their own this frame: they made E's consensus but do not fit
     # the epipolar geometry of the pose the map's points gave (None: no such check was made).
     moving: NDArray[np.bool_] | None = None
+    # Relative variance of the map's scale in ``cov_rel`` (along the camera's offset from the keyframe):
+    # the map points' depth errors behind it are the same for every frame against this keyframe, so it
+    # moves consecutive frames alike (``covariance.shared_scale_part``; 0: none is in ``cov_rel``).
+    shared_scale_var: float = 0.0
+    # The pose is E's (rotation and direction) fitted to the tracks' positions since the keyframe: the
+    # next frame's E is fitted to the same tracks one step on (``covariance.track_step``).
+    from_essential: bool = False
 
 
 def is_finite(m: Motion) -> bool:
@@ -471,9 +478,10 @@ class MotionStage:
             disagree = self._map_disagrees(ctx, X, R, t0, st, plane)
             if disagree is None:
                 cov = self._essential_cov(ctx, R, t_dir, inl, X, has_depth, est, covm.block(trans_var, rot_cov))
-                if plane:
+                if plane:  # fused with the map: no separable scale part
                     cov = self._with_map_information(ctx, R, t0, X[has_depth], xn_cur[has_depth], cov)
-                return Motion(TrackingState.TRACKING, R, t0, cov, inl)
+                    return Motion(TrackingState.TRACKING, R, t0, cov, inl)
+                return Motion(TrackingState.TRACKING, R, t0, cov, inl, shared_scale_var=scale_var, from_essential=True)
             # E's consensus was taken by something moving: the map's points, from the previous pose, decide.
             R0, t0 = ctx.T_cur_kf_prev[:3, :3], ctx.T_cur_kf_prev[:3, 3]
             has_depth = disagree

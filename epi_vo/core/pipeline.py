@@ -90,7 +90,8 @@ class VoPipeline:
         self._next_id = 0  # the next feature track id
         self._mover_ids = np.zeros(0, np.int64)  # sorted ids of tracks judged to move on their own
         self._anchor: sc.WindowAnchor | None = None  # the scale source's anchor of the newest keyframe step
-        self._rel_prev: tuple[int, F64] | None = None  # keyframe stamp and relative covariance of the last pose
+        # keyframe stamp and relative covariance of the last pose (without its map's scale part)
+        self._rel_prev: tuple[int, F64] | None = None
         self._last_pos_w = np.zeros(3)  # position of the last frame with a pose (for the step's scale error)
         self._jumped = False  # this frame's position jumped to metres (metric scale just established)
         self._T_w_c = np.eye(4)
@@ -327,7 +328,7 @@ class VoPipeline:
             self._T_w_c = T_w_c
             self._cov_w_c = covm.compose(kf.cov_w_kf, kf.T_w_kf, motion.cov_rel, motion.t_cur_kf,
                                          motion.R_cur_kf)
-            step_cov = self._step_covariance(kf, motion.cov_rel, T_w_c[:3, 3] - self._last_pos_w, st.track_noise_px)
+            step_cov = self._step_covariance(kf, motion, T_w_c[:3, 3] - self._last_pos_w, st.track_noise_px)
             self._last_pos_w = T_w_c[:3, 3].copy()
             self._T_cur_kf_prev = T_cur_kf
             if state is TrackingState.TRACKING:
@@ -349,21 +350,28 @@ class VoPipeline:
         return dataclasses.replace(self._result(stamp_ns, state, has_pose, is_kf, st, t_start),
                                    step_covariance=None if step_cov is None else frozen(covm.floored(step_cov)))
 
-    def _step_covariance(self, kf: Keyframe, cov_rel: F64, step_w: F64, track_noise_px: float) -> F64:
+    def _step_covariance(self, kf: Keyframe, motion: mo.Motion, step_w: F64, track_noise_px: float) -> F64:
         """Covariance of the motion since the previous frame (odometry frame) from both frames' poses
         relative to the keyframe (``covariance.step``); against a new keyframe (the previous frame) only
-        this frame's counts. Its rotation takes the image noise the frame's tracks show
-        (``covariance.twist_noise_ratio``) instead of ``pixel_noise_px``."""
-        cov = rotate_covariance(cov_rel, kf.T_w_kf[:3, :3])
+        this frame's counts. The image noise is the one the frame's tracks show
+        (``covariance.twist_noise_ratio``), not ``pixel_noise_px``: for the rotation always; for the
+        position too when this pose is E's against the previous frame's keyframe
+        (``covariance.track_step``). The map's
+        scale error is the same for both frames: it moves the step by its own fraction
+        (``covariance.shared_scale_part``), not by the sum of both offsets from the keyframe."""
+        c_kf = -motion.R_cur_kf.T @ motion.t_cur_kf
+        own = motion.cov_rel - covm.shared_scale_part(c_kf, motion.shared_scale_var)
+        cov = rotate_covariance(own, kf.T_w_kf[:3, :3])
         prev = self._rel_prev
         self._rel_prev = (kf.stamp_ns, cov)
-        cov = covm.step(cov, prev[1] if prev is not None and prev[0] == kf.stamp_ns else None)
-        cov = covm.with_rotation_scaled(cov, covm.twist_noise_ratio(track_noise_px, self.cfg.twist_noise_fb_factor,
-                                                                    self.cfg.twist_noise_floor_px,
-                                                                    self.cfg.pixel_noise_px))
-        # The step's length carries the map's scale error (``MapScaleCovariance.step_rel_std``).
-        rel = self._map_scale.step_rel_std(self._scale)
-        return cov + np.pad(np.outer(step_w, step_w) * rel**2, (0, 3))
+        same = prev if prev is not None and prev[0] == kf.stamp_ns else None
+        ratio = covm.twist_noise_ratio(track_noise_px, self.cfg.twist_noise_fb_factor, self.cfg.twist_noise_floor_px,
+                                       self.cfg.pixel_noise_px)
+        cov = covm.track_step(cov, None if same is None else same[1], ratio, motion.from_essential and same is not None)
+        # The step's length carries the map's scale error (``MapScaleCovariance.step_rel_std``) and the
+        # keyframe map's own (shared by both frames).
+        rel2 = self._map_scale.step_rel_std(self._scale) ** 2 + motion.shared_scale_var
+        return cov + np.pad(np.outer(step_w, step_w) * rel2, (0, 3))
 
     # ---------------------------------------------------------------------------------------------
     def _maybe_keyframe(self, motion: mo.Motion, kf: Keyframe, rows: NDArray[np.int64], pts_cur: F32,

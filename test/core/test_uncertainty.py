@@ -149,6 +149,73 @@ def test_step_covariance_predicts_the_spread_of_rotation_between_consecutive_fra
         assert np.all(ratio(between, (covs[0] + covs[1]) / 4) > 1.3)
 
 
+def test_track_step_predicts_the_spread_of_position_between_consecutive_essential_poses(general_scene) -> None:
+    """Monte Carlo, KLT chained: every track carries 1 px accumulated since the keyframe and one new
+    tracking step of 0.25 px between the two frames; both frames posed by E against the same keyframe
+    with the true step lengths (the map's scale apart). The direction of travel between the two frames
+    (the two axes across it) spreads as ``covariance.track_step`` at the new step's noise says, within 2x
+    in standard deviation; the sum of both poses' covariances (``covariance.step``) counts the accumulated
+    part twice and is > 2x too wide: general_motion's linear twist was 3x too cautious on such frames."""
+    from epi_vo.core import covariance as covm
+
+    s = general_scene
+    K, sigma_acc, sigma_step = s.K, 1.0, 0.25
+    rv = _rotvec(s.R_cur_ref)
+    poses = [(cv2.Rodrigues(f * rv)[0], f * s.t_cur_ref) for f in (0.9, 1.0)]
+    uv_true = [(s.X_ref @ R.T + t) @ K.T for R, t in poses]
+    uv_true = [p[:, :2] / p[:, 2:3] for p in uv_true]
+    xn_ref = _normalized(s.uv_ref, K)
+    covs = [geo.essential_pose_covariance(R, t / np.linalg.norm(t), xn_ref, _normalized(uv, K), sigma_acc / K[0, 0],
+                                          float(np.linalg.norm(t)), 0.0)
+            for (R, t), uv in zip(poses, uv_true, strict=True)]
+    assert covs[0] is not None and covs[1] is not None
+    centres = [-R.T @ t for R, t in poses]
+    d = centres[1] / np.linalg.norm(centres[1])
+    B = tangent_basis(d)  # a unit direction has no error along itself: the two axes across it
+    rng = np.random.default_rng(11)
+    errs = []
+    for _ in range(80):
+        acc = rng.normal(0, sigma_acc, s.uv_ref.shape)
+        uv1, uv2 = uv_true[0] + acc, uv_true[1] + acc + rng.normal(0, sigma_step, s.uv_ref.shape)
+        est = []
+        for (_, t_true), uv in zip(poses, (uv1, uv2), strict=True):
+            E, inl = geo.estimate_essential(s.uv_ref, uv, K)
+            R, t, _ = geo.recover_pose(E, s.uv_ref, uv, K, inl)
+            est.append(-R.T @ t * np.linalg.norm(t_true))
+        errs.append(B.T @ ((est[1] - est[0]) - (centres[1] - centres[0])))
+
+    def nees_per_dof(cov: np.ndarray) -> float:
+        S = B.T @ cov[:3, :3] @ B
+        return float(np.mean([e @ np.linalg.solve(S, e) for e in errs])) / 2.0
+
+    tracked = nees_per_dof(covm.track_step(covs[1], covs[0], sigma_step / sigma_acc, True))
+    summed = nees_per_dof(covm.step(covs[1], covs[0]))
+    assert 0.25 < tracked < 4.0, tracked
+    assert summed < 0.25, summed
+    # not E's poses (PnP on the map): only the rotation takes the tracks' noise
+    plain = covm.track_step(covs[1], covs[0], 0.5, False)
+    np.testing.assert_allclose(plain[:3, :3], covm.step(covs[1], covs[0])[:3, :3])
+    np.testing.assert_allclose(plain[3:, 3:], 0.25 * covm.step(covs[1], covs[0])[3:, 3:])
+
+
+def test_the_maps_scale_part_of_an_essential_pose_is_separable(general_scene) -> None:
+    """``covariance.shared_scale_part`` is exactly what the map's scale variance adds to E's pose
+    covariance (the scale moves the centre along itself), so the pipeline can take it out of both frames
+    and put it on their step once."""
+    from epi_vo.core import covariance as covm
+
+    s = general_scene
+    t_dir = s.t_cur_ref / np.linalg.norm(s.t_cur_ref)
+    xn_ref, xn_cur = _normalized(s.uv_ref, s.K), _normalized(s.uv_cur, s.K)
+    scale, var = 2.5, 0.03**2
+    with_scale = geo.essential_pose_covariance(s.R_cur_ref, t_dir, xn_ref, xn_cur, 1e-3, scale, var)
+    without = geo.essential_pose_covariance(s.R_cur_ref, t_dir, xn_ref, xn_cur, 1e-3, scale, 0.0)
+    assert with_scale is not None and without is not None
+    c = -s.R_cur_ref.T @ t_dir * scale
+    np.testing.assert_allclose(with_scale - covm.shared_scale_part(c, var), without, atol=1e-15)
+    assert np.trace(covm.shared_scale_part(c, var)) == pytest.approx(var * scale**2)
+
+
 def test_reprojection_rms_is_the_per_axis_rms_of_the_points_in_front() -> None:
     rng = np.random.default_rng(3)
     X = np.column_stack([rng.uniform(-2, 2, 200), rng.uniform(-1, 1, 200), rng.uniform(4, 9, 200)])

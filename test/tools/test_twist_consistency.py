@@ -70,12 +70,13 @@ def test_unknown_twists_and_unjudged_frames_are_not_evaluated() -> None:
     assert r.nees_linear.size == 49 - 1 - 2  # frame 10 unknown; 20 and 21 need frame 20
 
 
-@pytest.mark.parametrize(("bag", "params", "max_mean"), [
-    ("general_motion", {"scale_source": "none"}, 6.0),
-    ("moving_mover", {"scale_source": "none"}, 6.0),
-    ("ground_robot", {"scale_source": "ground_plane", "camera_height_m": 0.45}, 8.0),
+@pytest.mark.parametrize(("bag", "params", "min_linear", "max_mean"), [
+    ("general_motion", {"scale_source": "none"}, 1.0, 6.0),
+    ("moving_mover", {"scale_source": "none"}, 1.0, 6.0),
+    ("ground_robot", {"scale_source": "ground_plane", "camera_height_m": 0.45}, 0.4, 8.0),
 ])
-def test_bag_twist_covariance_matches_its_errors(bag: str, params: dict, max_mean: float, tmp_path: Path) -> None:
+def test_bag_twist_covariance_matches_its_errors(bag: str, params: dict, min_linear: float, max_mean: float,
+                                                 tmp_path: Path) -> None:
     """The published twist covariance against the ground truth's velocity (it was 1e5-1e7 times too
     small on the linear velocity between keyframes before the step covariance)."""
     yaml = "/**:\n  ros__parameters:\n" + "".join(f"    {k}: {v}\n" for k, v in params.items())
@@ -88,9 +89,12 @@ def test_bag_twist_covariance_matches_its_errors(bag: str, params: dict, max_mea
     if s.units == "m":
         assert r.scale == 1.0  # metres: nothing fitted
     assert r.nees_linear.size >= 0.8 * s.frames
-    # Cautious rather than overconfident: on ground_robot the linear twist carries the camera height's
-    # 2 % (camera_height_rel_sigma), which this exactly mounted bag does not show (NEES ~0.25).
-    assert 0.15 < r.mean_linear < max_mean, r.mean_linear
+    # In VO units 1.2 (general_motion) and 3.5 (moving_mover): E's poses against one keyframe share the
+    # tracks' accumulated error, their step takes the tracks' measured noise (``covariance.track_step``;
+    # general_motion was 0.84 with the sum of both poses' covariances). Cautious rather than
+    # overconfident on ground_robot in metres: its linear twist carries the camera height's 2 %
+    # (camera_height_rel_sigma), which this exactly mounted bag does not show (NEES ~0.75).
+    assert min_linear < r.mean_linear < max_mean, r.mean_linear
     # The angular twist takes the image noise the tracks show (8 x their forward-backward RMS, at least
     # 0.3 px): 1.2-1.9 here; with the configured 0.8 px it was 0.39-0.78, 1.6-2.6x too cautious in sigma.
     assert 1.0 < r.mean_angular < max_mean, r.mean_angular
