@@ -101,6 +101,21 @@ def test_fusing_two_equal_estimates_halves_the_covariance() -> None:
 
 
 
+def _two_frames(s, sigma_px: float, *, metric: bool) -> tuple[list, list, list]:
+    """Two frames along the scene's motion (0.9 and 1.0 of it) against its keyframe: their poses, true
+    image points and E covariances at ``sigma_px`` (the centre's length 1, or the true one: ``metric``)."""
+    rv = _rotvec(s.R_cur_ref)
+    poses = [(cv2.Rodrigues(f * rv)[0], f * s.t_cur_ref) for f in (0.9, 1.0)]
+    uv_true = [(s.X_ref @ R.T + t) @ s.K.T for R, t in poses]
+    uv_true = [p[:, :2] / p[:, 2:3] for p in uv_true]
+    xn_ref = _normalized(s.uv_ref, s.K)
+    covs = [geo.essential_pose_covariance(R, t / np.linalg.norm(t), xn_ref, _normalized(uv, s.K),
+                                          sigma_px / s.K[0, 0], float(np.linalg.norm(t)) if metric else 1.0, 0.0)
+            for (R, t), uv in zip(poses, uv_true, strict=True)]
+    assert covs[0] is not None and covs[1] is not None
+    return poses, uv_true, covs
+
+
 @pytest.mark.parametrize("chained", [True, False], ids=["klt_chained", "matched_to_keyframe"])
 def test_step_covariance_predicts_the_spread_of_rotation_between_consecutive_frames(general_scene,
                                                                                     chained: bool) -> None:
@@ -114,14 +129,7 @@ def test_step_covariance_predicts_the_spread_of_rotation_between_consecutive_fra
 
     s = general_scene
     K, sigma_px = s.K, 1.0
-    rv = _rotvec(s.R_cur_ref)
-    poses = [(cv2.Rodrigues(f * rv)[0], f * s.t_cur_ref) for f in (0.9, 1.0)]
-    uv_true = [(s.X_ref @ R.T + t) @ K.T for R, t in poses]
-    uv_true = [p[:, :2] / p[:, 2:3] for p in uv_true]
-    xn_ref = _normalized(s.uv_ref, K)
-    covs = [geo.essential_pose_covariance(R, t / np.linalg.norm(t), xn_ref, _normalized(uv, K), sigma_px / K[0, 0],
-                                          1.0, 0.0) for (R, t), uv in zip(poses, uv_true, strict=True)]
-    assert covs[0] is not None and covs[1] is not None
+    poses, uv_true, covs = _two_frames(s, sigma_px, metric=False)
     rng = np.random.default_rng(5)
     first, between = [], []
     for _ in range(80):
@@ -160,15 +168,7 @@ def test_track_step_predicts_the_spread_of_position_between_consecutive_essentia
 
     s = general_scene
     K, sigma_acc, sigma_step = s.K, 1.0, 0.25
-    rv = _rotvec(s.R_cur_ref)
-    poses = [(cv2.Rodrigues(f * rv)[0], f * s.t_cur_ref) for f in (0.9, 1.0)]
-    uv_true = [(s.X_ref @ R.T + t) @ K.T for R, t in poses]
-    uv_true = [p[:, :2] / p[:, 2:3] for p in uv_true]
-    xn_ref = _normalized(s.uv_ref, K)
-    covs = [geo.essential_pose_covariance(R, t / np.linalg.norm(t), xn_ref, _normalized(uv, K), sigma_acc / K[0, 0],
-                                          float(np.linalg.norm(t)), 0.0)
-            for (R, t), uv in zip(poses, uv_true, strict=True)]
-    assert covs[0] is not None and covs[1] is not None
+    poses, uv_true, covs = _two_frames(s, sigma_acc, metric=True)
     centres = [-R.T @ t for R, t in poses]
     d = centres[1] / np.linalg.norm(centres[1])
     B = tangent_basis(d)  # a unit direction has no error along itself: the two axes across it
