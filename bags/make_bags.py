@@ -1103,13 +1103,20 @@ def _sample_trilinear(
     lo = int(np.floor(level[inside].min()))
     hi = min(int(np.ceil(level[inside].max())), len(pyramid) - 1)
     result = np.zeros(fu.shape, np.float32)
+    # Pixel coordinates of level 0 (pixel centres at integers). ``cv2.pyrDown`` centres pixel i of a level
+    # on pixel 2i of the level below, so level k's coordinate is x0 / 2^k. (Until 2026-11-25 each level was
+    # addressed as fu * its width - 0.5, which puts level 1 half a level-0 texel off level 0, level 2 1.5
+    # texels: a texture slid over its surface as the level of detail changed with distance, a systematic
+    # image motion on a floor approached by the camera; ground_robot's pipeline yaw drifted 0.96 deg in
+    # 300 frames from it, -0.007 deg per keyframe.)
+    h0, w0 = pyramid[0].shape
+    x0 = fu * w0 - 0.5
+    y0 = fv * h0 - 0.5
     for index in range(lo, hi + 1):
         weight = np.clip(1.0 - np.abs(level - index), 0.0, 1.0).astype(np.float32)
-        tex = pyramid[index]
-        h, w = tex.shape
-        map_x = (fu * w - 0.5).astype(np.float32)
-        map_y = (fv * h - 0.5).astype(np.float32)
-        result += weight * cv2.remap(tex, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        map_x = (x0 / 2.0**index).astype(np.float32)
+        map_y = (y0 / 2.0**index).astype(np.float32)
+        result += weight * cv2.remap(pyramid[index], map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
     return result
 
 
