@@ -93,10 +93,11 @@ def test_bag_twist_covariance_matches_its_errors(bag: str, params: dict, min_lin
     # tracks' accumulated error, their step takes the tracks' measured noise (``covariance.track_step``;
     # general_motion was 0.84 with the sum of both poses' covariances). Cautious rather than
     # overconfident on ground_robot in metres: its linear twist carries the camera height's 2 %
-    # (camera_height_rel_sigma), which this exactly mounted bag does not show (NEES ~0.75).
+    # (camera_height_rel_sigma), which this exactly mounted bag does not show (NEES ~0.85).
     assert min_linear < r.mean_linear < max_mean, r.mean_linear
-    # The angular twist takes the image noise the tracks show (8 x their forward-backward RMS, at least
-    # 0.3 px): 1.2-1.9 here; with the configured 0.8 px it was 0.39-0.78, 1.6-2.6x too cautious in sigma.
+    # The angular twist takes the image noise the tracks show (5.5 x their forward-backward RMS, at least
+    # 0.3 px): 1.1-3.5 here on the bags as re-rendered 2026-11-25 (8 x on the old rendering, whose
+    # sliding floor texture the tracks did not show); with the configured 0.8 px it was 0.39-0.78.
     assert 1.0 < r.mean_angular < max_mean, r.mean_angular
     assert r.inside_linear_percent >= 80.0 and r.inside_angular_percent >= 90.0
     # each judged twist names its frame: a tracking frame whose predecessor tracked too
