@@ -184,16 +184,32 @@ def test_rotation_var_and_block() -> None:
 
 def test_floored_is_symmetric_with_a_positive_diagonal() -> None:
     rng = np.random.default_rng(3)
-    cov = rng.normal(size=(6, 6))
-    cov[2, 2], cov[4, 4] = 0.0, -1.0
+    A = rng.normal(size=(6, 6))
+    cov = A @ A.T
+    cov[2, :] = cov[:, 2] = 0.0  # positive semi-definite, a zero variance
     before = cov.copy()
     out = covm.floored(cov)
     np.testing.assert_array_equal(cov, before)  # the input is not modified
     np.testing.assert_array_equal(out, out.T)
-    assert np.all(np.diag(out) > 0.0)
-    assert out[2, 2] == 1e-9 and out[4, 4] == 1e-9
+    assert out[2, 2] == 1e-9 and np.all(np.diag(out) > 0.0)
     off = ~np.eye(6, dtype=bool)
-    np.testing.assert_allclose(out[off], (0.5 * (before + before.T))[off])
+    np.testing.assert_array_equal(out[off], before[off])  # positive semi-definite: only floored
+
+
+def test_floored_makes_a_covariance_positive_semi_definite() -> None:
+    """A negative eigenvalue (an inconsistent update) becomes its magnitude: an EKF inverts what it gets,
+    and a direction claimed below zero is not known better than that."""
+    rng = np.random.default_rng(4)
+    V, _ = np.linalg.qr(rng.normal(size=(6, 6)))
+    w = np.array([-2e-4, 1e-6, 0.02, 0.5, 1.0, 1.6])
+    cov = (V * w) @ V.T
+    out = covm.floored(cov)
+    np.testing.assert_array_equal(out, out.T)
+    got = np.linalg.eigvalsh(out)
+    assert got[0] > 0.0
+    np.testing.assert_allclose(np.sort(got), np.sort(np.abs(w)), rtol=1e-6, atol=1e-12)
+    err = rng.normal(size=(200, 6))
+    assert np.all(np.einsum("ki,ij,kj->k", err, np.linalg.inv(out), err) > 0.0)  # NEES never negative
 
 
 def test_floored_keeps_a_valid_covariance() -> None:
