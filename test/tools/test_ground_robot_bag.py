@@ -7,7 +7,6 @@ mounting on base_link, the stamps and rates, and the wheel odometry error model.
 from __future__ import annotations
 
 import math
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -311,17 +310,6 @@ def test_wheel_tum_file_matches_the_topic(bag: GroundRobotBag) -> None:
 
 
 # --- the generator (needs scikit-image, bags/requirements.txt) ------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def make_bags() -> object:
-    pytest.importorskip("skimage", reason="bags/make_bags.py needs scikit-image (bags/requirements.txt)")
-    sys.path.insert(0, str(REPO / "bags"))
-    try:
-        import make_bags
-    finally:
-        sys.path.remove(str(REPO / "bags"))
-    return make_bags
 
 
 def test_spec_is_deterministic(make_bags: object) -> None:

@@ -8,7 +8,6 @@ of the image; ``moving_mover``: a walking camera and a cart crossing its path. R
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -331,17 +330,6 @@ def test_moving_mover_pose_is_plausible(moving_bag: MoverBag) -> None:
 
 
 # --- the generator (needs scikit-image, bags/requirements.txt) --------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def make_bags() -> object:
-    pytest.importorskip("skimage", reason="bags/make_bags.py needs scikit-image (bags/requirements.txt)")
-    sys.path.insert(0, str(BAGS))
-    try:
-        import make_bags
-    finally:
-        sys.path.remove(str(BAGS))
-    return make_bags
 
 
 @pytest.mark.parametrize("name", sorted(EXPECTED))

@@ -7,25 +7,9 @@ level 1 was half a texel off level 0, level 2 1.5 texels, and ground_robot's yaw
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
-
-REPO = Path(__file__).resolve().parents[2]
-
-
-@pytest.fixture(scope="module")
-def make_bags() -> object:
-    pytest.importorskip("skimage", reason="bags/make_bags.py needs scikit-image (bags/requirements.txt)")
-    sys.path.insert(0, str(REPO / "bags"))
-    try:
-        import make_bags
-    finally:
-        sys.path.remove(str(REPO / "bags"))
-    return make_bags
 
 
 @pytest.mark.parametrize("centre", [(256.0, 250.0), (255.5, 251.25)])
