@@ -200,3 +200,22 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 # ============================================================================================
 # End of the whole-replay fuzzing section.
 # ============================================================================================
+
+
+# ============================================================================================
+# The bag renderer (bags/make_bags.py) for its tests
+# ============================================================================================
+@pytest.fixture(scope="session")
+def make_bags() -> object:
+    """``bags/make_bags.py`` (the bag renderer) as a module; skipped without scikit-image."""
+    import sys
+    from pathlib import Path
+
+    pytest.importorskip("skimage", reason="bags/make_bags.py needs scikit-image (bags/requirements.txt)")
+    bags = str(Path(__file__).resolve().parents[1] / "bags")
+    sys.path.insert(0, bags)
+    try:
+        import make_bags
+    finally:
+        sys.path.remove(bags)
+    return make_bags
