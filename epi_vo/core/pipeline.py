@@ -356,9 +356,9 @@ class VoPipeline:
         this frame's counts. The image noise is the one the frame's tracks show
         (``covariance.twist_noise_ratio``), not ``pixel_noise_px``: for the rotation always; for the
         position too when this pose is E's against the previous frame's keyframe
-        (``covariance.track_step``). The map's
-        scale error is the same for both frames: it moves the step by its own fraction
-        (``covariance.shared_scale_part``), not by the sum of both offsets from the keyframe."""
+        (``covariance.track_step``). The map's scale error is the same for both frames: it moves the
+        step by its own fraction (``covariance.shared_scale_part``), not by the sum of both offsets from
+        the keyframe."""
         c_kf = -motion.R_cur_kf.T @ motion.t_cur_kf
         own = motion.cov_rel - covm.shared_scale_part(c_kf, motion.shared_scale_var)
         cov = rotate_covariance(own, kf.T_w_kf[:3, :3])
