@@ -74,7 +74,7 @@ class VoConfig:
         5.5, "the twist's uncertainty (its rotation; its position between E poses) takes the image noise the frame's "
         "KLT tracks show: this factor x the per-axis RMS of their forward-backward errors, between "
         "twist_noise_floor_px and pixel_noise_px (0: always pixel_noise_px)", 0.0, 100.0)
-    twist_noise_floor_px: float = _knob(0.3, "the least image noise the twist's rotation uncertainty assumes (px)",
+    twist_noise_floor_px: float = _knob(0.3, "the least image noise the twist's uncertainty assumes (px)",
                                         0.01, 50.0)
     rh_threshold: float = _knob(0.45, "choose H when RH = S_H / (S_H + S_E) exceeds this", 0.0, 1.0)
     min_inliers: int = _knob(25, "fewer model inliers than this: the frame gives no pose", 8, 10000)

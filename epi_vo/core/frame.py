@@ -140,7 +140,7 @@ class FrameResult:
     # calibration's made it look like parallax (the reason says "check the camera calibration"); else NaN
     focal_ratio: float = math.nan
     # The image noise the KLT tracks show this frame: per-axis RMS of their forward-backward errors (px;
-    # NaN with ORB or without tracks). It sets the twist's rotation uncertainty (``VoPipeline``)
+    # NaN with ORB or without tracks). It sets the twist's uncertainty (``VoPipeline._step_covariance``)
     track_noise_px: float = math.nan
     # 6x6 covariance (odometry frame, position first) of the motion since the previous frame, for the
     # twist; None when the frame has no pose or no previous frame with one
