@@ -76,7 +76,7 @@ E_MAP_AGREE_PX = 1.0  # map points this close to where E's pose puts them ...
 E_MAP_AGREE_FRACTION = 0.8  # ... this share of them: E agrees with the map, no check of its own needed
 E_MAP_HELD_SHARE = 0.7  # E's pose holding this share of the map points the map's own fit holds ...
 E_MAP_RESIDUAL_RATIO = 2.0  # ... with a median reprojection error within this factor of the fit's: E stands
-MIN_OFF_PLANE_FOR_E_HINT = 3  # E inliers off H's plane needed before E may pick among H's decompositions
+MIN_OFF_PLANE_FOR_E_HINT = 3  # E inliers off H's plane needed before they may pick among H's decompositions
 NOT_A_PLANE_OFF = (10, 0.1)  # E inliers off H's plane, at least this many and this share: no plane, E initialises
 PLANE_NORMAL_AGREE_DEG = 1.5  # a decomposition's plane this close to one seen from an earlier view: the same plane
 PLANE_MAX_WAIT = 10  # frames an initialisation on a plane with two valid decompositions waits for a view that
@@ -216,7 +216,7 @@ class MotionStage:
             if rotation is not None:
                 return rotation
         if not self.has_map(kf):
-            R_e = None
+            R_off = None
             off_plane = 0 if sel.inliers_e is None else int(np.count_nonzero(sel.inliers_e & ~in_h))
             if sel.E is not None and sel.inliers_e is not None and off_plane >= max(
                     NOT_A_PLANE_OFF[0], NOT_A_PLANE_OFF[1] * np.count_nonzero(sel.inliers_e)):
@@ -227,16 +227,21 @@ class MotionStage:
                 st.reasons.append(f"not a plane: {off_plane} of E's {int(np.count_nonzero(sel.inliers_e))} "
                                   "inliers lie off H's plane; initialising from E")
                 return self._from_essential(ctx, sel.E, sel.inliers_e, st)
-            if sel.E is not None and sel.inliers_e is not None \
-                    and off_plane >= MIN_OFF_PLANE_FOR_E_HINT:
-                # E on the same correspondences says which of H's decompositions has the true rotation,
-                # when points off the plane constrain it (on a pure plane E is degenerate and just
-                # picks one of H's solutions).
-                R_e, _, inl_e = geo.recover_pose(sel.E, kf.uv[ctx.rows], ctx.uv_cur, K, sel.inliers_e)
-                if np.count_nonzero(inl_e) < cfg.min_inliers:
-                    R_e = None
+            if sel.inliers_e is not None and off_plane >= MIN_OFF_PLANE_FOR_E_HINT:
+                # The points off H's plane (E's inliers that H rejects) say which of H's decompositions is
+                # the motion when they tell them apart (``geometry.solution_off_plane``). Not E's own
+                # rotation: E fitted to a plane and a few points off it is near-degenerate and can take
+                # the wrong solution (ground_robot with klt_window_px 31: 4.3 deg off, 21 % ATE).
+                off = sel.inliers_e & ~in_h
+                chosen = geo.solution_off_plane(
+                    geo.homography_solutions(H, K, xn_kf, xn_cur, in_h, cfg.max_reprojection_error_px,
+                                             cfg.min_triangulation_angle_deg),
+                    K, kf.uv[ctx.rows][off], ctx.uv_cur[off], cfg.ransac_threshold_px)
+                if chosen is not None:
+                    R_off = chosen.R
+                    st.reasons.append(f"planar scene: the {off_plane} points off H's plane pick its decomposition")
             planar = None
-            if R_e is None and st.median_parallax_deg >= cfg.init_min_parallax_deg:
+            if R_off is None and st.median_parallax_deg >= cfg.init_min_parallax_deg:
                 verdict, planar, spread = self._plane_by_views(ctx, H, in_h, st)
                 if verdict == "wait":
                     # Neither solution's rotation (nor R_h, which assumes no translation) can be published:
@@ -245,7 +250,7 @@ class MotionStage:
                                   covm.block(1e-6, rot_cov + math.radians(spread) ** 2), in_h)
             if planar is None:
                 planar = geo.pose_from_homography(H, K, xn_kf, xn_cur, in_h, cfg.max_reprojection_error_px,
-                                                  cfg.min_triangulation_angle_deg, prefer_R=R_e)
+                                                  cfg.min_triangulation_angle_deg, prefer_R=R_off)
             if planar is None:
                 st.reasons.append("planar scene: homography decomposition ambiguous, waiting for parallax")
                 return Motion(TrackingState.INITIALIZING, R_h, zero, covm.block(1e-6, rot_cov), in_h)

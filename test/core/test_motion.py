@@ -712,13 +712,38 @@ def _floor_views(n_floor: int, n_off: int, seed: int, moves: list[tuple[float, f
     return scenes
 
 
-def test_floor_initialisation_takes_e_to_pick_among_h_solutions_with_few_points_off_the_floor() -> None:
+def test_points_off_the_floor_pick_the_decomposition_that_explains_them() -> None:
+    """Three points on a box above a floor: of H's two physically valid decompositions only the true motion
+    puts them on their epipolar lines (within the noise); the other leaves them pixels off. Points on the
+    plane tell nothing (every decomposition explains them): no pick. ground_robot with klt_window_px 31
+    (2026-11-25) took the rotation of E fitted to its floor and 3 such points, which was the wrong solution
+    (4.3 deg off): 21 % ATE, every later frame's floor called a moving object."""
+    s = _floor_scene(110, 3, seed=2, step=0.05, far=6.0)
+    K = s.K
+    xn_ref = np.linalg.solve(K, np.c_[s.uv_ref_obs, np.ones(len(s.uv_ref_obs))].T).T[:, :2]
+    xn_cur = np.linalg.solve(K, np.c_[s.uv_cur_obs, np.ones(len(s.uv_cur_obs))].T).T[:, :2]
+    on_floor = np.arange(113) < 110
+    sols = geo.homography_solutions(s.H_true, K, xn_ref, xn_cur, on_floor, CFG.max_reprojection_error_px,
+                                    CFG.min_triangulation_angle_deg)
+    errs = sorted(rotation_angle_deg(x.R @ s.R_cur_ref.T) for x in sols)
+    assert errs[0] < 0.3 and errs[-1] > 3.0  # the trap: a valid solution degrees off
+    chosen = geo.solution_off_plane(sols, K, s.uv_ref_obs[~on_floor], s.uv_cur_obs[~on_floor],
+                                    CFG.ransac_threshold_px)
+    assert chosen is not None and rotation_angle_deg(chosen.R @ s.R_cur_ref.T) < 0.3
+    floor3 = np.flatnonzero(on_floor)[:3]
+    assert geo.solution_off_plane(sols, K, s.uv_ref_obs[floor3], s.uv_cur_obs[floor3],
+                                  CFG.ransac_threshold_px) is None
+    assert geo.solution_off_plane(sols, K, np.zeros((0, 2)), np.zeros((0, 2)), CFG.ransac_threshold_px) is None
+
+
+def test_floor_initialisation_lets_few_points_off_the_floor_pick_among_h_solutions() -> None:
     """A floor seen from a camera moving forward: H has two physically valid decompositions and the
     wrong one (here 6.5 deg about x) passes more points through the triangulation gates, so it wins
-    without help. E on the same correspondences picks the true one when 3 of its inliers lie off H's
-    plane. ground_robot with max_features 80-140 (2026-11-23) had 3 such points at its first pair where 5
-    were required: the map started 4.3 deg off and the run ended at 6-21 % ATE (0.17-0.25 % now). With
-    0 or 1 off-plane inliers E itself was 6-13 deg off in 3 of 4 such synthetic pairs."""
+    without help. The points off H's plane (3 of E's inliers) pick the true one
+    (``geometry.solution_off_plane``; until 2026-11-25 E's own rotation did). ground_robot with
+    max_features 80-140 (2026-11-23) had 3 such points at its first pair where 5 were required: the
+    map started 4.3 deg off and the run ended at 6-21 % ATE (0.17-0.25 % now). With 0 or 1 off-plane
+    inliers E itself was 6-13 deg off in 3 of 4 such synthetic pairs."""
     s = _floor_scene(110, 3, seed=2, step=0.05, far=6.0)
     m, st, _ = _estimate(s, _no_map(s))
     assert m is not None and m.state is TrackingState.TRACKING and m.new_map is not None

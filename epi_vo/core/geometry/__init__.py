@@ -37,6 +37,7 @@ from epi_vo.core.geometry.pose import (
     refine_focal_for_rotation,
     refine_pose_pnp,
     rotation_from_homography,
+    solution_off_plane,
 )
 from epi_vo.core.geometry.triangulation import ScaleEstimate, Triangulation, scale_from_points, triangulate
 from epi_vo.core.geometry.uncertainty import essential_pose_covariance, fuse, map_information, reprojection_rms
@@ -79,6 +80,7 @@ __all__ = [
     "score_homography",
     "score_static",
     "skew",
+    "solution_off_plane",
     "transfer_errors_sq",
     "triangulate",
 ]

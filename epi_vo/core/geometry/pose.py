@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from epi_vo.core.geometry.common import F64, Mask, homogeneous, nearest_rotation, ray_depths
+from epi_vo.core.geometry.models import essential_from_pose, fundamental_from_essential, sampson_distance_sq
 from epi_vo.core.geometry.triangulation import Triangulation, triangulate
 from epi_vo.core.transforms import rotation_angle_deg
 
@@ -159,6 +160,33 @@ def homography_solutions(H: F64, K: F64, xn_ref: F64, xn_cur: F64, inliers: Mask
             out.append(PlanarSolution(R, t, n / np.linalg.norm(n), tri, n_good))
     out.sort(key=lambda r: -r.n_good)
     return out
+
+
+def solution_off_plane(solutions: list[PlanarSolution], K: F64, uv_ref: F64, uv_cur: F64, max_px: float,
+                       ratio: float = 4.0) -> PlanarSolution | None:
+    """The decomposition of H whose motion explains the correspondences off H's plane (``uv_ref``,
+    ``uv_cur``: pixels, E's inliers that H rejects), when they tell the decompositions apart: under it
+    their median distance from their epipolar lines (Sampson) is within ``max_px``, under every other
+    solution at least ``max_px`` and ``ratio`` times its own. None otherwise (points on the plane fit
+    every decomposition alike; too little parallax leaves them all close).
+
+    The points themselves decide, not the rotation of E fitted to them with the plane: E on a plane plus
+    a few points is near-degenerate, and its decomposition can take the wrong solution. ground_robot
+    with klt_window_px 31 (2026-11-25): E's rotation agreed with the 4.3 deg solution, whose motion
+    leaves its 3 off-plane points 1.9-2.0 px from their epipolar lines; the true one (0.02 deg) leaves
+    them at 0.13-0.24 px. Where E was right (max_features 80-140, a box in a floor pair), the right
+    solution had 0.01-0.29 px and the other 2-16 px."""
+    if uv_ref.shape[0] == 0 or not solutions:
+        return None
+    dist = [np.sqrt(sampson_distance_sq(fundamental_from_essential(essential_from_pose(s.R, s.t), K),
+                                        uv_ref, uv_cur)) for s in solutions]
+    med = [float(np.median(d)) for d in dist]
+    best = int(np.argmin(med))
+    if med[best] > max_px:
+        return None
+    if any(m < max(max_px, ratio * med[best]) for i, m in enumerate(med) if i != best):
+        return None
+    return solutions[best]
 
 
 def pose_from_homography(H: F64, K: F64, xn_ref: F64, xn_cur: F64, inliers: Mask,
