@@ -68,13 +68,15 @@ class VoConfig:
     ransac_confidence: float = _knob(0.999, "robust estimator confidence", 0.5, 0.999999)
     ransac_max_iters: int = _knob(1000, "robust estimator iteration cap", 10, 100000)
     score_sigma_px: float = _knob(1.0, "pixel noise sigma of the ORB-SLAM style chi-square scoring", 0.05, 50.0)
-    pixel_noise_px: float = _knob(0.8, "image noise of the tracked features (1 sigma, px) behind the published "
-                                  "covariance (the scoring gates use score_sigma_px)", 0.01, 50.0)
+    pixel_noise_px: float = _knob(0.8, "image noise of the features (1 sigma, px) behind the published covariance, "
+                                  "per frame at most; ORB's, and a frame's that measured none (the scoring gates use "
+                                  "score_sigma_px)", 0.01, 50.0)
     twist_noise_fb_factor: float = _knob(
-        5.5, "the twist's uncertainty (its rotation; its position between E poses) takes the image noise the frame's "
-        "KLT tracks show: this factor x the per-axis RMS of their forward-backward errors, between "
-        "twist_noise_floor_px and pixel_noise_px (0: always pixel_noise_px)", 0.0, 100.0)
-    twist_noise_floor_px: float = _knob(0.3, "the least image noise the twist's uncertainty assumes (px)",
+        5.5, "each frame's image noise is the one its KLT tracks show: this factor x the per-axis RMS of their "
+        "forward-backward errors, between twist_noise_floor_px and pixel_noise_px; the twist takes it (its "
+        "rotation; its position between E poses), the pose the sum over the frames since its keyframe "
+        "(0: always pixel_noise_px)", 0.0, 100.0)
+    twist_noise_floor_px: float = _knob(0.3, "the least image noise a frame's tracks are taken to have (px)",
                                         0.01, 50.0)
     rh_threshold: float = _knob(0.45, "choose H when RH = S_H / (S_H + S_E) exceeds this", 0.0, 1.0)
     min_inliers: int = _knob(25, "fewer model inliers than this: the frame gives no pose", 8, 10000)

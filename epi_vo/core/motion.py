@@ -53,10 +53,13 @@ class Motion:
     # The pose is E's (rotation and direction) fitted to the tracks' positions since the keyframe: the
     # next frame's E is fitted to the same tracks one step on (``covariance.track_step``).
     from_essential: bool = False
+    # The pose's covariance at the image noise its tracks gathered since the keyframe (``MotionContext``:
+    # ``noise_sq``); ``cov_rel`` is at ``pixel_noise_px``, as the twist takes it. None: ``cov_rel``.
+    cov_pose: F64 | None = None
 
 
 def is_finite(m: Motion) -> bool:
-    return covm.is_finite(m.R_cur_kf, m.t_cur_kf, m.cov_rel)
+    return covm.is_finite(m.R_cur_kf, m.t_cur_kf, m.cov_rel, m.cov_rel if m.cov_pose is None else m.cov_pose)
 
 
 @dataclass(frozen=True)
@@ -69,6 +72,9 @@ class MotionContext:
     uv_cur: F64  # (N, 2) undistorted pixels in the current frame
     T_cur_kf_prev: F64  # the previous frame's pose relative to the keyframe (start of the refinement)
     initial_baseline: Callable[[float], float]  # the scale stage: a new map's baseline after dt seconds
+    # The image noise the tracks gathered frame by frame since the keyframe, as a share of pixel_noise_px,
+    # squared (``covariance.tracked_since_keyframe``); 1: pixel_noise_px (ORB matches the keyframe directly).
+    noise_sq: float = 1.0
 
 
 E_MAP_MAX_DIRECTION_DIFF_DEG = 20.0  # E's direction of travel this far from the map's: a mover took E
@@ -448,7 +454,11 @@ class MotionStage:
         st.reasons.append(f"map initialized from {how}: {n_good} points")
         if cov is None or not np.all(np.isfinite(cov)):
             cov = covm.block((cfg.scale_drift_per_keyframe * baseline) ** 2, rot_cov)
-        return Motion(TrackingState.TRACKING, R, t, cov, inl, new_map=full)
+            pose = covm.block((cfg.scale_drift_per_keyframe * baseline) ** 2, rot_cov * ctx.noise_sq)
+        else:
+            pose = covm.tracked_since_keyframe(cov, covm.shared_scale_part(-R.T @ t, cfg.scale_drift_per_keyframe**2),
+                                               ctx.noise_sq)
+        return Motion(TrackingState.TRACKING, R, t, cov, inl, new_map=full, cov_pose=pose)
 
     def _track_with_map(self, ctx: MotionContext, R: F64, t_dir: F64 | None, inl: NDArray[np.bool_],
                         st: FrameStats, rot_cov: float, plane: bool = False) -> Motion | None:
@@ -483,10 +493,13 @@ class MotionStage:
             disagree = self._map_disagrees(ctx, X, R, t0, st, plane)
             if disagree is None:
                 cov = self._essential_cov(ctx, R, t_dir, inl, X, has_depth, est, covm.block(trans_var, rot_cov))
+                scale_part = covm.shared_scale_part(-R.T @ t0, scale_var)
+                pose = covm.tracked_since_keyframe(cov, scale_part, ctx.noise_sq)
                 if plane:  # fused with the map: no separable scale part
-                    cov = self._with_map_information(ctx, R, t0, X[has_depth], xn_cur[has_depth], cov)
-                    return Motion(TrackingState.TRACKING, R, t0, cov, inl)
-                return Motion(TrackingState.TRACKING, R, t0, cov, inl, shared_scale_var=scale_var, from_essential=True)
+                    cov, pose = self._with_map_information(ctx, R, t0, X[has_depth], xn_cur[has_depth], cov, pose)
+                    return Motion(TrackingState.TRACKING, R, t0, cov, inl, cov_pose=pose)
+                return Motion(TrackingState.TRACKING, R, t0, cov, inl, shared_scale_var=scale_var, from_essential=True,
+                              cov_pose=pose)
             # E's consensus was taken by something moving: the map's points, from the previous pose, decide.
             R0, t0 = ctx.T_cur_kf_prev[:3, :3], ctx.T_cur_kf_prev[:3, 3]
             has_depth = disagree
@@ -516,6 +529,9 @@ class MotionStage:
         cov_rel = np.zeros((6, 6))
         cov_rel[:3, :3] = cov_t
         cov_rel[3:, 3:] = cov_r + np.eye(3) * rot_cov
+        # The map's own residuals set the fit's part; the added rotation term is at pixel_noise_px.
+        cov_pose = cov_rel.copy()
+        cov_pose[3:, 3:] += np.eye(3) * rot_cov * (ctx.noise_sq - 1.0)
         moving = None
         if e_inliers is not None:
             # The pose is the map's: every correspondence that fits its epipolar geometry is an inlier
@@ -527,7 +543,7 @@ class MotionStage:
             map_rejected[np.flatnonzero(has_depth)[~keep]] = True
             inl = fits & ~map_rejected
             moving = e_inliers & ~fits
-        return Motion(TrackingState.TRACKING, R_r, t_r, cov_rel, inl, moving=moving)
+        return Motion(TrackingState.TRACKING, R_r, t_r, cov_rel, inl, moving=moving, cov_pose=cov_pose)
 
 
     def _essential_cov(self, ctx: MotionContext, R: F64, t_dir: F64, inl: NDArray[np.bool_], X: F64,
@@ -541,19 +557,23 @@ class MotionStage:
                                             (X[has_depth], ctx.xn_cur[has_depth]))
         return fallback if cov is None or not np.all(np.isfinite(cov)) else cov
 
-    def _with_map_information(self, ctx: MotionContext, R: F64, t: F64, X: F64, xn: F64, cov: F64) -> F64:
+    def _with_map_information(self, ctx: MotionContext, R: F64, t: F64, X: F64, xn: F64, cov: F64,
+                              pose: F64) -> tuple[F64, F64]:
         """E's covariance on a plane-dominated view, fused with what the map points say about the same
         pose: on a plane E's five parameters are poorly conditioned (the two-fold ambiguity's direction),
         while the map points (off the degeneracy) fix it. Independent to first order. The map points'
         reprojections carry the noise their own residuals show, as on the map-PnP frames around this
-        one (RMS per axis, at least PNP_MIN_SIGMA_PX), MAP_INFO_SIGMA_FACTOR more for their depths."""
+        one (RMS per axis, at least PNP_MIN_SIGMA_PX), MAP_INFO_SIGMA_FACTOR more for their depths.
+        Both E's covariances are fused: at ``pixel_noise_px`` (``cov``) and at the tracks' (``pose``)."""
         fx = ctx.kf.camera.K[0, 0]
         rms = geo.reprojection_rms(R, t, X, xn)
         sigma_n = MAP_INFO_SIGMA_FACTOR * max(rms if rms is not None else self.cfg.pixel_noise_px / fx,
                                               geo.PNP_MIN_SIGMA_PX / fx)
         info = geo.map_information(R, t, X, xn, sigma_n)
-        fused = None if info is None else geo.fuse(cov, info)
-        return cov if fused is None else fused
+        if info is None:
+            return cov, pose
+        fused, fused_pose = geo.fuse(cov, info), geo.fuse(pose, info)
+        return (cov if fused is None else fused), (pose if fused_pose is None else fused_pose)
 
     def _map_disagrees(self, ctx: MotionContext, X: F64, R_e: F64, t_e: F64, st: FrameStats,
                        plane: bool = False) -> NDArray[np.bool_] | None:

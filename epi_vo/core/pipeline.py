@@ -115,6 +115,8 @@ class VoPipeline:
         self._fail_count = 0
         self._n_keyframes = 0
         self._index = 0
+        # (keyframe index, sum of the squared image-noise shares of the frames tracked since it, last frame)
+        self._tracked_noise: tuple[int, float, int] = (-1, 0.0, -1)
         self._pending_reason = ""
         self._last_stamp_ns: int | None = None
 
@@ -257,6 +259,7 @@ class VoPipeline:
         pts_cur, rows, orb_cur, ahead_ms, gain, st.track_noise_px = fe.track(
             gray, self.cfg, self._orb, self._gray_prev, self._pts_prev, self._rows, kf.descriptors,
             (self._ahead, self._key))
+        self._book_track_noise(kf, st.track_noise_px)
         if gain != 1.0:
             st.reasons.append(f"exposure changed: the image was scaled by {gain:.2f} to track it")
         nxt, self._next = self._next, None
@@ -291,7 +294,8 @@ class VoPipeline:
             if sel.H is not None:
                 st.H = sel.H
             st.timings["models"] = _ms(t0)
-            ctx = mo.MotionContext(kf, rows_u, xn_u, uv_u, self._T_cur_kf_prev, self._scale.initial_baseline)
+            ctx = mo.MotionContext(kf, rows_u, xn_u, uv_u, self._T_cur_kf_prev, self._scale.initial_baseline,
+                                   self._noise_since(kf))
             motion = self._motion.estimate(ctx, sel, st)
             if motion is not None and not mo.is_finite(motion):
                 st.reasons.append("the motion estimate is not finite (check the calibration): no pose this frame")
@@ -326,8 +330,9 @@ class VoPipeline:
             T_cur_kf = make_T(motion.R_cur_kf, motion.t_cur_kf)
             T_w_c = kf.T_w_kf @ invert_T(T_cur_kf)
             self._T_w_c = T_w_c
-            self._cov_w_c = covm.compose(kf.cov_w_kf, kf.T_w_kf, motion.cov_rel, motion.t_cur_kf,
-                                         motion.R_cur_kf)
+            self._cov_w_c = covm.compose(kf.cov_w_kf, kf.T_w_kf,
+                                         motion.cov_rel if motion.cov_pose is None else motion.cov_pose,
+                                         motion.t_cur_kf, motion.R_cur_kf)
             step_cov = self._step_covariance(kf, motion, T_w_c[:3, 3] - self._last_pos_w, st.track_noise_px)
             self._last_pos_w = T_w_c[:3, 3].copy()
             self._T_cur_kf_prev = T_cur_kf
@@ -349,6 +354,27 @@ class VoPipeline:
         self._jumped = False
         return dataclasses.replace(self._result(stamp_ns, state, has_pose, is_kf, st, t_start),
                                    step_covariance=None if step_cov is None else frozen(covm.floored(step_cov)))
+
+    def _book_track_noise(self, kf: Keyframe, track_noise_px: float) -> None:
+        """Add this frame's image noise (as a share of ``pixel_noise_px``, squared) to what the tracks
+        gathered since ``kf``: the twist's (``covariance.twist_noise_ratio``: the tracks' measured noise
+        times ``twist_noise_fb_factor``, between ``twist_noise_floor_px`` and ``pixel_noise_px``), 1 for a
+        frame that measured none and for each frame skipped since the last one."""
+        ratio = covm.twist_noise_ratio(track_noise_px, self.cfg.twist_noise_fb_factor, self.cfg.twist_noise_floor_px,
+                                       self.cfg.pixel_noise_px)
+        if self._tracked_noise[0] != kf.index:
+            self._tracked_noise = (kf.index, 0.0, kf.index)
+        _, noise_sq, last = self._tracked_noise
+        noise_sq += ratio**2 + float(max(self._index - last - 1, 0))
+        self._tracked_noise = (kf.index, noise_sq, self._index)
+
+    def _noise_since(self, kf: Keyframe) -> float:
+        """The image noise the tracks gathered since ``kf`` (``_book_track_noise``) for the pose's covariance
+        (``MotionContext.noise_sq``); ORB matches the keyframe directly, not through a chain of frames: 1
+        (``pixel_noise_px``)."""
+        if self.cfg.frontend != "klt" or self._tracked_noise[0] != kf.index:
+            return 1.0
+        return self._tracked_noise[1]
 
     def _step_covariance(self, kf: Keyframe, motion: mo.Motion, step_w: F64, track_noise_px: float) -> F64:
         """Covariance of the motion since the previous frame (odometry frame) from both frames' poses

@@ -88,10 +88,11 @@ def test_the_floor_view_takes_e_with_parallax_and_does_not_drift_in_yaw(none: tu
     assert last["index"] == len(recs) - 1
     R_err = Rotation.from_quat(gt_q).inv() * Rotation.from_quat(last["quat_xyzw"])
     assert math.degrees(np.linalg.norm(R_err.as_rotvec())) < 0.3
-    # The published rotation covariance covers the drift, cautiously: its keyframe chain (130 keyframes of
-    # E's covariance at pixel_noise_px) claims 3-5x the per-keyframe rotation error in sigma (NEES 0.29;
-    # 5.1 on the old rendering, whose drift it covered).
-    assert 0.15 <= nees.mean_nees_rot <= 6.0
+    # The published rotation covariance covers the drift, cautiously: its keyframe chain (130 keyframes)
+    # claimed 3-5x the per-keyframe rotation error in sigma with E's covariance at pixel_noise_px per
+    # keyframe (NEES 0.29; 5.1 on the old rendering, whose drift it covered); at the noise each step's own
+    # frames gathered (2.3 per keyframe here) 0.76.
+    assert 0.5 <= nees.mean_nees_rot <= 6.0
     assert nees.inside_rot_percent >= 90.0
     # Position, VO units after the one global scale: the map's scale drift grows the covariance
     # coherently along the path (it was a random walk per keyframe: NEES 7.8, 73 % inside).
@@ -156,8 +157,8 @@ def test_metric_covariance_carries_the_sources_systematic_scale_error(source: st
         assert np.all(var >= 0.99 * (systematic * p) ** 2)
     nees = evaluation.replay_dir_nees(out)
     assert nees is not None and nees.alignment == "se3"
-    # Cautious with the exactly mounted render (0.29 / 0.58 as re-rendered 2026-11-25): the source's prior.
-    assert 0.2 <= nees.mean_nees_pos <= 6.0 and nees.inside_pos_percent >= 90.0
+    # Cautious with the exactly mounted render (0.36 / 0.61 as re-rendered 2026-11-25): the source's prior.
+    assert 0.25 <= nees.mean_nees_pos <= 6.0 and nees.inside_pos_percent >= 90.0
 
 
 def test_ground_plane_reports_the_cameras_pitch_and_roll(ground: tuple[ReplaySummary, Path]) -> None:
