@@ -259,7 +259,10 @@ class VoPipeline:
         pts_cur, rows, orb_cur, ahead_ms, gain, st.track_noise_px = fe.track(
             gray, self.cfg, self._orb, self._gray_prev, self._pts_prev, self._rows, kf.descriptors,
             (self._ahead, self._key))
-        self._book_track_noise(kf, st.track_noise_px)
+        # This frame's image noise as a share of pixel_noise_px: its twist's, and one step of its pose's.
+        noise_ratio = covm.twist_noise_ratio(st.track_noise_px, self.cfg.twist_noise_fb_factor,
+                                             self.cfg.twist_noise_floor_px, self.cfg.pixel_noise_px)
+        self._book_track_noise(kf, noise_ratio)
         if gain != 1.0:
             st.reasons.append(f"exposure changed: the image was scaled by {gain:.2f} to track it")
         nxt, self._next = self._next, None
@@ -333,7 +336,7 @@ class VoPipeline:
             self._cov_w_c = covm.compose(kf.cov_w_kf, kf.T_w_kf,
                                          motion.cov_rel if motion.cov_pose is None else motion.cov_pose,
                                          motion.t_cur_kf, motion.R_cur_kf)
-            step_cov = self._step_covariance(kf, motion, T_w_c[:3, 3] - self._last_pos_w, st.track_noise_px)
+            step_cov = self._step_covariance(kf, motion, T_w_c[:3, 3] - self._last_pos_w, noise_ratio)
             self._last_pos_w = T_w_c[:3, 3].copy()
             self._T_cur_kf_prev = T_cur_kf
             if state is TrackingState.TRACKING:
@@ -355,13 +358,11 @@ class VoPipeline:
         return dataclasses.replace(self._result(stamp_ns, state, has_pose, is_kf, st, t_start),
                                    step_covariance=None if step_cov is None else frozen(covm.floored(step_cov)))
 
-    def _book_track_noise(self, kf: Keyframe, track_noise_px: float) -> None:
-        """Add this frame's image noise (as a share of ``pixel_noise_px``, squared) to what the tracks
-        gathered since ``kf``: the twist's (``covariance.twist_noise_ratio``: the tracks' measured noise
-        times ``twist_noise_fb_factor``, between ``twist_noise_floor_px`` and ``pixel_noise_px``), 1 for a
-        frame that measured none and for each frame skipped since the last one."""
-        ratio = covm.twist_noise_ratio(track_noise_px, self.cfg.twist_noise_fb_factor, self.cfg.twist_noise_floor_px,
-                                       self.cfg.pixel_noise_px)
+    def _book_track_noise(self, kf: Keyframe, ratio: float) -> None:
+        """Add this frame's image noise, ``ratio`` of ``pixel_noise_px`` (``covariance.twist_noise_ratio``:
+        the tracks' measured noise times ``twist_noise_fb_factor``, between ``twist_noise_floor_px`` and
+        ``pixel_noise_px``; 1 for a frame that measured none), squared, to what the tracks gathered since
+        ``kf``; 1 for each frame skipped since the last one."""
         if self._tracked_noise[0] != kf.index:
             self._tracked_noise = (kf.index, 0.0, kf.index)
         _, noise_sq, last = self._tracked_noise
@@ -376,11 +377,11 @@ class VoPipeline:
             return 1.0
         return self._tracked_noise[1]
 
-    def _step_covariance(self, kf: Keyframe, motion: mo.Motion, step_w: F64, track_noise_px: float) -> F64:
+    def _step_covariance(self, kf: Keyframe, motion: mo.Motion, step_w: F64, ratio: float) -> F64:
         """Covariance of the motion since the previous frame (odometry frame) from both frames' poses
         relative to the keyframe (``covariance.step``); against a new keyframe (the previous frame) only
-        this frame's counts. The image noise is the one the frame's tracks show
-        (``covariance.twist_noise_ratio``), not ``pixel_noise_px``: for the rotation always; for the
+        this frame's counts. The image noise is the one the frame's tracks show (``ratio`` of
+        ``pixel_noise_px``, ``covariance.twist_noise_ratio``), not ``pixel_noise_px``: for the rotation always; for the
         position too when this pose is E's against the previous frame's keyframe
         (``covariance.track_step``). The map's scale error is the same for both frames: it moves the
         step by its own fraction (``covariance.shared_scale_part``), not by the sum of both offsets from
@@ -391,8 +392,6 @@ class VoPipeline:
         prev = self._rel_prev
         self._rel_prev = (kf.stamp_ns, cov)
         same = prev if prev is not None and prev[0] == kf.stamp_ns else None
-        ratio = covm.twist_noise_ratio(track_noise_px, self.cfg.twist_noise_fb_factor, self.cfg.twist_noise_floor_px,
-                                       self.cfg.pixel_noise_px)
         cov = covm.track_step(cov, None if same is None else same[1], ratio, motion.from_essential and same is not None)
         # The step's length carries the map's scale error (``MapScaleCovariance.step_rel_std``) and the
         # keyframe map's own (shared by both frames).
