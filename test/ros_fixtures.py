@@ -179,6 +179,34 @@ def replay_odometry(bag: Any, out: Any) -> dict[int, Any]:
 
 PROBE_WAIT_S = 120.0  # bound on a probe's wait for another process or DDS (only matters if it never comes)
 
+# A service call unanswered for this long is asked again. DDS can lose a response: the server sends it only
+# once it has matched the client's response reader, and Fast DDS waits 100 ms for that match
+# (rmw_fastrtps "client will not receive response"); on a loaded machine discovery can take longer, though
+# the client already saw the service (wait_for_service). Resending is then the only way to an answer.
+RESEND_S = 10.0
+
+
+def call_service(executor: Any, client: Any, request: Any, timeout_s: float = PROBE_WAIT_S,
+                 took_effect: Callable[[], bool] | None = None) -> Any:
+    """Call a service and return its response, asking again every RESEND_S while none came (the first
+    response to come is taken). For a request that must not run twice, ``took_effect`` tells whether the
+    server already acted on it: if it did, no second request is sent and None is returned when no response
+    comes. Fails the test if no response (and no effect) comes within ``timeout_s``."""
+    assert client.wait_for_service(timeout_sec=timeout_s), client.srv_name
+    deadline = time.monotonic() + timeout_s
+    futures = [client.call_async(request)]
+
+    def answered() -> bool:
+        return any(f.done() for f in futures)
+
+    while not spin_until(executor, answered, min(RESEND_S, max(0.0, deadline - time.monotonic()))):
+        if time.monotonic() >= deadline:
+            raise AssertionError(f"{client.srv_name}: no response in {timeout_s:.0f} s")
+        if took_effect is not None and took_effect():
+            return None
+        futures.append(client.call_async(request))
+    return next(f for f in futures if f.done()).result()
+
 
 class ProbeBase:
     """A test-side node with its own executor, subscribed to the VO's odometry and diagnostics (reliable,

@@ -25,6 +25,7 @@ from ros_fixtures import (
     RosSession,
     bag_frame_count,
     bag_frames_rclpy,
+    call_service,
     odom_pose,
     rclpy_session,
     replay_odometry,
@@ -65,24 +66,28 @@ class Probe(ProbeBase):
         self.get_client = self.node.create_client(GetState, "/vo_node/get_state")
         self.set_client = self.node.create_client(SetParameters, "/vo_node/set_parameters")
 
-    def call(self, client: Any, request: Any) -> Any:
-        assert client.wait_for_service(timeout_sec=WAIT_S), client.srv_name
-        future = client.call_async(request)
-        assert self.spin_until(future.done), client.srv_name
-        return future.result()
-
     def change(self, transition_id: int) -> bool:
-        """One lifecycle transition through /vo_node/change_state: its success."""
+        """One lifecycle transition through /vo_node/change_state: its success. A transition runs once: if
+        its response is lost (ros_fixtures.RESEND_S) and the state has moved, the state it reached says."""
+        from lifecycle_msgs.msg import Transition
         from lifecycle_msgs.srv import ChangeState
 
+        goal = {Transition.TRANSITION_CONFIGURE: "inactive", Transition.TRANSITION_CLEANUP: "unconfigured",
+                Transition.TRANSITION_ACTIVATE: "active", Transition.TRANSITION_DEACTIVATE: "inactive",
+                Transition.TRANSITION_UNCONFIGURED_SHUTDOWN: "finalized",
+                Transition.TRANSITION_INACTIVE_SHUTDOWN: "finalized",
+                Transition.TRANSITION_ACTIVE_SHUTDOWN: "finalized"}[transition_id]
         request = ChangeState.Request()
         request.transition.id = transition_id
-        return bool(self.call(self.change_client, request).success)
+        before = self.state()
+        response = call_service(self.executor, self.change_client, request, WAIT_S,
+                                took_effect=lambda: self.state() != before)
+        return self.state() == goal if response is None else bool(response.success)
 
     def state(self) -> str:
         from lifecycle_msgs.srv import GetState
 
-        return str(self.call(self.get_client, GetState.Request()).current_state.label)
+        return str(call_service(self.executor, self.get_client, GetState.Request(), WAIT_S).current_state.label)
 
     def statuses(self, suffix: str) -> list[Any]:
         return [s for a in self.diag for s in a.status if s.name.endswith(suffix)]
@@ -267,7 +272,7 @@ def test_bad_parameter_fails_configure_with_the_reason_and_can_be_fixed(ros: Ros
 
             # Unconfigured, the value can be fixed; configure checks it again and succeeds.
             request = SetParameters.Request(parameters=[Parameter("frontend", value="klt").to_parameter_msg()])
-            (result,) = probe.call(probe.set_client, request).results
+            (result,) = call_service(probe.executor, probe.set_client, request, WAIT_S).results
             assert result.successful, result.reason
             assert probe.change(Transition.TRANSITION_CONFIGURE)
             assert probe.state() == "inactive"
@@ -277,7 +282,7 @@ def test_bad_parameter_fails_configure_with_the_reason_and_can_be_fixed(ros: Ros
 
             # Configured, a runtime change is checked as vo_node checks it.
             request = SetParameters.Request(parameters=[Parameter("frontend", value="sift").to_parameter_msg()])
-            (refused,) = probe.call(probe.set_client, request).results
+            (refused,) = call_service(probe.executor, probe.set_client, request, WAIT_S).results
             assert not refused.successful and reason in refused.reason
 
             assert probe.change(Transition.TRANSITION_INACTIVE_SHUTDOWN)

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from ros_fixtures import NodeProcess, ProbeBase, RosSession, bag_frames_rclpy, rclpy_session
+from ros_fixtures import NodeProcess, ProbeBase, RosSession, bag_frames_rclpy, call_service, rclpy_session
 
 REPO = Path(__file__).resolve().parents[2]
 BAG = REPO / "bags" / "general_motion" / "bag"
@@ -316,9 +316,7 @@ def _set(probe: Probe, client: Any, **values: Any) -> Any:
 
     req = SetParameters.Request()
     req.parameters = [Parameter(k, value=v).to_parameter_msg() for k, v in values.items()]
-    future = client.call_async(req)
-    assert probe.spin_until(future.done)
-    return future.result().results
+    return call_service(probe.executor, client, req, WAIT_S).results  # setting a value twice is harmless
 
 
 def test_runtime_parameter_changes_are_validated_and_applied_at_the_next_frame(ros: RosSession) -> None:
@@ -346,9 +344,7 @@ def test_runtime_parameter_changes_are_validated_and_applied_at_the_next_frame(r
             (even,) = _set(probe, set_client, klt_window_px=16)
             assert not even.successful and "klt_window_px=16 (must be odd)" in even.reason
             req = GetParameters.Request(names=["max_features", "frontend", "frame_id", "klt_window_px"])
-            future = get_client.call_async(req)
-            assert probe.spin_until(future.done)
-            got = future.result().values
+            got = call_service(probe.executor, get_client, req, WAIT_S).values
             assert (got[0].integer_value, got[1].string_value, got[2].string_value, got[3].integer_value) == \
                 (300, "klt", "odom", 15)
 
