@@ -20,6 +20,7 @@ from epi_vo.core.errors import ConfigError
 SCALE_SOURCES = ("none", "ground_plane", "wheel_odometry")  # epi_vo.core.scale
 ROBUST_METHODS = ("magsac", "ransac", "lmeds", "usac_default", "usac_accurate", "usac_fast")
 FRONTENDS = ("klt", "orb")
+BA_SOLVERS = ("process", "inline")
 
 # The node's own parameters (``NodeOptions`` in epi_vo/node.py, which imports rclpy): valid names in a
 # parameter file, which the offline tools (replay, inspect, benchmark, soak) accept and ignore. A test
@@ -128,6 +129,9 @@ class VoConfig:
                                      "0: off", 0, 50)
     ba_every_keyframes: int = _knob(3, "run the windowed bundle adjustment every this many tracking keyframes",
                                     1, 1000)
+    ba_solver: str = _knob("process", "where the windowed bundle adjustment runs: 'process' (a worker process beside "
+                           "the frame loop) or 'inline' (in it); its result is applied at the next keyframe either "
+                           "way, so both give the same poses", choices=BA_SOLVERS)
 
     # --- tracking lost -------------------------------------------------------------------------
     lost_after_frames: int = _knob(3, "consecutive frames without a pose before tracking is declared lost", 1, 1000)

@@ -86,7 +86,8 @@ class VoPipeline:
         self._wheel = sc.WheelOdometry()
         self._scale = sc.source_from_config(self.cfg, self._wheel)
         self._map_scale = MapScaleCovariance(self.cfg.scale_drift_per_keyframe)
-        self._window = WindowedMap(self.cfg.ba_window_keyframes, self.cfg.ba_every_keyframes, self.cfg.pixel_noise_px)
+        self._window = WindowedMap(self.cfg.ba_window_keyframes, self.cfg.ba_every_keyframes, self.cfg.pixel_noise_px,
+                                   self.cfg.ba_solver)
         self._next_id = 0  # the next feature track id
         self._mover_ids = np.zeros(0, np.int64)  # sorted ids of tracks judged to move on their own
         self._anchor: sc.WindowAnchor | None = None  # the scale source's anchor of the newest keyframe step
@@ -428,26 +429,28 @@ class VoPipeline:
         return True
 
     def _adjust_window(self, st: FrameStats, ids_tracked: NDArray[np.int64] | None) -> None:
-        """Windowed bundle adjustment (``epi_vo.core.window``) when it is due: the new keyframe, and the
-        current pose with it, take the adjusted pose and map points. The scale source's anchor of this
-        keyframe (floor points and camera height, or the wheel position; about its tracked rows,
-        ``ids_tracked``) becomes a scale prior."""
+        """Windowed bundle adjustment (``epi_vo.core.window``): the last keyframe's adjustment comes back and
+        this keyframe (and the current pose) moves with the keyframe it adjusted; this one joins the window
+        with its scale anchor (about its tracked rows, ``ids_tracked``) as a prior, and the next adjustment
+        starts when due (beside the frame loop with ``ba_solver: process``; either solver: same poses)."""
         kf = self._kf
         assert kf is not None
-        self._window.add(kf.T_w_kf, kf.ids, kf.xn, kf.X_kf, self._anchor, ids_tracked, kf.cov_w_kf)
-        if not self._window.due():
-            return
         t0 = time.perf_counter()
-        update = self._window.adjust(float(kf.camera.K[0, 0]), self._mover_ids)
-        st.timings["window"] = _ms(t0)
-        if update is None:
-            return
-        self._kf = dataclasses.replace(kf, T_w_kf=update.T_w_kf, X_kf=update.X_kf)
-        self._T_w_c = update.T_w_kf.copy()
-        if update.cov_w_kf is not None:
-            # The estimator's own uncertainty of the window replaces the chain of keyframe steps in it.
-            self._kf = dataclasses.replace(self._kf, cov_w_kf=update.cov_w_kf)
-            self._cov_w_c = update.cov_w_kf.copy()
+        update = self._window.collect()  # waits for the worker if it is not done yet
+        if update is not None:
+            st.timings["window_wait"], st.timings["window_solve"] = _ms(t0), update.ms  # solve: in the worker
+            # The window's own uncertainty (when it has one) replaces the chain of keyframe steps in it.
+            T, X, cov = self._window.correct(update, kf.T_w_kf, kf.ids, kf.X_kf, kf.cov_w_kf)
+            kf = self._kf = dataclasses.replace(kf, T_w_kf=T, X_kf=X, cov_w_kf=cov)
+            self._T_w_c = T.copy()
+            if update.cov_w_kf is not None:
+                self._cov_w_c = cov.copy()
+        self._window.add(kf.T_w_kf, kf.ids, kf.xn, kf.X_kf, self._anchor, ids_tracked, kf.cov_w_kf)
+        submitted = self._window.due() and self._window.submit(float(kf.camera.K[0, 0]), self._mover_ids)
+        if update is not None or submitted:
+            st.timings["window"] = _ms(t0)
+        if why := self._window.take_failure():
+            st.reasons.append(why)
 
     def _metric_step(self, motion: mo.Motion, kf: Keyframe, X_cur: F64, stamp_ns: int) -> tuple[F64, F64]:
         """The scale source's correction of this keyframe step: the step from the last keyframe and the

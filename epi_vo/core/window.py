@@ -4,10 +4,16 @@ After ``mapping`` made a keyframe, the pipeline hands it to :class:`WindowedMap`
 ``ba_every_keyframes`` tracking keyframes the last ``ba_window_keyframes`` keyframes are adjusted
 together (``epi_vo.core.bundle``, GTSAM): map points observed by at least two of them (tracks that
 survived across keyframes, linked by the keyframes' track ids), a Huber loss, the two oldest keyframes
-fixed (gauge and scale: the scale stage's metric corrections are already in them). The result moves
-the newest keyframe (and the current pose with it) and its map points; older window poses are kept
-for the next adjustment. The window is dropped whenever the map is (restart, metric scale newly
-established), since its poses and points would no longer agree.
+fixed (gauge and scale: the scale stage's metric corrections are already in them). An adjustment is
+submitted at a keyframe and its result collected at the next one, so it can run beside the frame loop
+in a worker process (``ba_solver: process``, ``epi_vo.core.bundle_worker``; ``inline`` solves at the
+submission): either way it is applied at the same keyframe, and the poses are the same. The result moves
+the keyframe it adjusted and its map points, and the keyframe made since from that keyframe's old pose
+moves with it (``correct``): its pose by the same correction, its adjusted map points, and its
+covariance with the window's marginal in place of the chain's part. Older window poses are kept for the
+next adjustment. The window is dropped whenever the map is (restart, metric scale newly established),
+since its poses and points would no longer agree; an adjustment under way then is dropped as it comes
+back.
 
 GTSAM is imported only when the adjustment is switched on (``ba_window_keyframes > 0``): the rest of
 the pipeline runs without it (a ROS install whose gtsam has no Python wrapper), and switching it on
@@ -27,7 +33,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from epi_vo.core import covariance as covm
+from epi_vo.core.bundle_worker import InlineSolver, ProcessSolver
 from epi_vo.core.errors import ConfigError
+from epi_vo.core.geometry import nearest_rotation
 from epi_vo.core.scale import WindowAnchor
 from epi_vo.core.transforms import invert_T
 
@@ -63,31 +71,60 @@ class WindowUpdate:
     n_keyframes: int
     ms: float
     cov_w_kf: F64 | None = None
+    T_w_kf_before: F64 | None = None  # the newest keyframe's pose when the adjustment was submitted
+    cov_w_before: F64 | None = None  # and its covariance
+    point_ids: I64 | None = None  # track ids of the adjusted points ...
+    points_w: F64 | None = None  # ... and where they are in w (NaN: not adjusted)
 
 
 class WindowedMap:
-    """The last ``size`` keyframes with their track ids; ``adjust`` runs the bundle adjustment."""
+    """The last ``size`` keyframes with their track ids. An adjustment is ``submit``-ted at a keyframe and
+    its result ``collect``-ed at the next one (``adjust`` does both at once); ``solver`` says where it
+    runs: ``process`` (a worker beside the frame loop, ``epi_vo.core.bundle_worker``) or ``inline``."""
 
-    def __init__(self, size: int, every: int, sigma_px: float) -> None:
+    def __init__(self, size: int, every: int, sigma_px: float, solver: str = "inline") -> None:
         self.size = size
         self.every = max(every, 1)
         self.sigma_px = sigma_px
         self._entries: deque[_Entry] = deque(maxlen=max(size, 1))
         self._since = 0
         self._bundle: ModuleType | None = None
+        self._pending: _Pending | None = None  # the adjustment submitted and not yet collected
+        self._stale = 0  # results of submitted adjustments the window was cleared since (to be dropped)
+        self._solver: InlineSolver | ProcessSolver | None = None
+        self._failure_said = False
         if size > 0:
             try:
                 self._bundle = importlib.import_module("epi_vo.core.bundle")
             except ImportError as exc:
                 raise ConfigError(f"ba_window_keyframes={size} needs the gtsam Python package "
                                   f"(pip install gtsam==4.3.0): {exc}") from None
+            self._solver = ProcessSolver() if solver == "process" else InlineSolver()
 
     def __len__(self) -> int:
         return len(self._entries)
 
+    def take_failure(self) -> str:
+        """Why the worker process stopped being used, the first time it is asked after it did ("" else)."""
+        if self._solver is None or not self._solver.failure or self._failure_said:
+            return ""
+        self._failure_said = True
+        return self._solver.failure
+
     def clear(self) -> None:
+        """Forget the keyframes; an adjustment still under way is dropped when it comes back."""
         self._entries.clear()
         self._since = 0
+        if self._pending is not None:
+            self._pending = None
+            self._stale += 1
+
+    def close(self) -> None:
+        """End the worker process (if any); the window cannot adjust afterwards."""
+        self.clear()
+        if self._solver is not None:
+            self._solver.close()
+        self._stale = 0
 
     def add(self, T_w_kf: F64, ids: I64 | None, xn: F64, X_kf: F64, anchor: WindowAnchor | None = None,
             anchor_ids: I64 | None = None, cov_w: F64 | None = None) -> None:
@@ -106,27 +143,41 @@ class WindowedMap:
         """An adjustment is due: enough keyframes in the window and ``every`` added since the last."""
         return self.size > 0 and len(self._entries) >= 3 and self._since >= self.every
 
-    def adjust(self, fx: float, exclude_ids: I64 | None = None) -> WindowUpdate | None:
-        """Adjust the window; None when it cannot be (too few shared tracks, the optimiser refused).
-        Tracks ``exclude_ids`` (judged to move on their own) are left out."""
+    def submit(self, fx: float, exclude_ids: I64 | None = None) -> bool:
+        """Start adjusting the window (False when it cannot be: too few shared tracks). Tracks
+        ``exclude_ids`` (judged to move on their own) are left out. Its result is ``collect``-ed later."""
         self._since = 0
         entries = list(self._entries)
-        assert self._bundle is not None
+        assert self._bundle is not None and self._solver is not None and self._pending is None
         window, point_ids = _build(self._bundle, entries, self.sigma_px, fx, exclude_ids)
         if window is None:
+            return False
+        newest = entries[-1]
+        self._solver.send(window)
+        self._pending = _Pending(entries, point_ids, newest.T_w_kf.copy(),
+                                 None if newest.cov_w is None else newest.cov_w.copy())
+        return True
+
+    def collect(self) -> WindowUpdate | None:
+        """The submitted adjustment's result (waiting for it), applied to the keyframes it adjusted; None
+        when none was submitted or the optimiser refused the window."""
+        while self._stale:
+            assert self._solver is not None
+            self._solver.receive()
+            self._stale -= 1
+        pending, self._pending = self._pending, None
+        if pending is None:
             return None
-        result = self._bundle.adjust(window)
+        assert self._solver is not None
+        result = self._solver.receive()
         if result is None:
             return None
+        entries = pending.entries
         for entry, T in zip(entries, result.T_w_kf, strict=True):
             entry.T_w_kf = T.copy()
         newest = entries[-1]
         X_kf = newest.X_kf.copy()
-        pos = np.searchsorted(point_ids, newest.ids)
-        pos = np.clip(pos, 0, max(point_ids.size - 1, 0))
-        hit = point_ids[pos] == newest.ids if point_ids.size else np.zeros(newest.ids.size, bool)
-        Xw = result.points_w[pos]
-        ok = hit & np.all(np.isfinite(Xw), axis=1)
+        ok, Xw = _adjusted_rows(pending.point_ids, result.points_w, newest.ids)
         T_kf_w = invert_T(newest.T_w_kf)
         X_kf[ok] = Xw[ok] @ T_kf_w[:3, :3].T + T_kf_w[:3, 3]
         newest.X_kf = X_kf
@@ -137,7 +188,49 @@ class WindowedMap:
                                                 result.cov_newest))
             newest.cov_w = cov
         return WindowUpdate(newest.T_w_kf.copy(), X_kf, int(np.count_nonzero(np.isfinite(result.points_w[:, 0]))),
-                            len(entries), result.ms, cov)
+                            len(entries), result.ms, cov, pending.T_w_kf_before, pending.cov_w_before,
+                            pending.point_ids, result.points_w)
+
+    def adjust(self, fx: float, exclude_ids: I64 | None = None) -> WindowUpdate | None:
+        """Adjust the window now (``submit`` and ``collect``); None when it cannot be (too few shared
+        tracks, the optimiser refused)."""
+        self.collect()
+        return self.collect() if self.submit(fx, exclude_ids) else None
+
+    def correct(self, update: WindowUpdate, T_w_kf: F64, ids: I64 | None, X_kf: F64, cov_w: F64
+                ) -> tuple[F64, F64, F64]:
+        """A keyframe made after the adjusted one (from its pose before the adjustment) moved with it: its
+        pose by the adjusted keyframe's correction, its map points that were adjusted put where the
+        adjustment has them, and its covariance with the adjusted keyframe's part replaced by the
+        window's. Returns the pose, the map points (its own frame) and the covariance."""
+        T = update.T_w_kf @ invert_T(update.T_w_kf_before) @ T_w_kf
+        T[:3, :3] = nearest_rotation(T[:3, :3])  # the products' rounding would add up keyframe after keyframe
+        X = X_kf.copy()
+        if ids is not None and update.point_ids is not None and update.points_w is not None:
+            ok, Xw = _adjusted_rows(update.point_ids, update.points_w, ids[: X.shape[0]])
+            T_kf_w = invert_T(T)
+            X[: ok.size][ok] = Xw[ok] @ T_kf_w[:3, :3].T + T_kf_w[:3, 3]
+        cov = cov_w
+        if update.cov_w_kf is not None and update.cov_w_before is not None:
+            cov = covm.floored(cov_w + update.cov_w_kf - update.cov_w_before)
+        return T, X, cov
+
+
+@dataclass
+class _Pending:
+    entries: list[_Entry]  # the keyframes submitted, oldest first
+    point_ids: I64  # track id of each adjusted point
+    T_w_kf_before: F64  # the newest one's pose when submitted
+    cov_w_before: F64 | None  # and its covariance
+
+
+def _adjusted_rows(point_ids: I64, points_w: F64, ids: I64) -> tuple[NDArray[np.bool_], F64]:
+    """For each of ``ids``: whether the adjustment has a (finite) point for it, and that point in w."""
+    if not point_ids.size:
+        return np.zeros(ids.size, bool), np.full((ids.size, 3), np.nan)
+    pos = np.clip(np.searchsorted(point_ids, ids), 0, point_ids.size - 1)
+    Xw = points_w[pos]
+    return (point_ids[pos] == ids) & np.all(np.isfinite(Xw), axis=1), Xw
 
 
 def _build(bundle_module: ModuleType, entries: list[_Entry], sigma_px: float, fx: float,

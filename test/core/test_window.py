@@ -84,9 +84,9 @@ def test_pipeline_with_the_window_stays_accurate_and_deterministic() -> None:
     from epi_vo.tools.replay import run_replay
 
     bag = Path(__file__).resolve().parents[2] / "bags" / "general_motion" / "bag"
-    cfg = dataclasses.replace(VoConfig(), ba_window_keyframes=5, ba_every_keyframes=2)
     runs = []
-    for _ in range(2):
+    for solver in ("process", "inline"):  # beside the frame loop, in it: the same poses
+        cfg = dataclasses.replace(VoConfig(), ba_window_keyframes=5, ba_every_keyframes=2, ba_solver=solver)
         results = []
         import tempfile
 
@@ -95,6 +95,7 @@ def test_pipeline_with_the_window_stays_accurate_and_deterministic() -> None:
         runs.append((summary, results))
     summary, results = runs[0]
     assert summary.stage_ms.get("window", 0.0) > 0.0  # it ran
+    assert not any("worker" in r.reason for r in results)  # and the worker did
     assert summary.metrics is not None and summary.metrics["ate_percent_of_path"] < 1.0
     np.testing.assert_array_equal(np.array([r.T_w_c for r in results]), np.array([r.T_w_c for r in runs[1][1]]))
     assert pytest.approx(summary.metrics["ate_percent_of_path"]) == runs[1][0].metrics["ate_percent_of_path"]
@@ -274,3 +275,100 @@ def test_window_leaves_out_tracks_judged_to_move() -> None:
         counts.append(update.n_points)
     assert counts[1] <= counts[0] - 35  # the movers' tracks are gone
     assert errors[1] < 0.02 and errors[1] < errors[0]
+
+
+def _window_of(solver: str) -> WindowedMap:
+    poses, pts = _scene()
+    rng = np.random.default_rng(6)
+    win = WindowedMap(size=5, every=1, sigma_px=1.0, solver=solver)
+    ids_all = np.arange(pts.shape[0])
+    for k, T in enumerate(poses):
+        ids = ids_all[(ids_all + k) % 5 != 0]
+        xn, X = _entry(T, pts, ids, rng, noise=0.05)
+        win.add(T @ make_T(_rot_y(0.3 * k), np.array([0.02 * k, 0.0, 0.0])), ids, xn, X)
+    return win
+
+
+def _same_update(a, b) -> None:
+    for name in ("T_w_kf", "X_kf", "cov_w_kf", "points_w", "point_ids"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+
+
+def test_the_worker_process_gives_the_inline_result_bit_for_bit() -> None:
+    inline, process = _window_of("inline"), _window_of("process")
+    try:
+        assert process.submit(500.0)  # returns at once; the worker adjusts beside this process
+        assert inline.submit(500.0)
+        a, b = inline.collect(), process.collect()
+        assert a is not None and b is not None and a.n_points >= 80
+        _same_update(a, b)
+        assert process.take_failure() == ""
+        assert process.collect() is None  # nothing pending any more
+    finally:
+        process.close()
+
+
+def test_a_dead_worker_hands_its_window_to_the_frame_loop_and_says_so_once() -> None:
+    inline, process = _window_of("inline"), _window_of("process")
+    try:
+        proc = process._solver._proc
+        assert proc is not None
+        proc.kill()
+        proc.wait()
+        assert process.submit(500.0) and inline.submit(500.0)
+        _same_update(inline.collect(), process.collect())
+        why = process.take_failure()
+        assert "bundle adjustment worker" in why and "adjusting in the frame loop from now on" in why
+        assert process.take_failure() == ""  # said once
+        assert process.submit(500.0) and inline.submit(500.0)  # and the next windows are adjusted here
+        _same_update(inline.collect(), process.collect())
+    finally:
+        process.close()
+
+
+def test_a_cleared_window_drops_the_adjustment_under_way() -> None:
+    win = _window_of("process")
+    try:
+        assert win.submit(500.0)
+        win.clear()  # a restart: the result no longer fits the keyframes
+        assert win.collect() is None
+        fresh = WindowedMap(size=5, every=1, sigma_px=1.0)
+        poses, pts = _scene(seed=1)
+        rng = np.random.default_rng(7)
+        ids = np.arange(pts.shape[0])
+        for T in poses:
+            entry = _entry(T, pts, ids, rng, noise=0.0)
+            win.add(T, ids, *entry)
+            fresh.add(T, ids, *entry)
+        assert win.submit(500.0)
+        update = win.collect()  # the new window's own result, not the dropped one's
+        assert update is not None
+        _same_update(update, fresh.adjust(500.0))
+    finally:
+        win.close()
+
+
+def test_a_keyframe_made_after_the_adjusted_one_moves_with_it() -> None:
+    """The result comes back one keyframe later: the keyframe made from the adjusted one's old pose takes
+    the adjusted one's correction, the adjusted points and the window's covariance in place of the chain's."""
+    win = _window_of("inline")
+    for e in win._entries:
+        e.cov_w = np.eye(6) * 1e-2
+    assert win.submit(500.0)
+    update = win.collect()
+    assert update is not None and update.T_w_kf_before is not None and update.cov_w_kf is not None
+    step = make_T(_rot_y(1.0), np.array([0.5, 0.0, 0.1]))
+    T_next = update.T_w_kf_before @ step  # made from the adjusted keyframe's pose before the adjustment
+    assert update.point_ids is not None
+    ids = np.concatenate([update.point_ids[:20], [10_000, 10_001]])  # 20 adjusted tracks, 2 new ones
+    X = np.full((ids.size, 3), 7.0)
+    cov = np.eye(6) * 2e-2  # the keyframe's 1e-2 and the step's 1e-2
+    T, X_new, cov_new = win.correct(update, T_next, ids, X, cov)
+    np.testing.assert_allclose(T, update.T_w_kf @ step, atol=1e-12)
+    assert update.points_w is not None
+    Xw = X_new[:20] @ T[:3, :3].T + T[:3, 3]
+    ok = np.all(np.isfinite(update.points_w[:20]), axis=1)
+    np.testing.assert_allclose(Xw[ok], update.points_w[:20][ok], atol=1e-9)
+    np.testing.assert_array_equal(X_new[20:], 7.0)  # not adjusted: as they were
+    assert cov_new is not None
+    np.testing.assert_allclose(cov_new, update.cov_w_kf + np.eye(6) * 1e-2, atol=1e-12)

@@ -1,0 +1,142 @@
+"""The windowed bundle adjustment beside the frame loop: a worker process and the solvers that use it.
+
+GTSAM's optimiser holds Python's GIL (its floor factors call back into Python), so a thread beside the
+frame loop would stall it for the whole adjustment (35-110 ms, more than a frame's budget). A worker
+*process* runs ``bundle.adjust`` on the second core instead. It is started with the interpreter the
+pipeline runs in (``python -m epi_vo.core.bundle_worker``), imports only numpy and GTSAM, and speaks
+pickle over its stdin / stdout: a :class:`bundle.Window` in, an :class:`bundle.Adjusted` (or None) out,
+in order. Its own prints go to stderr, so nothing else ever reaches the pipe.
+
+The result does not depend on where it was computed: the window's arrays cross the pipe bit for bit
+and the worker runs the same function (tested: identical trajectories either way). A worker that dies
+or answers garbage is not an input problem: :class:`ProcessSolver` says why once (``failure``) and
+solves the window it lost, and every later one, in the calling process.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import subprocess
+import sys
+import weakref
+from typing import IO, Any
+
+MODULE = "epi_vo.core.bundle_worker"
+
+
+class InlineSolver:
+    """Solves in the calling process (``ba_solver: inline``): ``send`` computes, ``receive`` returns it."""
+
+    failure = ""
+
+    def __init__(self) -> None:
+        self._results: list[Any] = []
+
+    def send(self, window: Any) -> None:
+        from epi_vo.core import bundle
+
+        self._results.append(bundle.adjust(window))
+
+    def receive(self) -> Any:
+        return self._results.pop(0)
+
+    def close(self) -> None:
+        self._results.clear()
+
+
+def _stop(proc: subprocess.Popen[bytes]) -> None:
+    """End a worker: EOF on its stdin ends its loop; kill it if it does not."""
+    try:
+        if proc.stdin is not None:
+            proc.stdin.close()
+        proc.wait(timeout=5)
+    except (OSError, subprocess.TimeoutExpired):
+        proc.kill()
+        proc.wait()
+    finally:
+        if proc.stdout is not None:
+            proc.stdout.close()
+
+
+class ProcessSolver:
+    """Solves in a worker process (``ba_solver: process``): ``send`` hands a window over and returns at
+    once; ``receive`` waits for the oldest window's result. Started on construction, so its imports
+    (about a second) overlap the first keyframes."""
+
+    def __init__(self) -> None:
+        self.failure = ""  # why the worker is no longer used ("" while it is)
+        self._inline = InlineSolver()
+        self._sent: list[Any] = []  # windows sent and not yet received (kept to solve here if it dies)
+        self._proc: subprocess.Popen[bytes] | None = None
+        try:
+            self._proc = subprocess.Popen([sys.executable, "-m", MODULE], stdin=subprocess.PIPE,
+                                          stdout=subprocess.PIPE, env=dict(os.environ))
+        except OSError as exc:
+            self._fail(f"could not start the bundle adjustment worker ({exc})")
+            return
+        self._finalizer = weakref.finalize(self, _stop, self._proc)
+
+    def _fail(self, reason: str) -> None:
+        if not self.failure:
+            self.failure = f"{reason}: adjusting in the frame loop from now on"
+        if self._proc is not None:
+            self._finalizer()
+            self._proc = None
+
+    def send(self, window: Any) -> None:
+        self._sent.append(window)
+        if self._proc is None:
+            return
+        try:
+            assert self._proc.stdin is not None
+            pickle.dump(window, self._proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+            self._proc.stdin.flush()
+        except (OSError, pickle.PicklingError) as exc:
+            self._fail(f"the bundle adjustment worker stopped taking windows ({exc})")
+
+    def receive(self) -> Any:
+        window = self._sent.pop(0)
+        if self._proc is not None:
+            try:
+                assert self._proc.stdout is not None
+                return pickle.load(self._proc.stdout)
+            except (OSError, EOFError, pickle.UnpicklingError, AttributeError, ImportError) as exc:
+                code = self._proc.poll()
+                how = f"exited with {code}" if code is not None else "failed"
+                self._fail(f"the bundle adjustment worker {how} ({type(exc).__name__})")
+        self._inline.send(window)
+        return self._inline.receive()
+
+    def close(self) -> None:
+        self._sent.clear()
+        if self._proc is not None:
+            self._finalizer()
+            self._proc = None
+
+
+def serve(inp: IO[bytes], out: IO[bytes]) -> int:
+    """The worker's loop: a window in, its adjustment out, until EOF on ``inp``."""
+    from epi_vo.core import bundle
+
+    while True:
+        try:
+            window = pickle.load(inp)
+        except EOFError:
+            return 0
+        pickle.dump(bundle.adjust(window), out, protocol=pickle.HIGHEST_PROTOCOL)
+        out.flush()
+
+
+def main() -> int:
+    # The protocol gets the real stdout; anything printed (by GTSAM or a warning) goes to stderr.
+    out = os.fdopen(os.dup(sys.stdout.fileno()), "wb")
+    os.dup2(sys.stderr.fileno(), sys.stdout.fileno())
+    try:
+        return serve(sys.stdin.buffer, out)
+    except KeyboardInterrupt:  # the node's process group got a SIGINT: the parent ends us too
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
