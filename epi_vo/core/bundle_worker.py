@@ -1,8 +1,9 @@
 """The windowed bundle adjustment beside the frame loop: a worker process and the solvers that use it.
 
-GTSAM's optimiser holds Python's GIL (its floor factors call back into Python), so a thread beside the
-frame loop would stall it for the whole adjustment (35-110 ms, more than a frame's budget). A worker
-*process* runs ``bundle.adjust`` on the second core instead. It is started with the interpreter the
+Why a process and not a thread: GTSAM's C++ solve releases Python's GIL, but the floor-plane factors
+(``ground_plane``) are Python callbacks that need it for every evaluation. In a thread beside a busy
+frame loop such a window starved at the GIL's switch interval (a 140-point floor window: 116 ms alone,
+1.4 s in a thread). A worker *process* runs ``bundle.adjust`` on the second core instead. It is started with the interpreter the
 pipeline runs in (``python -m epi_vo.core.bundle_worker``), imports only numpy and GTSAM, and speaks
 pickle over its stdin / stdout: a :class:`bundle.Window` in, an :class:`bundle.Adjusted` (or None) out,
 in order. Its own prints go to stderr, so nothing else ever reaches the pipe.
