@@ -3,10 +3,10 @@
 Why a process and not a thread: GTSAM's C++ solve releases Python's GIL, but the floor-plane factors
 (``ground_plane``) are Python callbacks that need it for every evaluation. In a thread beside a busy
 frame loop such a window starved at the GIL's switch interval (a 140-point floor window: 116 ms alone,
-1.4 s in a thread). A worker *process* runs ``bundle.adjust`` on the second core instead. It is started with the interpreter the
-pipeline runs in (``python -m epi_vo.core.bundle_worker``), imports only numpy and GTSAM, and speaks
-pickle over its stdin / stdout: a :class:`bundle.Window` in, an :class:`bundle.Adjusted` (or None) out,
-in order. Its own prints go to stderr, so nothing else ever reaches the pipe.
+1.4 s in a thread). A worker *process* runs ``bundle.adjust`` on the second core instead. It is
+started with the interpreter the pipeline runs in (``python -m epi_vo.core.bundle_worker``), imports
+only numpy and GTSAM, and speaks pickle over its stdin / stdout: a :class:`bundle.Window` in, an
+:class:`bundle.Adjusted` (or None) out, in order. Its own prints go to stderr, so nothing else ever reaches the pipe.
 
 The result does not depend on where it was computed: the window's arrays cross the pipe bit for bit
 and the worker runs the same function (tested: identical trajectories either way). A worker that dies
