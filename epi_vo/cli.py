@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import signal
 import sys
 from collections.abc import Sequence
@@ -40,6 +41,9 @@ def _add_replay(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--camera-info-topic", help="sensor_msgs/CameraInfo topic (default: the only one)")
     p.add_argument("--gt", help="ground truth TUM file (default: a PoseStamped/Odometry topic in the bag, if any)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--rate", type=float, default=None,
+                   help="one bag: hand the frames over at RATE times the pace of their stamps, as a camera would "
+                        "(KLT in line; per-frame times as live; the outputs are the same). Default: flat out")
     p.add_argument("--report", action="store_true", help="also write plots and report.html into the output "
                                                          "(fleet: per bag, and OUTPUT/index.html linking them)")
 
@@ -231,12 +235,18 @@ def _replay(args: argparse.Namespace) -> int:
     from epi_vo.tools.fleet import is_fleet
     from epi_vo.tools.replay import format_summary, run_replay
 
+    if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0.0):
+        _say(f"epi-vo: error: --rate must be a positive number, not {args.rate}")
+        return 2
     if is_fleet(args.bag):
+        if args.rate is not None:
+            _say("epi-vo: error: --rate paces one bag as a camera would; a fleet replays flat out")
+            return 2
         return _replay_fleet(args)
     cfg = load_config(args.params)
     summary = run_replay(args.bag[0], args.output, cfg, image_topic=args.image_topic,
                          camera_info_topic=args.camera_info_topic, gt_tum=args.gt,
-                         progress=not args.no_progress)
+                         progress=not args.no_progress, rate=args.rate)
     _say(format_summary(summary), stdout=True)
     if args.report:
         from epi_vo.tools.report import write_report

@@ -133,11 +133,36 @@ def _jsonable(x: Any) -> Any:
     return x
 
 
+PACE_MAX_GAP_S = 2.0  # a paced replay waits at most this long between two frames (a recording's pause)
+
+
+class Pace:
+    """Holds each frame back until its stamp's time, at ``rate`` times real time, has come."""
+
+    def __init__(self, rate: float) -> None:
+        if not (math.isfinite(rate) and rate > 0.0):
+            raise ValueError(f"rate must be a positive number, not {rate}")
+        self.rate = rate
+        self._origin: tuple[int, float] | None = None  # (stamp ns, wall s) the schedule counts from
+        self._last_ns: int | None = None
+
+    def wait(self, stamp_ns: int, stop: Callable[[], bool]) -> None:
+        now = time.monotonic()
+        gap_s = (stamp_ns - self._last_ns) * 1e-9 if self._last_ns is not None else 0.0
+        self._last_ns = stamp_ns
+        if self._origin is None or not 0.0 <= gap_s <= PACE_MAX_GAP_S:  # start, or a jump: a new schedule
+            self._origin = (stamp_ns, now + min(max(gap_s, 0.0), PACE_MAX_GAP_S) / self.rate)
+        due = self._origin[1] + (stamp_ns - self._origin[0]) * 1e-9 / self.rate
+        while not stop() and (left := due - time.monotonic()) > 0.0:
+            time.sleep(min(left, 0.1))
+
+
 def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | None = None, *,
                image_topic: str | None = None, camera_info_topic: str | None = None,
                gt_tum: str | Path | None = None, progress: bool = False,
                on_result: Callable[[FrameResult], None] | None = None,
-               on_open: Callable[[int], None] | None = None, lookahead: bool = True) -> ReplaySummary:
+               on_open: Callable[[int], None] | None = None, lookahead: bool = True,
+               rate: float | None = None) -> ReplaySummary:
     """Replay every image of a bag through the pipeline and write the outputs (see module doc).
 
     A frame that cannot be used (undecodable message or image, header stamp that is no ROS time,
@@ -151,6 +176,10 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     one is processed (``VoPipeline.announce_next``): the same outputs, ~15 % more frames/s on 2 cores; the
     records' ``total`` is then this thread's time and ``klt_ahead`` the worker's. Off: KLT in line, as a
     live node runs it (the benchmark's per-frame times).
+    ``rate``: frames are handed to the pipeline at ``rate`` times the pace of their stamps, as a camera
+    would deliver them (KLT in line, no lookahead), so work beside the frame loop (the windowed
+    adjustment's worker) has the time it would have live; a gap between stamps counts at most
+    ``PACE_MAX_GAP_S``. None: as fast as possible. The outputs are the same either way.
 
     Raises:
         BagError: unreadable or empty bag, missing or ambiguous topics.
@@ -195,11 +224,15 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                 odo_log = OdometryLog()  # what /vo/odometry carried, for the covariance's consistency
             wheel = _WheelFeed(bag.read_wheel_odometry(), pipeline, cfg.wheel_odometry_timeout_s)
             decoded = _Decoded()
+            pace = Pace(rate) if rate is not None else None
             for frame, next_frame in with_next(bag.iter_frames()):
                 wheel.up_to(frame.stamp_ns)
+                if pace is not None:
+                    pace.wait(frame.stamp_ns, lambda: stop.requested)
                 if stop.requested:  # a signal arrived during the previous frame: all its outputs are written
                     raise Interrupted(stop.signum)
-                processed = process_frame(pipeline, cameras, bag, frame, next_frame if lookahead else None, decoded)
+                ahead = next_frame if lookahead and pace is None else None
+                processed = process_frame(pipeline, cameras, bag, frame, ahead, decoded)
                 result, problem = processed.result, processed.problem
                 if problem is not None:
                     rejected[problem] += 1

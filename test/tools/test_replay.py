@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -255,3 +256,39 @@ def test_the_lookahead_never_loses_a_frame_read_before_a_read_error() -> None:
         for pair in with_next(frames(3, True)):
             got.append(pair)
     assert got == [(0, 1), (1, 2), (2, None)]
+
+
+def test_a_paced_replay_takes_the_bags_time_and_gives_the_same_outputs(general: tuple[ReplaySummary, Path],
+                                                                        tmp_path: Path) -> None:
+    """--rate 4: the 52 frames of 3.4 s arrive as a camera at 4x would hand them over (not sooner; a slow
+    machine only makes it later), KLT in line, and the trajectory is the flat-out replay's."""
+    stamps = [json.loads(line)["stamp"] for line in (general[1] / "frames.jsonl").read_text().splitlines()]
+    t0 = time.monotonic()
+    assert main(["replay", str(BAGS / "general_motion" / "bag"), "--output", str(tmp_path), "--rate", "4",
+                 "--no-progress"]) == 0
+    assert time.monotonic() - t0 >= (stamps[-1] - stamps[0]) / 4.0
+    assert (tmp_path / "trajectory.tum").read_text() == (general[1] / "trajectory.tum").read_text()
+    records = [json.loads(line) for line in (tmp_path / "frames.jsonl").read_text().splitlines()]
+    assert len(records) == 52 and not any("klt_ahead" in r["timings_ms"] for r in records)
+
+
+def test_pacing_waits_for_each_stamp_but_not_through_a_recording_pause() -> None:
+    from epi_vo.tools.replay import PACE_MAX_GAP_S, Pace
+
+    pace = Pace(rate=20.0)
+    t0 = time.monotonic()
+    for stamp_s in (0.0, 1.0, 2.0, 1000.0, 1001.0):  # 1 s apart, then a 998 s pause
+        pace.wait(int(stamp_s * 1e9), lambda: False)
+    waited = time.monotonic() - t0
+    assert waited >= (3.0 + PACE_MAX_GAP_S) / 20.0  # every second (and the pause as its cap) at 20x
+    assert waited < 998.0 / 20.0  # the pause itself is not waited for
+    with pytest.raises(ValueError, match="rate must be a positive number"):
+        Pace(rate=0.0)
+
+
+def test_a_rate_that_is_no_positive_number_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["replay", str(BAGS / "general_motion" / "bag"), "--output", str(tmp_path), "--rate", "0"]) == 2
+    assert "--rate must be a positive number, not 0.0" in capsys.readouterr().err
+    assert main(["replay", str(BAGS / "general_motion" / "bag"), str(BAGS / "planar" / "bag"), "--output",
+                 str(tmp_path), "--rate", "1"]) == 2
+    assert "a fleet replays flat out" in capsys.readouterr().err
