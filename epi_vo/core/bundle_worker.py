@@ -72,7 +72,7 @@ class ProcessSolver:
         self._proc: subprocess.Popen[bytes] | None = None
         try:
             self._proc = subprocess.Popen([sys.executable, "-m", MODULE], stdin=subprocess.PIPE,
-                                          stdout=subprocess.PIPE, env=dict(os.environ))
+                                          stdout=subprocess.PIPE)
         except OSError as exc:
             self._fail(f"could not start the bundle adjustment worker ({exc})")
             return
