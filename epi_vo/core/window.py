@@ -70,11 +70,11 @@ class WindowUpdate:
     n_points: int
     n_keyframes: int
     ms: float
+    T_w_kf_before: F64  # the newest keyframe's pose when the adjustment was submitted
+    point_ids: I64  # track ids of the adjusted points ...
+    points_w: F64  # ... and where they are in w (NaN: not adjusted)
     cov_w_kf: F64 | None = None
-    T_w_kf_before: F64 | None = None  # the newest keyframe's pose when the adjustment was submitted
-    cov_w_before: F64 | None = None  # and its covariance
-    point_ids: I64 | None = None  # track ids of the adjusted points ...
-    points_w: F64 | None = None  # ... and where they are in w (NaN: not adjusted)
+    cov_w_before: F64 | None = None  # the newest keyframe's covariance when submitted
 
 
 class WindowedMap:
@@ -188,8 +188,8 @@ class WindowedMap:
                                                 result.cov_newest))
             newest.cov_w = cov
         return WindowUpdate(newest.T_w_kf.copy(), X_kf, int(np.count_nonzero(np.isfinite(result.points_w[:, 0]))),
-                            len(entries), result.ms, cov, pending.T_w_kf_before, pending.cov_w_before,
-                            pending.point_ids, result.points_w)
+                            len(entries), result.ms, pending.T_w_kf_before, pending.point_ids, result.points_w,
+                            cov, pending.cov_w_before)
 
     def adjust(self, fx: float, exclude_ids: I64 | None = None) -> WindowUpdate | None:
         """Adjust the window now (``submit`` and ``collect``); None when it cannot be (too few shared
@@ -206,10 +206,10 @@ class WindowedMap:
         T = update.T_w_kf @ invert_T(update.T_w_kf_before) @ T_w_kf
         T[:3, :3] = nearest_rotation(T[:3, :3])  # the products' rounding would add up keyframe after keyframe
         X = X_kf.copy()
-        if ids is not None and update.point_ids is not None and update.points_w is not None:
-            ok, Xw = _adjusted_rows(update.point_ids, update.points_w, ids[: X.shape[0]])
+        if ids is not None:
+            ok, Xw = _adjusted_rows(update.point_ids, update.points_w, ids)
             T_kf_w = invert_T(T)
-            X[: ok.size][ok] = Xw[ok] @ T_kf_w[:3, :3].T + T_kf_w[:3, 3]
+            X[ok] = Xw[ok] @ T_kf_w[:3, :3].T + T_kf_w[:3, 3]
         cov = cov_w
         if update.cov_w_kf is not None and update.cov_w_before is not None:
             cov = covm.floored(cov_w + update.cov_w_kf - update.cov_w_before)
