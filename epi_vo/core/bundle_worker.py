@@ -9,7 +9,9 @@ only numpy and GTSAM, and speaks pickle over its stdin / stdout: a :class:`bundl
 :class:`bundle.Adjusted` (or None) out, in order. Its own prints go to stderr, so nothing else ever reaches the pipe.
 
 The result does not depend on where it was computed: the window's arrays cross the pipe bit for bit
-and the worker runs the same function (tested: identical trajectories either way). A worker that dies
+and the worker runs the same function (tested: identical trajectories either way). Results are read
+from the pipe by a thread of their own as they come, so ``ready`` can say, without waiting, whether the
+oldest one is back (``ba_wait: false``: the frame loop never waits for it). A worker that dies
 or answers garbage is not an input problem: :class:`ProcessSolver` says why once (``failure``) and
 solves the window it lost, and every later one, in the calling process.
 """
@@ -18,8 +20,10 @@ from __future__ import annotations
 
 import os
 import pickle
+import queue
 import subprocess
 import sys
+import threading
 import weakref
 from typing import IO, Any
 
@@ -39,11 +43,26 @@ class InlineSolver:
 
         self._results.append(bundle.adjust(window))
 
+    def ready(self) -> bool:
+        """Whether ``receive`` would return at once (always: the result was computed by ``send``)."""
+        return True
+
     def receive(self) -> Any:
         return self._results.pop(0)
 
     def close(self) -> None:
         self._results.clear()
+
+
+def _read_results(out: IO[bytes], results: queue.SimpleQueue[tuple[bool, Any]]) -> None:
+    """The reader thread: every result the worker writes, as it comes; at the end (EOF, a dead worker,
+    garbage) the exception that ended it, flagged False. It holds no reference to its solver."""
+    while True:
+        try:
+            results.put((True, pickle.load(out)))
+        except (OSError, EOFError, ValueError, pickle.UnpicklingError, AttributeError, ImportError) as exc:
+            results.put((False, exc))
+            return
 
 
 def _stop(proc: subprocess.Popen[bytes]) -> None:
@@ -62,14 +81,15 @@ def _stop(proc: subprocess.Popen[bytes]) -> None:
 
 class ProcessSolver:
     """Solves in a worker process (``ba_solver: process``): ``send`` hands a window over and returns at
-    once; ``receive`` waits for the oldest window's result. Started on construction, so its imports
-    (about a second) overlap the first keyframes."""
+    once; ``receive`` waits for the oldest window's result, ``ready`` says whether it is back. Started on
+    construction, so its imports (about a second) overlap the first keyframes."""
 
     def __init__(self) -> None:
         self.failure = ""  # why the worker is no longer used ("" while it is)
         self._inline = InlineSolver()
         self._sent: list[Any] = []  # windows sent and not yet received (kept to solve here if it dies)
         self._proc: subprocess.Popen[bytes] | None = None
+        self._results: queue.SimpleQueue[tuple[bool, Any]] = queue.SimpleQueue()
         try:
             self._proc = subprocess.Popen([sys.executable, "-m", MODULE], stdin=subprocess.PIPE,
                                           stdout=subprocess.PIPE)
@@ -77,6 +97,8 @@ class ProcessSolver:
             self._fail(f"could not start the bundle adjustment worker ({exc})")
             return
         self._finalizer = weakref.finalize(self, _stop, self._proc)
+        threading.Thread(target=_read_results, args=(self._proc.stdout, self._results), daemon=True,
+                         name="epi_vo_ba_results").start()
 
     def _fail(self, reason: str) -> None:
         if not self.failure:
@@ -96,16 +118,21 @@ class ProcessSolver:
         except (OSError, pickle.PicklingError) as exc:
             self._fail(f"the bundle adjustment worker stopped taking windows ({exc})")
 
+    def ready(self) -> bool:
+        """Whether ``receive`` would return without waiting for the worker: the oldest window's result
+        (or the news that the worker ended) is back, or the worker is no longer used (``receive`` then
+        solves here: the fallback does not pretend to be on time)."""
+        return self._proc is None or not self._results.empty()
+
     def receive(self) -> Any:
         window = self._sent.pop(0)
         if self._proc is not None:
-            try:
-                assert self._proc.stdout is not None
-                return pickle.load(self._proc.stdout)
-            except (OSError, EOFError, pickle.UnpicklingError, AttributeError, ImportError) as exc:
-                code = self._proc.poll()
-                how = f"exited with {code}" if code is not None else "failed"
-                self._fail(f"the bundle adjustment worker {how} ({type(exc).__name__})")
+            ok, value = self._results.get()
+            if ok:
+                return value
+            code = self._proc.poll()
+            how = f"exited with {code}" if code is not None else "failed"
+            self._fail(f"the bundle adjustment worker {how} ({type(value).__name__})")
         self._inline.send(window)
         return self._inline.receive()
 

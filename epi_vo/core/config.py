@@ -132,6 +132,10 @@ class VoConfig:
     ba_solver: str = _knob("process", "where the windowed bundle adjustment runs: 'process' (a worker process beside "
                            "the frame loop) or 'inline' (in it); its result is applied at the next keyframe either "
                            "way, so both give the same poses", choices=BA_SOLVERS)
+    ba_wait: bool = _knob(True, "at the keyframe after an adjustment started, wait for its result if the worker is "
+                          "not done: a replay gives the same poses run to run; false: never wait, a late result is "
+                          "applied at the first keyframe after it is back (a live node keeps its frame rate; the "
+                          "poses then depend on the worker's speed)")
 
     # --- tracking lost -------------------------------------------------------------------------
     lost_after_frames: int = _knob(3, "consecutive frames without a pose before tracking is declared lost", 1, 1000)

@@ -436,7 +436,7 @@ class VoPipeline:
         kf = self._kf
         assert kf is not None
         t0 = time.perf_counter()
-        update = self._window.collect()  # waits for the worker if it is not done yet
+        update = self._window.collect(self.cfg.ba_wait)  # ba_wait: wait for the worker if it is not done
         if update is not None:
             st.timings["window_wait"], st.timings["window_solve"] = _ms(t0), update.ms  # solve: in the worker
             # The window's own uncertainty (when it has one) replaces the chain of keyframe steps in it.

@@ -7,7 +7,10 @@ survived across keyframes, linked by the keyframes' track ids), a Huber loss, th
 fixed (gauge and scale: the scale stage's metric corrections are already in them). An adjustment is
 submitted at a keyframe and its result collected at the next one, so it can run beside the frame loop
 in a worker process (``ba_solver: process``, ``epi_vo.core.bundle_worker``; ``inline`` solves at the
-submission): either way it is applied at the same keyframe, and the poses are the same. The result moves
+submission): either way it is applied at the same keyframe, and the poses are the same. With ``ba_wait:
+false`` (a live node) the frame loop never waits for the worker: a result not back at the next keyframe
+is collected at the first keyframe after it is, and every keyframe added meanwhile moves with it; no
+new adjustment starts while one is under way. The result moves
 the keyframe it adjusted and its map points, and the keyframe made since from that keyframe's old pose
 moves with it (``correct``): its pose by the same correction, its adjusted map points, and its
 covariance with the window's marginal in place of the chain's part. Older window poses are kept for the
@@ -140,8 +143,9 @@ class WindowedMap:
         self._since += 1
 
     def due(self) -> bool:
-        """An adjustment is due: enough keyframes in the window and ``every`` added since the last."""
-        return self.size > 0 and len(self._entries) >= 3 and self._since >= self.every
+        """An adjustment is due: enough keyframes in the window, ``every`` added since the last, and none
+        under way (``ba_wait: false`` leaves one pending until its result is back)."""
+        return self.size > 0 and len(self._entries) >= 3 and self._since >= self.every and self._pending is None
 
     def submit(self, fx: float, exclude_ids: I64 | None = None) -> bool:
         """Start adjusting the window (False when it cannot be: too few shared tracks). Tracks
@@ -158,17 +162,27 @@ class WindowedMap:
                                  None if newest.cov_w is None else newest.cov_w.copy())
         return True
 
-    def collect(self) -> WindowUpdate | None:
-        """The submitted adjustment's result (waiting for it), applied to the keyframes it adjusted; None
-        when none was submitted or the optimiser refused the window."""
+    @property
+    def pending(self) -> bool:
+        """An adjustment was submitted and its result not collected yet."""
+        return self._pending is not None
+
+    def collect(self, wait: bool = True) -> WindowUpdate | None:
+        """The submitted adjustment's result, applied to the keyframes it adjusted and moving the ones
+        added since (``_carry``); None when none was submitted, the optimiser refused the window, or,
+        without ``wait``, the result is not back yet (it stays pending: ask again at the next keyframe)."""
         while self._stale:
             assert self._solver is not None
+            if not (wait or self._solver.ready()):
+                return None
             self._solver.receive()
             self._stale -= 1
-        pending, self._pending = self._pending, None
-        if pending is None:
+        if self._pending is None:
             return None
         assert self._solver is not None
+        if not (wait or self._solver.ready()):
+            return None
+        pending, self._pending = self._pending, None
         result = self._solver.receive()
         if result is None:
             return None
@@ -187,9 +201,24 @@ class WindowedMap:
             cov = covm.floored(covm.chain_world(oldest.cov_w, oldest.T_w_kf[:3, 3], newest.T_w_kf[:3, 3],
                                                 result.cov_newest))
             newest.cov_w = cov
-        return WindowUpdate(newest.T_w_kf.copy(), X_kf, int(np.count_nonzero(np.isfinite(result.points_w[:, 0]))),
-                            len(entries), result.ms, pending.T_w_kf_before, pending.point_ids, result.points_w,
-                            cov, pending.cov_w_before)
+        update = WindowUpdate(newest.T_w_kf.copy(), X_kf, int(np.count_nonzero(np.isfinite(result.points_w[:, 0]))),
+                              len(entries), result.ms, pending.T_w_kf_before, pending.point_ids, result.points_w,
+                              cov, pending.cov_w_before)
+        self._carry(update, pending.entries)
+        return update
+
+    def _carry(self, update: WindowUpdate, adjusted: list[_Entry]) -> None:
+        """The keyframes added since the adjustment was submitted (a result collected late, ``ba_wait:
+        false``) were made from the adjusted keyframe's old pose: they move with it (``correct``), so the
+        next adjustment starts from poses that agree."""
+        for entry in self._entries:
+            if any(entry is a for a in adjusted):
+                continue
+            T, X, cov = self.correct(update, entry.T_w_kf, entry.ids, entry.X_kf,
+                                     entry.cov_w if entry.cov_w is not None else np.zeros((6, 6)))
+            entry.T_w_kf, entry.X_kf = T, X
+            if entry.cov_w is not None:
+                entry.cov_w = cov
 
     def adjust(self, fx: float, exclude_ids: I64 | None = None) -> WindowUpdate | None:
         """Adjust the window now (``submit`` and ``collect``); None when it cannot be (too few shared

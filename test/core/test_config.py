@@ -47,7 +47,7 @@ def test_defaults_validate() -> None:
 def test_every_field_has_a_doc_line_and_a_typed_default() -> None:
     for f in config_fields():
         assert field_doc(f).strip(), f"{f.name} has no doc line"
-        assert type(f.default) in (int, float, str), f"{f.name} default {f.default!r}"
+        assert type(f.default) in (int, float, str, bool), f"{f.name} default {f.default!r}"
         choices = f.metadata["choices"]
         if choices is not None:
             assert f.default in choices
@@ -128,6 +128,13 @@ def test_from_dict_single_bad_value(name: str, value: object, fragment: str) -> 
 def test_from_dict_wrong_type_for_klt_window(value: object) -> None:
     with pytest.raises(ConfigError, match=r"klt_window_px=.*\(expected int\)"):
         from_dict({"klt_window_px": value})
+
+
+@pytest.mark.parametrize("value", ["false", 0, 1, None])
+def test_from_dict_a_switch_takes_true_or_false_only(value: object) -> None:
+    with pytest.raises(ConfigError, match=r"ba_wait=.*\(expected bool\)"):
+        from_dict({"ba_wait": value})
+    assert from_dict({"ba_wait": False}).ba_wait is False
 
 
 def test_from_dict_unknown_parameter() -> None:

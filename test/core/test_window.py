@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from epi_vo.core.bundle_worker import InlineSolver
 from epi_vo.core.transforms import invert_T, make_T
 from epi_vo.core.window import WindowedMap
 
@@ -372,3 +373,117 @@ def test_a_keyframe_made_after_the_adjusted_one_moves_with_it() -> None:
     np.testing.assert_array_equal(X_new[20:], 7.0)  # not adjusted: as they were
     assert cov_new is not None
     np.testing.assert_allclose(cov_new, update.cov_w_kf + np.eye(6) * 1e-2, atol=1e-12)
+
+
+class _LateSolver(InlineSolver):
+    """Solves at ``send`` like ``ba_solver: inline`` but says its result is not back for ``late`` calls
+    of ``ready`` after each send: a worker slower than the keyframes, made deterministic."""
+
+    def __init__(self, late: int) -> None:
+        super().__init__()
+        self.late = late
+        self._asks = 0
+        self.waited = 0  # receive() called while not ready: the frame loop would have waited
+
+    def send(self, window) -> None:
+        super().send(window)
+        self._asks = 0
+
+    def ready(self) -> bool:
+        self._asks += 1
+        return self._asks > self.late
+
+    def receive(self):
+        if self._asks <= self.late:
+            self.waited += 1
+        return super().receive()
+
+
+def test_without_waiting_a_late_result_stays_pending_then_moves_the_keyframes_added_meanwhile() -> None:
+    """``ba_wait: false``: the result not back at the next keyframe stays pending (no new adjustment
+    starts); when it is back, the keyframes made meanwhile from the adjusted one's old pose move with it,
+    as the one keyframe of a result on time does (``correct``)."""
+    reference = _window_of("inline")
+    assert reference.submit(500.0)
+    expected = reference.collect()
+    win = _window_of("inline")
+    win._solver = late = _LateSolver(late=2)
+    before = win._entries[-1].T_w_kf.copy()
+    assert win.submit(500.0)
+    steps = [make_T(_rot_y(1.0), np.array([0.4, 0.0, 0.1])), make_T(_rot_y(2.5), np.array([0.9, 0.0, 0.3]))]
+    assert expected is not None
+    ids = np.concatenate([expected.point_ids[:15], [10_000, 10_001]])  # 15 adjusted tracks, 2 new
+    for step in steps:  # two keyframes made from the newest one's pose before the adjustment
+        assert win.collect(wait=False) is None and win.pending and not win.due()  # not back: nothing applied
+        win.add(before @ step, ids, np.zeros((ids.size, 2)), np.full((ids.size, 3), 7.0))
+    update = win.collect(wait=False)
+    assert late.waited == 0 and update is not None and not win.pending
+    _same_update(update, expected)  # the same adjustment as collected on time
+    for entry, step in zip(list(win._entries)[-2:], steps, strict=True):
+        np.testing.assert_allclose(entry.T_w_kf, expected.T_w_kf @ step, atol=1e-12)
+        Xw = entry.X_kf[:15] @ entry.T_w_kf[:3, :3].T + entry.T_w_kf[:3, 3]
+        ok = np.all(np.isfinite(expected.points_w[:15]), axis=1)
+        assert ok.sum() >= 10
+        np.testing.assert_allclose(Xw[ok], expected.points_w[:15][ok], atol=1e-9)
+        np.testing.assert_array_equal(entry.X_kf[15:], 7.0)  # new tracks: as they were
+    assert win.due() or win._since < win.every  # a new adjustment may start again
+
+
+def test_the_worker_says_when_its_result_is_back_without_waiting_for_it() -> None:
+    import time
+
+    inline, process = _window_of("inline"), _window_of("process")
+    try:
+        assert process.submit(500.0) and inline.submit(500.0)
+        deadline = time.monotonic() + 120.0  # a condition with a generous bound, not a fixed sleep
+        while not process._solver.ready():
+            assert time.monotonic() < deadline, "the worker's result never came back"
+            time.sleep(0.01)
+        update = process.collect(wait=False)
+        assert update is not None
+        _same_update(update, inline.collect())
+        proc = process._solver._proc
+        proc.kill()  # a dead worker is 'ready' too: its window is solved here
+        proc.wait()
+        assert process.submit(500.0) and inline.submit(500.0)
+        while not process._solver.ready():
+            assert time.monotonic() < deadline, "the worker's end was never noticed"
+            time.sleep(0.01)
+        _same_update(inline.collect(), process.collect(wait=False))
+        assert "bundle adjustment worker" in process.take_failure()
+    finally:
+        process.close()
+
+
+def test_a_pipeline_that_never_waits_applies_late_results_and_stays_accurate(monkeypatch) -> None:
+    """ground_robot with ``ground_plane``, a window of 8 and every result two keyframes late (a worker
+    slower than the keyframes, as the floor prior's is at 15 Hz): the frame loop never waits, every
+    adjustment is applied, the poses stay metric and accurate."""
+    from pathlib import Path
+
+    from epi_vo.core import window as window_module
+    from epi_vo.core.config import VoConfig
+    from epi_vo.tools.replay import run_replay
+
+    solvers: list[_LateSolver] = []
+
+    def late_solver() -> _LateSolver:
+        solvers.append(_LateSolver(late=2))
+        return solvers[-1]
+
+    monkeypatch.setattr(window_module, "InlineSolver", late_solver)
+    bag = Path(__file__).resolve().parents[2] / "bags" / "ground_robot" / "bag"
+    cfg = dataclasses.replace(VoConfig(), ba_window_keyframes=8, ba_solver="inline", ba_wait=False,
+                              scale_source="ground_plane", camera_height_m=0.45)
+    results = []
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        summary = run_replay(bag, tmp, cfg, on_result=results.append)
+    assert len(solvers) == 1 and solvers[0].waited == 0  # never blocked on a result
+    applied = [r for r in results if "window_solve" in r.timings_ms]
+    assert len(applied) >= 20  # ~42 keyframe groups of 3 at a result every ~5 keyframes
+    assert summary.metrics is not None
+    assert summary.metrics["ate_percent_of_path"] < 0.1  # 0.044 (0.042 waiting for every result)
+    assert summary.metrics["ate_se3_percent_of_path"] < 0.3  # 0.126 (0.126)
+    assert all(np.all(np.isfinite(r.T_w_c)) for r in results)
