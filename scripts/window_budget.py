@@ -11,7 +11,9 @@ For each replay output directory this prints:
 * the adjustments: how many, the worker's solve time (median, p95, max; measured while the replay
   competed with it for the two cores, so a live node's are shorter) and how many would be late at the
   bag's camera rate (solve time longer than the stamp interval from the keyframe that submitted it to
-  the one that collects it): each late one would make the live frame loop wait.
+  the one that collects it): each late one would make the live frame loop wait with ``ba_wait: true``
+  (with ``false`` it does not wait: the result is applied at a later keyframe, and the column counts
+  those taken at a keyframe sooner after the previous one than the solve took).
 
     .venv/bin/epi-vo replay bags/ground_robot/bag --output /tmp/gr --params window.yaml
     .venv/bin/python scripts/window_budget.py /tmp/gr [more replay dirs]
