@@ -3,8 +3,9 @@
 After ``mapping`` made a keyframe, the pipeline hands it to :class:`WindowedMap`. Every
 ``ba_every_keyframes`` tracking keyframes the last ``ba_window_keyframes`` keyframes are adjusted
 together (``epi_vo.core.bundle``, GTSAM): map points observed by at least two of them (tracks that
-survived across keyframes, linked by the keyframes' track ids), a Huber loss, the two oldest keyframes
-fixed (gauge and scale: the scale stage's metric corrections are already in them). An adjustment is
+survived across keyframes, linked by the keyframes' track ids), a Huber loss, the oldest keyframe fixed
+(gauge) and the scale held by the scale source's priors or, without one, by the distance from the oldest
+keyframe to the farthest (the scale stage's metric corrections are already in it). An adjustment is
 submitted at a keyframe and its result collected at the next one, so it can run beside the frame loop
 in a worker process (``ba_solver: process``, ``epi_vo.core.bundle_worker``; ``inline`` solves at the
 submission): either way it is applied at the same keyframe, and the poses are the same. With ``ba_wait:
@@ -293,11 +294,11 @@ def _build(bundle_module: ModuleType, entries: list[_Entry], sigma_px: float, fx
         obs_pt.append(pos[rows])
         obs_xn.append(e.xn[rows])
     distances, plane = _scale_priors(bundle_module, entries, ids)
-    # With a metric prior only the oldest keyframe holds the gauge and the priors carry the scale;
-    # without one the two oldest fix it (the scale stage's corrections are already in them).
-    n_fixed = 1 if distances or plane is not None else min(2, len(entries) - 1)
+    # The oldest keyframe holds the gauge. With a metric prior the priors carry the scale; without one,
+    # the distance from the oldest keyframe to the farthest (``bundle``: the longest baseline; the
+    # scale stage's corrections are already in it).
     window = bundle_module.Window(np.stack([e.T_w_kf for e in entries]), pts_w, np.concatenate(obs_kf),
-                                  np.concatenate(obs_pt), np.concatenate(obs_xn), sigma_px, fx, n_fixed=n_fixed,
+                                  np.concatenate(obs_pt), np.concatenate(obs_xn), sigma_px, fx, n_fixed=1,
                                   distance_priors=distances, plane_prior=plane)
     return window, ids
 

@@ -248,12 +248,18 @@ def test_a_floor_plane_with_a_known_camera_height_fixes_the_scale() -> None:
     assert np.degrees(np.arccos(min(1.0, -n[1]))) < 1.0 and d == pytest.approx(height, rel=0.03)
 
 
-def test_without_priors_one_fixed_keyframe_keeps_the_initial_distance_to_keyframe_1() -> None:
+def test_without_priors_one_fixed_keyframe_keeps_the_initial_distance_to_the_farthest_keyframe() -> None:
+    """The longest baseline but the newest keyframe's carries the window's scale: its initial length is
+    kept, the shorter ones (keyframe 0 to 1) are adjusted."""
     s = _scene(5, n_fixed=1, scale=1.2)
     result = ba.adjust(s.window(n_fixed=1))
     assert result is not None
-    d0 = np.linalg.norm(s.T0[1, :3, 3] - s.T0[0, :3, 3])
-    assert np.linalg.norm(result.T_w_kf[1, :3, 3] - result.T_w_kf[0, :3, 3]) == pytest.approx(d0, rel=1e-5)
+    d0 = np.linalg.norm(s.T0[:, :3, 3] - s.T0[0, :3, 3], axis=1)
+    far = int(np.argmax(d0[:-1]))
+    assert far > 1
+    d = np.linalg.norm(result.T_w_kf[:, :3, 3] - result.T_w_kf[0, :3, 3], axis=1)
+    assert d[far] == pytest.approx(d0[far], rel=1e-5)
+    assert abs(d[1] / d0[1] - 1.0) > 1e-4  # a short baseline is not held
 
 
 # ----------------------------------------------------------------------------------------------
