@@ -2,19 +2,14 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from script_module import load_script
 
 REPO = Path(__file__).resolve().parents[2]
-_spec = importlib.util.spec_from_file_location("keyframe_steps", REPO / "scripts" / "keyframe_steps.py")
-assert _spec is not None and _spec.loader is not None
-keyframe_steps = importlib.util.module_from_spec(_spec)
-sys.modules["keyframe_steps"] = keyframe_steps  # dataclasses look their module up
-_spec.loader.exec_module(keyframe_steps)
+keyframe_steps = load_script("keyframe_steps")
 
 
 def _walk(rng: np.random.Generator, n: int, sigma: np.ndarray, rho: float) -> tuple[np.ndarray, np.ndarray]:

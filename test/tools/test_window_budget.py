@@ -2,19 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
+from script_module import load_script
 
-REPO = Path(__file__).resolve().parents[2]
-_spec = importlib.util.spec_from_file_location("window_budget", REPO / "scripts" / "window_budget.py")
-assert _spec is not None and _spec.loader is not None
-window_budget = importlib.util.module_from_spec(_spec)
-sys.modules["window_budget"] = window_budget  # dataclasses look their module up
-_spec.loader.exec_module(window_budget)
+window_budget = load_script("window_budget")
 
 
 def _records() -> list[dict]:
