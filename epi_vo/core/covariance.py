@@ -154,5 +154,17 @@ def floored(cov: F64) -> F64:
     return cov
 
 
+def cover(a: F64, b: F64) -> F64:
+    """A covariance at least as wide as ``a`` and as ``b`` in every direction (``x^T C x >= max(x^T a x,
+    x^T b x)``): ``b`` whitened by ``a``'s Cholesky factor, its eigenvalues raised to at least 1, and
+    coloured back. For two estimates of one uncertainty of which neither is known to be the right one.
+    ``a`` must be positive definite (``floored``)."""
+    L = np.linalg.cholesky(0.5 * (a + a.T))
+    Li = np.linalg.inv(L)
+    w, V = np.linalg.eigh(Li @ (0.5 * (b + b.T)) @ Li.T)
+    out = L @ (V * np.maximum(w, 1.0)) @ V.T @ L.T
+    return 0.5 * (out + out.T)
+
+
 def is_finite(*arrays: F64) -> bool:
     return all(bool(np.all(np.isfinite(a))) for a in arrays)

@@ -67,7 +67,12 @@ class _Entry:
 class WindowUpdate:
     """What an adjustment changes: the newest keyframe's pose and the map points of its rows, and its
     covariance: GTSAM's marginal given the window's fixed oldest keyframe, chained onto that keyframe's
-    own covariance (None when no covariance was given for it)."""
+    own covariance (None when no covariance was given for it), widened where the keyframe chain's is
+    wider (``covariance.cover``). The marginal knows the window's shared tracks but takes their
+    observations as independent, which the tracks' drift from keyframe to keyframe is not, and holds
+    the scale by the longest baseline; the chain knows neither the tracks' sharing nor the drift.
+    Either alone was too narrow somewhere: with the marginal alone, position NEES 19.8 on ground_robot
+    and 107 on KITTI (window 8); with the cover 6.3 and 59 (72 without a window)."""
 
     T_w_kf: F64
     X_kf: F64  # (N, 3) the newest keyframe's map points in its own frame after the adjustment
@@ -201,6 +206,8 @@ class WindowedMap:
         if oldest.cov_w is not None and np.all(np.isfinite(result.cov_newest)):
             cov = covm.floored(covm.chain_world(oldest.cov_w, oldest.T_w_kf[:3, 3], newest.T_w_kf[:3, 3],
                                                 result.cov_newest))
+            if newest.cov_w is not None:  # no narrower than the keyframe chain's (see WindowUpdate)
+                cov = covm.cover(covm.floored(newest.cov_w), cov)
             newest.cov_w = cov
         update = WindowUpdate(newest.T_w_kf.copy(), X_kf, int(np.count_nonzero(np.isfinite(result.points_w[:, 0]))),
                               len(entries), result.ms, pending.T_w_kf_before, pending.point_ids, result.points_w,

@@ -247,3 +247,31 @@ def test_with_rotation_scaled_scales_the_rotation_and_keeps_the_correlations() -
     corr = lambda c: c / np.sqrt(np.outer(np.diag(c), np.diag(c)))  # noqa: E731
     np.testing.assert_allclose(corr(got), corr(cov))
     assert covm.with_rotation_scaled(cov, 1.0) is cov
+
+
+def _spd(rng: np.random.Generator) -> np.ndarray:
+    A = rng.normal(size=(6, 6))
+    return A @ A.T + 0.1 * np.eye(6)
+
+
+def test_cover_is_at_least_as_wide_as_both_in_every_direction() -> None:
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        a, b = _spd(rng), _spd(rng)
+        c = covm.cover(a, b)
+        np.testing.assert_allclose(c, c.T)
+        for x in rng.normal(size=(200, 6)):
+            assert x @ c @ x >= max(x @ a @ x, x @ b @ x) * (1 - 1e-9)
+        # and no wider than needed along a's and b's own worst directions: the two together
+        assert np.trace(c) <= np.trace(a) + np.trace(b) + 1e-9
+
+
+def test_cover_of_nested_covariances_is_the_wider_one() -> None:
+    rng = np.random.default_rng(4)
+    a = _spd(rng)
+    np.testing.assert_allclose(covm.cover(a, 0.5 * a), a, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(covm.cover(a, 2.0 * a), 2.0 * a, rtol=1e-10, atol=1e-12)
+    # wider along one axis only: that axis takes b's variance, the others keep a's
+    a = np.diag([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])
+    b = np.diag([0.5, 8.0, 1.0, 1.0, 1.0, 1.0])
+    np.testing.assert_allclose(covm.cover(a, b), np.diag([1.0, 8.0, 3.0, 4.0, 5.0, 6.0]), atol=1e-12)

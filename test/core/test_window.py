@@ -234,14 +234,20 @@ def test_window_covariance_chains_the_oldest_keyframes_uncertainty() -> None:
         ids = ids_all[(ids_all + k) % 7 != 0]
         entries.append((T, ids, *_entry(T, pts, ids, rng, noise=0.03)))
     cov_old = np.diag([1e-4] * 3 + [math.radians(0.5) ** 2] * 3)
-    tight, loose, bare = (WindowedMap(size=5, every=1, sigma_px=1.0) for _ in range(3))
-    for T, ids, xn, X in entries:
+    tight, loose, bare, wide = (WindowedMap(size=5, every=1, sigma_px=1.0) for _ in range(4))
+    for k, (T, ids, xn, X) in enumerate(entries):
         tight.add(T, ids, xn, X, cov_w=np.eye(6) * 1e-14)
-        loose.add(T, ids, xn, X, cov_w=cov_old)
+        loose.add(T, ids, xn, X, cov_w=cov_old if k == 0 else np.eye(6) * 1e-14)
         bare.add(T, ids, xn, X)
+        wide.add(T, ids, xn, X, cov_w=np.eye(6) * (1.0 if k == len(entries) - 1 else 1e-14))
     u_tight, u_loose, u_bare = tight.adjust(500.0), loose.adjust(500.0), bare.adjust(500.0)
     assert u_tight is not None and u_loose is not None and u_bare is not None
     assert u_bare.cov_w_kf is None
+    # The newest keyframe's chain covariance (1 m^2, 1 rad^2) is wider than the window's marginal in
+    # every direction: the window keeps it (covariance.cover), it does not claim to know better.
+    u_wide = wide.adjust(500.0)
+    assert u_wide is not None and u_wide.cov_w_kf is not None
+    np.testing.assert_allclose(u_wide.cov_w_kf, np.eye(6), atol=1e-9)
     assert u_tight.cov_w_kf is not None and u_loose.cov_w_kf is not None
     lever = u_loose.T_w_kf[:3, 3] - poses[0][:3, 3]  # 2.5 m (the oldest keyframe is held as given)
     added = np.diag(u_loose.cov_w_kf - u_tight.cov_w_kf)
