@@ -439,7 +439,7 @@ class VoPipeline:
         update = self._window.collect(self.cfg.ba_wait)  # ba_wait: wait for the worker if it is not done
         if update is not None:
             st.timings["window_wait"], st.timings["window_solve"] = _ms(t0), update.ms  # solve: in the worker
-            # The window's own uncertainty (when it has one) replaces the chain of keyframe steps in it.
+            # The window's uncertainty (when it has one; covering the chain's) replaces the keyframe's.
             T, X, cov = self._window.correct(update, kf.T_w_kf, kf.ids, kf.X_kf, kf.cov_w_kf)
             kf = self._kf = dataclasses.replace(kf, T_w_kf=T, X_kf=X, cov_w_kf=cov)
             self._T_w_c = T.copy()

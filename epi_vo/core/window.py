@@ -14,7 +14,7 @@ is collected at the first keyframe after it is, and every keyframe added meanwhi
 new adjustment starts while one is under way. The result moves
 the keyframe it adjusted and its map points, and the keyframe made since from that keyframe's old pose
 moves with it (``correct``): its pose by the same correction, its adjusted map points, and its
-covariance with the window's marginal in place of the chain's part. Older window poses are kept for the
+covariance with the window's (``WindowUpdate``) in place of the chain's part. Older window poses are kept for the
 next adjustment. The window is dropped whenever the map is (restart, metric scale newly established),
 since its poses and points would no longer agree; an adjustment under way then is dropped as it comes
 back.
