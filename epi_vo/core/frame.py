@@ -145,6 +145,10 @@ class FrameResult:
     # 6x6 covariance (odometry frame, position first) of the motion since the previous frame, for the
     # twist; None when the frame has no pose or no previous frame with one
     step_covariance: F64 | None = None
+    # The rigid transform (4x4, odometry frame) the windowed adjustment applied at this frame: the poses
+    # before it move with it (T_new = correction @ T_old), so the motion since the previous frame, the
+    # twist, is this frame's pose against correction @ the previous pose, not the jump; None: no correction
+    correction: F64 | None = None
 
     @property
     def rejected(self) -> bool:
@@ -155,8 +159,8 @@ class FrameResult:
         problems = []
         if not 0 <= self.stamp_ns <= MAX_STAMP_NS:
             problems.append(f"stamp {self.stamp_ns}")
-        for name in ("T_w_c", "covariance", "points_w"):
-            if not np.all(np.isfinite(getattr(self, name))):
+        for name in ("T_w_c", "covariance", "points_w", "correction"):
+            if getattr(self, name) is not None and not np.all(np.isfinite(getattr(self, name))):
                 problems.append(name)
         if not all(math.isfinite(v) for v in self.timings_ms.values()):
             problems.append("timings_ms")
@@ -248,6 +252,7 @@ class FrameStats:
     n_moving: int = 0
     moving_region: tuple[int, int, int, int] | None = None
     points_w: F64 = field(default_factory=lambda: np.zeros((0, 3)))
+    correction: F64 | None = None  # FrameResult.correction
     matches: Matches = field(default_factory=Matches.empty)
     F: F64 = field(default_factory=lambda: np.zeros((3, 3)))
     H: F64 = field(default_factory=lambda: np.zeros((3, 3)))

@@ -85,10 +85,15 @@ class OdometryConverter:
         return self.T_base_cam @ T_w_c @ self._T_cam_base
 
     def convert(self, stamp_ns: int, T_w_c: F64, cov_w: F64, has_pose: bool,
-                step_cov_w: F64 | None = None) -> OdometrySample:
+                step_cov_w: F64 | None = None, correction_w: F64 | None = None) -> OdometrySample:
         """One odometry sample. ``step_cov_w`` (the frame's ``step_covariance``, odometry frame of the
         pipeline) is the covariance of the motion since the previous frame: the twist's covariance is
-        it over dt^2, in the child frame. Without it, the pose covariance gained over the step is used."""
+        it over dt^2, in the child frame. Without it, the pose covariance gained over the step is used.
+        ``correction_w`` (the frame's ``correction``): the windowed adjustment moved the odometry frame's
+        poses by it at this frame; the twist is the motion from the previous pose as moved, not the jump."""
+        if correction_w is not None and self._prev is not None:
+            C = self.T_base_cam @ np.asarray(correction_w, np.float64) @ self._T_cam_base
+            self._prev = (self._prev[0], C @ self._prev[1], self._prev[2])
         T_odom_base = self.base_pose(T_w_c)
         R_ob = T_odom_base[:3, :3]
         cov_odom = rotate_covariance(cov_w, self.T_base_cam[:3, :3])
@@ -106,6 +111,11 @@ class OdometryConverter:
             self._prev = (stamp_ns, T_odom_base, cov_odom)
         return OdometrySample(stamp_ns, T_odom_base[:3, 3].copy(), quat_xyzw_from_rotation(R_ob), cov_odom, lin,
                               ang, twist_cov)
+
+    def convert_result(self, r: FrameResult) -> OdometrySample:
+        """``convert`` of a pipeline result, with its step covariance and correction: what every front door
+        publishes."""
+        return self.convert(r.stamp_ns, r.T_w_c, r.covariance, r.has_pose, r.step_covariance, r.correction)
 
     def _twist(self, stamp_ns: int, T_odom_base: F64, cov_odom: F64) -> tuple[F64, F64, F64]:
         """Twist in the child frame by differencing with the previous pose; unknown when not finite."""

@@ -372,8 +372,7 @@ class VoPipeline:
 
     def _noise_since(self, kf: Keyframe) -> float:
         """The image noise the tracks gathered since ``kf`` (``_book_track_noise``) for the pose's covariance
-        (``MotionContext.noise_sq``); ORB matches the keyframe directly, not through a chain of frames: 1
-        (``pixel_noise_px``)."""
+        (``MotionContext.noise_sq``); ORB matches the keyframe directly: 1 (``pixel_noise_px``)."""
         if self.cfg.frontend != "klt" or self._tracked_noise[0] != kf.index:
             return 1.0
         return self._tracked_noise[1]
@@ -441,6 +440,7 @@ class VoPipeline:
             st.timings["window_wait"], st.timings["window_solve"] = _ms(t0), update.ms  # solve: in the worker
             # The window's uncertainty (when it has one; covering the chain's) replaces the keyframe's.
             T, X, cov = self._window.correct(update, kf.T_w_kf, kf.ids, kf.X_kf, kf.cov_w_kf)
+            st.correction = T @ invert_T(kf.T_w_kf)  # the poses before move with it (the twist's reference)
             kf = self._kf = dataclasses.replace(kf, T_w_kf=T, X_kf=X, cov_w_kf=cov)
             self._T_w_c = T.copy()
             if update.cov_w_kf is not None:
@@ -642,10 +642,10 @@ class VoPipeline:
             timings_ms=dict(st.timings),
             reason="; ".join(st.reasons), matches=st.matches, scale=self._scale.status(), n_moving=st.n_moving,
             moving_fraction=st.n_moving / st.n_tracked if st.n_tracked else 0.0, moving_region=st.moving_region,
-            static_score=st.static_score, focal_ratio=st.focal_ratio, track_noise_px=st.track_noise_px)
+            static_score=st.static_score, focal_ratio=st.focal_ratio, track_noise_px=st.track_noise_px,
+            correction=None if st.correction is None or T_out is not self._T_w_c else frozen(st.correction))
         self._index += 1
         return res
-
 
     def _keep_state_finite(self, st: FrameStats) -> None:
         """The held pose and covariance are finite whatever the input did (a guard: every estimate is

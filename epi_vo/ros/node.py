@@ -463,7 +463,7 @@ class VoNodeBase:
         return status
 
     def _publish(self, r: FrameResult, stamp_msg: Any, gray: np.ndarray | None) -> None:
-        s = self._converter.convert(r.stamp_ns, r.T_w_c, r.covariance, r.has_pose, r.step_covariance)
+        s = self._converter.convert_result(r)
         self._last_pose = (r.T_w_c, r.covariance, r.index)
         odom = Odometry()
         odom.header.stamp = stamp_msg

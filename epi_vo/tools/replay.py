@@ -588,8 +588,7 @@ class _PathWindow:
 
 def _write_outputs(obag: outbag.OutputBag, converter: OdometryConverter, result: FrameResult,
                    path_poses: _PathWindow, record: dict[str, Any] | None = None) -> OdometrySample:
-    sample = converter.convert(result.stamp_ns, result.T_w_c, result.covariance, result.has_pose,
-                                     result.step_covariance)
+    sample = converter.convert_result(result)
     obag.write_odometry(result.stamp_ns, ODOM_FRAME, BASE_FRAME, sample.position, sample.quat_xyzw,
                         sample.pose_covariance, sample.linear_velocity, sample.angular_velocity,
                         sample.twist_covariance)

@@ -146,8 +146,7 @@ def run_soak(n_frames: int, frames: SoakFrames | None = None, cfg: VoConfig | No
         gray = frames.grays[ping_pong(n_src, i)]
         result = pipeline.process(gray, frames.camera, (i + 1) * frames.period_ns)
         # What the front doors do with each result (their per-frame state soaks too).
-        converter.convert(result.stamp_ns, result.T_w_c, result.covariance, result.has_pose,
-                                     result.step_covariance)
+        converter.convert_result(result)
         frame_status(result, "epi_vo", "soak", status_pose(converter, result, "odom", "base_link"))
         json.dumps(result.to_record())
         times.append(result.timings_ms.get("total", math.nan))
