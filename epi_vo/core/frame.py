@@ -225,6 +225,10 @@ class FrameResult:
             "moving_region": list(self.moving_region) if self.moving_region is not None else None,
             "focal_ratio": num(self.focal_ratio),
             "track_noise_px": num(self.track_noise_px),
+            # how far the windowed adjustment moved the poses at this frame (position in ``units``)
+            "window_correction": None if self.correction is None else float(np.linalg.norm(self.correction[:3, 3])),
+            "window_correction_deg": None if self.correction is None else math.degrees(
+                math.acos(max(-1.0, min(1.0, (float(np.trace(self.correction[:3, :3])) - 1.0) / 2.0)))),
         }
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from epi_vo.core.odometry import OdometryConverter
 from epi_vo.core.transforms import make_T
@@ -47,3 +48,18 @@ def test_a_correction_before_any_pose_is_ignored() -> None:
     conv = OdometryConverter()
     s = conv.convert(1_000, np.eye(4), np.eye(6) * 1e-6, True, correction_w=make_T(np.eye(3), np.ones(3)))
     assert np.all(s.linear_velocity == 0.0) and np.all(s.angular_velocity == 0.0)
+
+
+def test_the_record_says_how_far_the_window_moved_the_poses() -> None:
+    import dataclasses
+
+    from epi_vo.core.pipeline import VoPipeline
+
+    r = VoPipeline().reject(1_000, "camera_info missing")
+    assert r.to_record()["window_correction"] is None and r.to_record()["window_correction_deg"] is None
+    rec = dataclasses.replace(r, correction=make_T(_rot_y(0.5), np.array([0.03, 0.0, -0.04]))).to_record()
+    assert abs(rec["window_correction"] - 0.05) < 1e-12 and abs(rec["window_correction_deg"] - 0.5) < 1e-9
+    bad = np.eye(4)
+    bad[0, 3] = np.nan
+    with pytest.raises(AssertionError, match="correction"):
+        dataclasses.replace(r, correction=bad)
