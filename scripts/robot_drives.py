@@ -5,8 +5,8 @@ covariance were never tuned on, to tell a property of the robot view from one of
 Drive ``k`` keeps ground_robot's camera (0.45 m high, 15 deg down), speed law, 300 frames at 15 Hz and wheel
 error model (bags/README.md), and draws from seed ``k``: four raised-cosine turns (each 2.5-4 s long,
 12-22 deg/s at its peak, left first, then right and left in turn), the image noise and the wheel noise.
-A drive that would come nearer than 2 m to a structure is re-drawn (the seed's next draw; the summary
-says how many were).
+A drive that would come nearer than 2 m to a structure, or move a floor point faster than the renderer
+allows, is re-drawn (the seed's next draw; the summary says how many were).
 
     .venv/bin/python scripts/robot_drives.py OUT_DIR --seeds 1 2 3
     .venv/bin/epi-vo replay OUT_DIR/robot_drive_1/bag --output DIR --params P.yaml   # as ground_robot
@@ -49,16 +49,17 @@ def draw_turns(rng: np.random.Generator) -> tuple[tuple[float, float, float], ..
 def drive_spec(seed: int) -> tuple[mb.BagSpec, tuple[tuple[float, float, float], ...], int]:
     """The spec of drive ``seed``, its turns and how many draws were re-drawn for clearance."""
     rng = np.random.default_rng(seed)
-    quads = mb.ground_robot_scene()
+    quads, camera = mb.ground_robot_scene(), mb.make_camera()
     times = np.array([(mb.stamp_ns(i) - mb.START_NS) / mb.NS_PER_S for i in range(mb.ROBOT_FRAMES)])
     bundled = mb.ROBOT_TURNS
     try:
         for attempt in range(ATTEMPTS):
             turns = mb.ROBOT_TURNS = draw_turns(rng)  # the speed, heading and wheel laws read it
             T_w_c = mb.robot_camera_poses(mb.robot_base_poses(times))
-            if mb.min_clearance_m(quads, T_w_c) >= mb.ROBOT_MIN_CLEARANCE_M and _structures_clear(quads, T_w_c):
+            if mb.min_clearance_m(quads, T_w_c) >= mb.ROBOT_MIN_CLEARANCE_M and _structures_clear(quads, T_w_c) \
+                    and mb.max_floor_flow_px(camera, T_w_c, mb.ROBOT_FLOOR_Y_M) <= mb.MAX_FLOOR_FLOW_PX:
                 wheel = mb.simulate_wheel_odometry(mb.wheel_stamps_ns(mb.ROBOT_FRAMES), seed=1000 + seed)
-                spec = mb.BagSpec(f"robot_drive_{seed}", quads, mb.make_camera(), T_w_c, noise_seed=100 + seed,
+                spec = mb.BagSpec(f"robot_drive_{seed}", quads, camera, T_w_c, noise_seed=100 + seed,
                                   min_clearance_m=mb.ROBOT_MIN_CLEARANCE_M, jpeg_quality=mb.ROBOT_JPEG_QUALITY,
                                   wheel_odom=wheel, floor_y_m=mb.ROBOT_FLOOR_Y_M)
                 return spec, turns, attempt

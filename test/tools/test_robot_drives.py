@@ -34,6 +34,7 @@ def test_each_seed_gives_its_own_drive_clear_of_the_yard_and_leaves_the_bundled_
         np.testing.assert_allclose(spec.T_w_c[:, 1, 3], 0.0, atol=1e-9)
         assert mb.min_clearance_m(spec.quads, spec.T_w_c) >= mb.ROBOT_MIN_CLEARANCE_M
         assert robot_drives._structures_clear(spec.quads, spec.T_w_c)
+        assert mb.max_floor_flow_px(spec.camera, spec.T_w_c, mb.ROBOT_FLOOR_Y_M) <= mb.MAX_FLOOR_FLOW_PX
     assert specs[1][1] != specs[2][1] and specs[1][0].noise_seed != specs[2][0].noise_seed
     again, turns, _ = robot_drives.drive_spec(1)
     assert turns == specs[1][1]
