@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from epi_vo.core.scale import ScaleStatus
-from epi_vo.core.transforms import quat_xyzw_from_rotation
+from epi_vo.core.transforms import quat_xyzw_from_rotation, rotation_angle_deg
 
 F64 = NDArray[np.float64]
 
@@ -227,8 +227,7 @@ class FrameResult:
             "track_noise_px": num(self.track_noise_px),
             # how far the windowed adjustment moved the poses at this frame (position in ``units``)
             "window_correction": None if self.correction is None else float(np.linalg.norm(self.correction[:3, 3])),
-            "window_correction_deg": None if self.correction is None else math.degrees(
-                math.acos(max(-1.0, min(1.0, (float(np.trace(self.correction[:3, :3])) - 1.0) / 2.0)))),
+            "window_correction_deg": None if self.correction is None else rotation_angle_deg(self.correction[:3, :3]),
         }
 
 
