@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 
 import numpy as np
 import pytest
@@ -522,3 +523,24 @@ def test_the_twist_is_the_motion_not_the_windows_correction(tmp_path) -> None:
     assert 1.0 <= m["nees_twist_angular"] <= 4.0 and m["nees_twist_angular_inside_percent"] >= 90.0
     assert 0.3 <= m["nees_twist_linear"] <= 3.0
     assert m["ate_se3_percent_of_path"] < 1.0
+
+
+@pytest.mark.skipif(not hasattr(os, "getpriority"), reason="POSIX scheduling priorities only")
+def test_the_worker_runs_below_the_frame_loops_priority() -> None:
+    import time
+
+    from epi_vo.core.bundle_worker import WORKER_NICENESS
+
+    process = _window_of("process")
+    try:
+        assert process.submit(500.0)
+        deadline = time.monotonic() + 120.0  # the worker lowers its priority before it serves a window
+        while not process._solver.ready():
+            assert time.monotonic() < deadline, "the worker's result never came back"
+            time.sleep(0.01)
+        assert process.collect(wait=False) is not None
+        mine = os.getpriority(os.PRIO_PROCESS, 0)
+        worker = os.getpriority(os.PRIO_PROCESS, process._solver._proc.pid)
+        assert worker == min(mine + WORKER_NICENESS, 19)
+    finally:
+        process.close()
