@@ -8,6 +8,7 @@ import math
 import signal
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from epi_vo.core.errors import EpiVoError
@@ -232,11 +233,16 @@ def _say(line: str, *, stdout: bool = False) -> None:
 
 def _replay(args: argparse.Namespace) -> int:
     from epi_vo.io.params import load_config
-    from epi_vo.tools.fleet import is_fleet
+    from epi_vo.tools.fleet import is_fleet, nested_bags
     from epi_vo.tools.replay import format_summary, run_replay
 
     if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0.0):
         _say(f"epi-vo: error: --rate must be a positive number, not {args.rate}")
+        return 2
+    nested = nested_bags(args.bag[0]) if len(args.bag) == 1 else []
+    if nested:
+        _say(f"epi-vo: error: {args.bag[0]} holds no bag itself but its sub-directories hold {len(nested)} "
+             f"(e.g. {nested[0]}): replay them all with '{Path(args.bag[0]) / '*'}', or one by its path")
         return 2
     if is_fleet(args.bag):
         if args.rate is not None:

@@ -89,6 +89,16 @@ def _bags_in(directory: Path) -> list[Path]:
     return found
 
 
+def nested_bags(arg: str) -> list[Path]:
+    """The bags one level below a directory that holds none itself (``DIR/<name>/<bag>``, as epi_vo's
+    bags/ and scripts/robot_drives.py's output are laid out): a directory is a fleet of the bags directly
+    in it, so such a one is named by the glob ``'DIR/*'``, and the error for ``DIR`` says so."""
+    path = Path(arg)
+    if not path.is_dir() or is_bag(path) or _bags_in(path):
+        return []
+    return [b for c in sorted(path.iterdir()) if c.is_dir() and not is_bag(c) for b in _bags_in(c)]
+
+
 def is_fleet(args: Sequence[str]) -> bool:
     """Whether the replay arguments ask for a fleet: several of them, a glob, or one directory holding bags
     (one argument that is a bag, or names nothing usable, is the single-bag replay)."""

@@ -210,6 +210,18 @@ def test_which_arguments_make_a_fleet(fleet_dir: Path) -> None:
         "general_motion", "planar", "zz_broken.mcap"]  # each once
 
 
+def test_a_directory_whose_bags_are_one_level_down_says_how_to_name_them(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """bags/ itself: bags/<name>/bag. A directory is a fleet of the bags directly in it, so this one
+    is none; the error names the glob that is ('bags/*', whose directories each hold a bag)."""
+    assert main(["replay", str(BAGS), "--output", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "holds no bag itself but its sub-directories hold 6" in err and f"'{BAGS / '*'}'" in err
+    assert not (tmp_path / "o").exists()
+    assert [p.parent.name for p in find_bags([str(BAGS / "*")])] == [
+        "general_motion", "ground_robot", "moving_mover", "planar", "pure_rotation", "static_mover"]
+
+
 def test_output_names_are_unique() -> None:
     bags = [BAGS / "general_motion" / "bag", BAGS / "planar" / "bag", Path("/data/run1.mcap"), Path("/x/run2")]
     assert output_names(bags) == ["general_motion-bag", "planar-bag", "run1", "run2"]
