@@ -43,6 +43,42 @@ def test_correlated_steps_add_up_coherently() -> None:
     assert np.all((s.sum_ratio > 2.2) & (s.sum_ratio < 3.3))
 
 
+def _rot(v: np.ndarray) -> np.ndarray:
+    import cv2
+
+    return cv2.Rodrigues(np.asarray(v, dtype=np.float64).reshape(3, 1))[0]
+
+
+def test_relative_to_the_keyframe_consistent_and_overgrown() -> None:
+    """Frames 1-3 after a keyframe whose error relative to it is drawn from a covariance of sigma^2 per
+    axis: NEES 3 at every count when the published covariance grows by sigma^2; 3 / n when it grows by
+    n sigma^2 (the error does not grow with the frames, the covariance does)."""
+    rng = np.random.default_rng(2)
+    sigma = 1e-3
+    R_gt, R_est, P, P_over, pairs = [], [], [], [], []
+    for _ in range(1500):
+        base = _rot(rng.normal(0.0, 0.3, 3))
+        k = len(R_gt)
+        R_gt.append(base)
+        R_est.append(base)
+        P.append(np.eye(3) * 1e-6)
+        P_over.append(np.eye(3) * 1e-6)
+        for n in (1, 2, 3):
+            truth = base @ _rot(rng.normal(0.0, 0.05, 3))
+            R_gt.append(truth)
+            R_est.append(truth @ _rot(rng.normal(0.0, sigma, 3)))
+            P.append(np.eye(3) * (1e-6 + sigma**2))
+            P_over.append(np.eye(3) * (1e-6 + n * sigma**2))
+            pairs.append((k, len(R_gt) - 1, n))
+    R_gt, R_est = np.array(R_gt), np.array(R_est)
+    ok = keyframe_steps.since_keyframe_nees(R_est, R_gt, np.array(P), pairs)
+    over = keyframe_steps.since_keyframe_nees(R_est, R_gt, np.array(P_over), pairs)
+    assert sorted(ok) == [1, 2, 3] and all(c == 1500 for c, _ in ok.values())
+    for n in (1, 2, 3):
+        assert ok[n][1] == pytest.approx(3.0, rel=0.1)
+        assert over[n][1] == pytest.approx(3.0 / n, rel=0.1)
+
+
 def test_a_replay_of_general_motion(tmp_path: Path) -> None:
     """The figures the README gives for general_motion (12 keyframe steps, step NEES 0.67)."""
     from epi_vo.core.config import VoConfig
@@ -53,4 +89,8 @@ def test_a_replay_of_general_motion(tmp_path: Path) -> None:
     assert s.steps == 12
     assert 0.4 < s.nees_mean < 1.0
     assert np.all(s.rms_error_deg < s.rms_sigma_deg)
+    # README: relative to the keyframe 1.36, 0.72, 0.49 at 1, 2, 3 frames (12, 12, 11 frames)
+    since = keyframe_steps.replay_since_keyframe(tmp_path)
+    assert [since[n][0] for n in (1, 2, 3)] == [12, 12, 11]
+    assert 0.9 < since[1][1] < 2.0 and since[3][1] < since[2][1] < since[1][1]
     assert keyframe_steps.main([str(tmp_path)]) == 0
