@@ -50,7 +50,7 @@ from std_srvs.srv import Trigger
 
 from epi_vo.core import covariance as covm
 from epi_vo.core.camera import CameraModelCache
-from epi_vo.core.config import VoConfig
+from epi_vo.core.config import VoConfig, live_advice
 from epi_vo.core.debug_image import draw_matches
 from epi_vo.core.diagnostics import DiagnosticLevel, DiagnosticStatusRecord
 from epi_vo.core.errors import CameraModelError, EpiVoError
@@ -90,6 +90,8 @@ class VoNodeBase:
         self._entities_before = self._entities()
         self._status_name = self.get_fully_qualified_name()
         self._pipeline = VoPipeline(self.cfg)
+        for advice in live_advice(self.cfg):
+            self.get_logger().warning(advice)
         T_params = T_base_cam_from_params(self.opts.camera_xyz, self.opts.camera_rpy)
         self._converter = OdometryConverter(T_params)
         lookup = tf_lookup if tf_lookup is not None else make_tf2_lookup(self)
@@ -378,6 +380,8 @@ class VoNodeBase:
         changed = changed_names(self.cfg, cfg)
         T_w_a, cov_w_a, index = self._last_pose
         self._pipeline = VoPipeline(cfg)
+        for advice in live_advice(cfg):
+            self.get_logger().warning(advice)
         self._anchor = (T_w_a, cov_w_a, index + 1)
         self.cfg = cfg
         text = ", ".join(changed) or "no knob changed"

@@ -312,3 +312,12 @@ def test_params_file_that_is_not_utf8(tmp_path: Path) -> None:
 def test_params_path_that_is_a_directory(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=rf"cannot read parameter file {re.escape(str(tmp_path))}: Is a directory"):
         load_config(tmp_path)
+
+
+def test_a_live_node_is_told_when_the_window_would_stall_its_frames() -> None:
+    from epi_vo.core.config import live_advice
+
+    assert live_advice(VoConfig()) == []  # no window
+    assert live_advice(from_dict({"ba_window_keyframes": 8, "ba_wait": False})) == []
+    (advice,) = live_advice(from_dict({"ba_window_keyframes": 8}))
+    assert "ba_wait: false" in advice and "waits" in advice
