@@ -440,7 +440,7 @@ class VoPipeline:
             st.timings["window_wait"], st.timings["window_solve"] = _ms(t0), update.ms  # solve: in the worker
             # The window's uncertainty (when it has one; covering the chain's) replaces the keyframe's.
             T, X, cov = self._window.correct(update, kf.T_w_kf, kf.ids, kf.X_kf, kf.cov_w_kf)
-            st.correction = T @ invert_T(kf.T_w_kf)  # the poses before move with it (the twist's reference)
+            st.correction = update.correction  # the poses before move with it (the twist's reference)
             kf = self._kf = dataclasses.replace(kf, T_w_kf=T, X_kf=X, cov_w_kf=cov)
             self._T_w_c = T.copy()
             if update.cov_w_kf is not None:

@@ -85,6 +85,12 @@ class WindowUpdate:
     cov_w_kf: F64 | None = None
     cov_w_before: F64 | None = None  # the newest keyframe's covariance when submitted
 
+    @property
+    def correction(self) -> F64:
+        """The rigid transform of w that moved the newest keyframe (``T_w_kf = correction @ before``): the
+        poses made from its old pose move by it (``correct``), and so does the twist's reference."""
+        return self.T_w_kf @ invert_T(self.T_w_kf_before)
+
 
 class WindowedMap:
     """The last ``size`` keyframes with their track ids. An adjustment is ``submit``-ted at a keyframe and
@@ -240,7 +246,7 @@ class WindowedMap:
         pose by the adjusted keyframe's correction, its map points that were adjusted put where the
         adjustment has them, and its covariance with the adjusted keyframe's part replaced by the
         window's. Returns the pose, the map points (its own frame) and the covariance."""
-        T = update.T_w_kf @ invert_T(update.T_w_kf_before) @ T_w_kf
+        T = update.correction @ T_w_kf
         T[:3, :3] = nearest_rotation(T[:3, :3])  # the products' rounding would add up keyframe after keyframe
         X = X_kf.copy()
         if ids is not None:
