@@ -75,6 +75,9 @@ class MotionContext:
     # The image noise the tracks gathered frame by frame since the keyframe, as a share of pixel_noise_px,
     # squared (``covariance.tracked_since_keyframe``); 1: pixel_noise_px (ORB matches the keyframe directly).
     noise_sq: float = 1.0
+    # The tracks were followed from the keyframe's features (KLT): their error is in this image only
+    # (``covariance.tracked_since_keyframe``'s ``one_image``); False: matched to the keyframe (ORB).
+    tracked: bool = False
 
 
 E_MAP_MAX_DIRECTION_DIFF_DEG = 20.0  # E's direction of travel this far from the map's: a mover took E
@@ -457,7 +460,8 @@ class MotionStage:
             pose = covm.block((cfg.scale_drift_per_keyframe * baseline) ** 2, rot_cov * ctx.noise_sq)
         else:
             pose = covm.tracked_since_keyframe(cov, covm.shared_scale_part(-R.T @ t, cfg.scale_drift_per_keyframe**2),
-                                               ctx.noise_sq)
+                                               ctx.noise_sq, one_image=False,
+                                               residual_sq=self._residual_sq(ctx, R, t_dir, inl))
         return Motion(TrackingState.TRACKING, R, t, cov, inl, new_map=full, cov_pose=pose)
 
     def _track_with_map(self, ctx: MotionContext, R: F64, t_dir: F64 | None, inl: NDArray[np.bool_],
@@ -494,7 +498,8 @@ class MotionStage:
             if disagree is None:
                 cov = self._essential_cov(ctx, R, t_dir, inl, X, has_depth, est, covm.block(trans_var, rot_cov))
                 scale_part = covm.shared_scale_part(-R.T @ t0, scale_var)
-                pose = covm.tracked_since_keyframe(cov, scale_part, ctx.noise_sq)
+                pose = covm.tracked_since_keyframe(cov, scale_part, ctx.noise_sq, one_image=ctx.tracked,
+                                                   residual_sq=self._residual_sq(ctx, R, t_dir, inl))
                 if plane:  # fused with the map: no separable scale part
                     cov, pose = self._with_map_information(ctx, R, t0, X[has_depth], xn_cur[has_depth], cov, pose)
                     return Motion(TrackingState.TRACKING, R, t0, cov, inl, cov_pose=pose)
@@ -545,6 +550,15 @@ class MotionStage:
             moving = e_inliers & ~fits
         return Motion(TrackingState.TRACKING, R_r, t_r, cov_rel, inl, moving=moving, cov_pose=cov_pose)
 
+
+    def _residual_sq(self, ctx: MotionContext, R: F64, t_dir: F64, inl: NDArray[np.bool_]) -> float:
+        """The image noise E's inliers show about the pose (``geometry.sampson_rms``) as a share of
+        ``pixel_noise_px``, squared, for ``covariance.tracked_since_keyframe``; 0 (not used) unless the
+        tracks were followed from the keyframe."""
+        if not ctx.tracked:
+            return 0.0
+        rms = geo.sampson_rms(R, t_dir, ctx.kf.xn[ctx.rows][inl], ctx.xn_cur[inl])
+        return 0.0 if rms is None else (rms * ctx.kf.camera.K[0, 0] / self.cfg.pixel_noise_px) ** 2
 
     def _essential_cov(self, ctx: MotionContext, R: F64, t_dir: F64, inl: NDArray[np.bool_], X: F64,
                        has_depth: NDArray[np.bool_], est: geo.ScaleEstimate, fallback: F64) -> F64:

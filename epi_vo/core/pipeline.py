@@ -299,7 +299,7 @@ class VoPipeline:
                 st.H = sel.H
             st.timings["models"] = _ms(t0)
             ctx = mo.MotionContext(kf, rows_u, xn_u, uv_u, self._T_cur_kf_prev, self._scale.initial_baseline,
-                                   self._noise_since(kf))
+                                   self._noise_since(kf), self.cfg.frontend == "klt")
             motion = self._motion.estimate(ctx, sel, st)
             if motion is not None and not mo.is_finite(motion):
                 st.reasons.append("the motion estimate is not finite (check the calibration): no pose this frame")

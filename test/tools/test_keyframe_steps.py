@@ -80,16 +80,17 @@ def test_relative_to_the_keyframe_consistent_and_overgrown() -> None:
 
 
 def test_a_replay_of_general_motion(tmp_path: Path) -> None:
-    """The figures the README gives for general_motion (12 keyframe steps, step NEES 0.67)."""
+    """The figures the README gives for general_motion (12 keyframe steps, step NEES 1.33; 0.67 before E's
+    poses took the tracks' noise in one image, 2026-11-27)."""
     from epi_vo.core.config import VoConfig
     from epi_vo.tools.replay import run_replay
 
     run_replay(REPO / "bags" / "general_motion" / "bag", tmp_path, VoConfig())
     s = keyframe_steps.replay_steps(tmp_path)
     assert s.steps == 12
-    assert 0.4 < s.nees_mean < 1.0
+    assert 0.9 < s.nees_mean < 2.0
     assert np.all(s.rms_error_deg < s.rms_sigma_deg)
-    # README: relative to the keyframe 1.36, 0.72, 0.49 at 1, 2, 3 frames (12, 12, 11 frames)
+    # README: relative to the keyframe 1.43, 1.23, 0.98 at 1, 2, 3 frames (12, 12, 11 frames)
     since = keyframe_steps.replay_since_keyframe(tmp_path)
     assert [since[n][0] for n in (1, 2, 3)] == [12, 12, 11]
     assert 0.9 < since[1][1] < 2.0 and since[3][1] < since[2][1] < since[1][1]

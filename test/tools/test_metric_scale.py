@@ -91,8 +91,9 @@ def test_the_floor_view_takes_e_with_parallax_and_does_not_drift_in_yaw(none: tu
     # The published rotation covariance covers the drift, cautiously: its keyframe chain (130 keyframes)
     # claimed 3-5x the per-keyframe rotation error in sigma with E's covariance at pixel_noise_px per
     # keyframe (NEES 0.29; 5.1 on the old rendering, whose drift it covered); at the noise each step's own
-    # frames gathered (2.3 per keyframe here) 0.76.
-    assert 0.5 <= nees.mean_nees_rot <= 6.0
+    # frames gathered (2.3 per keyframe here) 0.76; with E's poses at that noise in the current image only
+    # (covariance.ONE_IMAGE_SHARE, 2026-11-27) 1.31: within issue 14's band.
+    assert 1.0 <= nees.mean_nees_rot <= 6.0
     assert nees.inside_rot_percent >= 90.0
     # Position, VO units after the one global scale: the map's scale drift grows the covariance
     # coherently along the path (it was a random walk per keyframe: NEES 7.8, 73 % inside).

@@ -40,7 +40,13 @@ from epi_vo.core.geometry.pose import (
     solution_off_plane,
 )
 from epi_vo.core.geometry.triangulation import ScaleEstimate, Triangulation, scale_from_points, triangulate
-from epi_vo.core.geometry.uncertainty import essential_pose_covariance, fuse, map_information, reprojection_rms
+from epi_vo.core.geometry.uncertainty import (
+    essential_pose_covariance,
+    fuse,
+    map_information,
+    reprojection_rms,
+    sampson_rms,
+)
 
 __all__ = [
     "CHI2_1DOF",
@@ -75,6 +81,7 @@ __all__ = [
     "rh_ratio",
     "rotation_from_homography",
     "sampson_distance_sq",
+    "sampson_rms",
     "scale_from_points",
     "score_fundamental",
     "score_homography",

@@ -183,6 +183,20 @@ def map_information(R_cur_kf: F64, t_cur_kf: F64, X_kf: F64, xn_cur: F64, sigma_
     return info if np.all(np.isfinite(info)) else None
 
 
+def sampson_rms(R_cur_kf: F64, t_dir: F64, xn_kf: F64, xn_cur: F64) -> float | None:
+    """RMS of the Sampson distances (normalised units) of the correspondences ``xn_kf``/``xn_cur`` (N, 2)
+    under the pose (R_cur_kf, direction ``t_dir``), with E's five degrees of freedom taken out
+    (``sum r^2 / (N - 5)``): the image noise the pose's own residuals show, as ``sigma_n`` of
+    ``essential_pose_covariance`` means it. None for fewer than six or a non-finite result."""
+    n = xn_kf.shape[0]
+    if n < 6:
+        return None
+    E = skew(np.asarray(t_dir, dtype=np.float64)) @ R_cur_kf
+    r = _sampson(E[None], np.column_stack([xn_kf, np.ones(n)]), np.column_stack([xn_cur, np.ones(n)]))[0]
+    rms = math.sqrt(float(np.sum(r * r)) / (n - 5))
+    return rms if math.isfinite(rms) else None
+
+
 def reprojection_rms(R_cur_kf: F64, t_cur_kf: F64, X_kf: F64, xn_cur: F64) -> float | None:
     """RMS per axis of the reprojection residuals (normalised units) of the map points ``X_kf`` (M, 3;
     keyframe frame) in front of the camera at (R_cur_kf, t_cur_kf), seen at ``xn_cur`` (M, 2); None
