@@ -67,22 +67,45 @@ class OdometrySample:
     linear_velocity: F64
     angular_velocity: F64
     twist_covariance: F64
+    # The map -> odom transform (REP-105) of a continuous converter: the product of every correction so far
+    # (identity until one comes); None for a converter that moves the pose by them.
+    T_map_odom: F64 | None = None
 
 
 class OdometryConverter:
-    """Turns successive camera poses T_w_c (with covariance) into odom -> base odometry samples."""
+    """Turns successive camera poses T_w_c (with covariance) into odom -> base odometry samples.
 
-    def __init__(self, T_base_cam: F64 | None = None) -> None:
+    A frame may carry a correction (``FrameResult.correction``: the windowed adjustment moved the poses).
+    ``continuous`` False: the odometry pose is the pipeline's, and jumps by the correction. True (REP-105,
+    the node's ``map_frame_id``): the odometry pose moves only by the motion between frames, and the
+    corrections gather in ``T_map_odom`` (map -> odom; the pipeline's corrected pose of base is
+    ``T_map_odom @ T_odom_base``), which a node broadcasts as the map -> odom transform. The twist is the
+    same either way."""
+
+    def __init__(self, T_base_cam: F64 | None = None, *, continuous: bool = False) -> None:
         self.T_base_cam = default_T_base_cam() if T_base_cam is None else np.asarray(T_base_cam, np.float64)
         self._T_cam_base = invert_T(self.T_base_cam)
         self._prev: tuple[int, F64, F64] | None = None  # stamp, T_odom_base, pose covariance
+        self.continuous = continuous
+        self.T_map_odom = np.eye(4)
+        self._T_odom_map = np.eye(4)
 
     def reset_twist(self) -> None:
         """Forget the previous pose (after a time jump) so no twist is differentiated across it."""
         self._prev = None
 
     def base_pose(self, T_w_c: F64) -> F64:
-        return self.T_base_cam @ T_w_c @ self._T_cam_base
+        """The pose of base in odom (``continuous``: with the corrections so far taken out)."""
+        return self._T_odom_map @ self.T_base_cam @ T_w_c @ self._T_cam_base
+
+    def odom_covariance(self, cov_w: F64) -> F64:
+        """A pose covariance of the pipeline's frame, in odom."""
+        return rotate_covariance(cov_w, self._T_odom_map[:3, :3] @ self.T_base_cam[:3, :3])
+
+    def odom_points(self, points_w: F64) -> F64:
+        """Points of the pipeline's frame (``FrameResult.points_w``, (N, 3)) in odom."""
+        T = self._T_odom_map @ self.T_base_cam
+        return points_w @ T[:3, :3].T + T[:3, 3]
 
     def convert(self, stamp_ns: int, T_w_c: F64, cov_w: F64, has_pose: bool,
                 step_cov_w: F64 | None = None, correction_w: F64 | None = None) -> OdometrySample:
@@ -91,26 +114,30 @@ class OdometryConverter:
         it over dt^2, in the child frame. Without it, the pose covariance gained over the step is used.
         ``correction_w`` (the frame's ``correction``): the windowed adjustment moved the odometry frame's
         poses by it at this frame; the twist is the motion from the previous pose as moved, not the jump."""
-        if correction_w is not None and self._prev is not None:
+        if correction_w is not None:
             C = self.T_base_cam @ np.asarray(correction_w, np.float64) @ self._T_cam_base
-            self._prev = (self._prev[0], C @ self._prev[1], self._prev[2])
+            if self.continuous:  # the published poses stay; map -> odom takes the correction
+                self.T_map_odom = C @ self.T_map_odom
+                self._T_odom_map = invert_T(self.T_map_odom)
+            elif self._prev is not None:
+                self._prev = (self._prev[0], C @ self._prev[1], self._prev[2])
         T_odom_base = self.base_pose(T_w_c)
         R_ob = T_odom_base[:3, :3]
-        cov_odom = rotate_covariance(cov_w, self.T_base_cam[:3, :3])
+        cov_odom = self.odom_covariance(cov_w)
         lin, ang = np.zeros(3), np.zeros(3)
         twist_cov = np.eye(6) * _UNKNOWN_TWIST_VARIANCE
         if has_pose and self._prev is not None and stamp_ns > self._prev[0]:
             lin, ang, twist_cov = self._twist(stamp_ns, T_odom_base, cov_odom)
             dt = (stamp_ns - self._prev[0]) * 1e-9
             if step_cov_w is not None and np.all(np.isfinite(twist_cov)) and twist_cov[0, 0] < _UNKNOWN_TWIST_VARIANCE:
-                step_base = rotate_covariance(rotate_covariance(step_cov_w, self.T_base_cam[:3, :3]), R_ob.T)
+                step_base = rotate_covariance(self.odom_covariance(step_cov_w), R_ob.T)
                 step_twist = step_base / (dt * dt)
                 if np.all(np.isfinite(step_twist)):
                     twist_cov = step_twist
         if has_pose:
             self._prev = (stamp_ns, T_odom_base, cov_odom)
         return OdometrySample(stamp_ns, T_odom_base[:3, 3].copy(), quat_xyzw_from_rotation(R_ob), cov_odom, lin,
-                              ang, twist_cov)
+                              ang, twist_cov, self.T_map_odom.copy() if self.continuous else None)
 
     def convert_result(self, r: FrameResult) -> OdometrySample:
         """``convert`` of a pipeline result, with its step covariance and correction: what every front door
@@ -159,7 +186,7 @@ def status_pose(converter: OdometryConverter, result: FrameResult, frame: str, c
     """The frame's pose as vo/odometry carries it (``child_frame`` in ``frame``, odom -> base_link), for
     its diagnostics status: one frame convention in the node, the replay and every tool."""
     T_odom_base = converter.base_pose(result.T_w_c)
-    cov = rotate_covariance(result.covariance, converter.T_base_cam[:3, :3])
+    cov = converter.odom_covariance(result.covariance)
     return _status_pose(frame, child_frame, T_odom_base[:3, 3], quat_xyzw_from_rotation(T_odom_base[:3, :3]), cov)
 
 

@@ -31,6 +31,7 @@ class NodeOptions:
 
     frame_id: str = "odom"
     child_frame_id: str = "base_link"
+    map_frame_id: str = ""
     camera_xyz: tuple[float, ...] = (0.0, 0.0, 0.0)
     camera_rpy: tuple[float, ...] = (0.0, 0.0, 0.0)
     tf_timeout_s: float = 2.0
@@ -49,6 +50,10 @@ class NodeOptions:
 
 NODE_DOCS: dict[str, str] = {
     "frame_id": "odometry frame (header.frame_id of vo/odometry, vo/points, vo/path, and the parent of the TF)",
+    "map_frame_id": "with the windowed adjustment on: '' publishes its corrections in vo/odometry's pose (it "
+                    "jumps at adjusted keyframes); a frame name (e.g. 'map') keeps vo/odometry continuous and "
+                    "broadcasts the corrections as the map_frame_id -> frame_id TF (REP-105; needs tf2_ros and "
+                    "publish_tf)",
     "child_frame_id": "robot base frame (child_frame_id of vo/odometry); the camera extrinsic is looked up "
                       "from it",
     "camera_xyz": "camera position in child_frame_id (m); used when TF has no child_frame_id <- image "

@@ -58,12 +58,12 @@ from epi_vo.core.frame import FrameResult
 from epi_vo.core.odometry import OdometryConverter, T_base_cam_from_params, status_pose
 from epi_vo.core.pipeline import VoPipeline
 from epi_vo.core.status import frame_status, summary_status
-from epi_vo.core.transforms import invert_T
+from epi_vo.core.transforms import invert_T, rotation_angle_deg
 from epi_vo.io import msgconv
 from epi_vo.io.association import CameraInfoAssociator, Ready
 from epi_vo.io.node_options import NodeOptions, changed_names
 from epi_vo.ros.node_params import check_change, declare_all, effective_parameters_text, warn_undeclared_overrides
-from epi_vo.ros.node_run import bgr_image_msg, point_cloud_msg, run_node, stamp_msg
+from epi_vo.ros.node_run import bgr_image_msg, point_cloud_msg, run_node, stamp_msg, transform_msg
 from epi_vo.ros.node_tf import Extrinsic, ExtrinsicResolver, TransformLookup, make_tf2_lookup, make_tf_broadcaster
 
 __all__ = ["NodeOptions", "VoNode", "main"]
@@ -93,7 +93,7 @@ class VoNodeBase:
         for advice in live_advice(self.cfg):
             self.get_logger().warning(advice)
         T_params = T_base_cam_from_params(self.opts.camera_xyz, self.opts.camera_rpy)
-        self._converter = OdometryConverter(T_params)
+        self._converter = OdometryConverter(T_params, continuous=bool(self.opts.map_frame_id))
         lookup = tf_lookup if tf_lookup is not None else make_tf2_lookup(self)
         self._resolver = ExtrinsicResolver(
             lookup, self.opts.child_frame_id, self.opts.tf_timeout_s, T_params,
@@ -154,9 +154,14 @@ class VoNodeBase:
         if self.opts.publish_tf:
             self._tf, why = make_tf_broadcaster(self)
             if self._tf is None:
+                also = f" (nor {self.opts.map_frame_id} -> {self.opts.frame_id})" if self.opts.map_frame_id else ""
                 self.get_logger().warning(f"publish_tf is true but no TF {self.opts.frame_id} -> "
-                                          f"{self.opts.child_frame_id} is broadcast: {why} (install tf2_ros, part "
-                                          "of every ROS 2 install; vo/odometry is published either way)")
+                                          f"{self.opts.child_frame_id}{also} is broadcast: {why} (install tf2_ros, "
+                                          "part of every ROS 2 install; vo/odometry is published either way)")
+        if self.opts.map_frame_id and self._tf is None:
+            self.get_logger().warning(f"map_frame_id is '{self.opts.map_frame_id}': vo/odometry stays continuous, and "
+                                      "the windowed adjustment's corrections are in no published pose without the "
+                                      f"{self.opts.map_frame_id} -> {self.opts.frame_id} TF (publish_tf and tf2_ros)")
         # Both timers on the steady clock: with use_sim_time a ROS-time timer stops with the simulated clock.
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(0.5, self._watchdog, clock=steady)
@@ -369,7 +374,7 @@ class VoNodeBase:
                     self._cv.wait(timeout=0.05)
             return
         self._waiting = ""
-        self._converter = OdometryConverter(extrinsic.T_base_cam)
+        self._converter = OdometryConverter(extrinsic.T_base_cam, continuous=bool(self.opts.map_frame_id))
         self._extrinsic = extrinsic
         (self.get_logger().warning if extrinsic.warn else self.get_logger().info)(extrinsic.text)
 
@@ -506,10 +511,13 @@ class VoNodeBase:
                 tf.child_frame_id = self.opts.child_frame_id
                 tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z = p.x, p.y, p.z
                 tf.transform.rotation = q
-                self._tf.sendTransform(tf)
+                transforms = [tf]
+                if s.T_map_odom is not None:  # map_frame_id: the corrections, map -> odom (REP-105)
+                    transforms.append(transform_msg(odom.header.stamp, self.opts.map_frame_id, self.opts.frame_id,
+                                                    s.T_map_odom))
+                self._tf.sendTransform(transforms)
         if r.points_w.shape[0]:
-            T = self._converter.T_base_cam
-            self._pub_points.publish(point_cloud_msg(odom.header, r.points_w @ T[:3, :3].T + T[:3, 3]))
+            self._pub_points.publish(point_cloud_msg(odom.header, self._converter.odom_points(r.points_w)))
         self._publish_status(self._frame_status(r), self._diagnostics_stamp())
         if self._pub_debug is not None and gray is not None:
             self._pub_debug.publish(bgr_image_msg(odom.header, draw_matches(r, gray)))
@@ -594,10 +602,20 @@ class VoNodeBase:
             ("camera_xyz", " ".join(f"{v:.4g}" for v in T[:3, 3])),
             ("frames_processed", str(self._n_processed)),
             ("parameter_changes", "; ".join(self._changes[-3:]) or "none"),  # the latest applied
+            *self._map_odom_values(),
             *self._summary_extra_values(),
         )
         self._publish_status(summary_status(self._status_name, self._hardware_id(), level, message, values),
                              self._diagnostics_stamp())
+
+    def _map_odom_values(self) -> tuple[tuple[str, str], ...]:
+        """With map_frame_id: how far the corrections have taken map from odom (vo/odometry's units)."""
+        if not self.opts.map_frame_id:
+            return ()
+        M = self._converter.T_map_odom
+        return ((f"{self.opts.map_frame_id}_to_{self.opts.frame_id}",
+                 f"{float(np.linalg.norm(M[:3, 3])):.4g} (units of vo/odometry), "
+                 f"{rotation_angle_deg(M[:3, :3]):.3g} deg"),)
 
     def _summary_extra_values(self) -> tuple[tuple[str, str], ...]:
         """Further key/values of the summary (the managed node's state)."""

@@ -11,12 +11,14 @@ from typing import Any
 import numpy as np
 import rclpy
 from builtin_interfaces.msg import Time
+from geometry_msgs.msg import TransformStamped
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import Image, PointCloud2, PointField
 
 from epi_vo.core.config import VoConfig
 from epi_vo.core.errors import ConfigError
+from epi_vo.core.transforms import quat_xyzw_from_rotation
 from epi_vo.io import msgconv
 from epi_vo.io.node_options import NodeOptions
 
@@ -25,6 +27,18 @@ def stamp_msg(stamp_ns: int) -> Time:
     """A frame result's stamp as a ROS time (results carry valid stamps only)."""
     sec, nanosec = msgconv.ns_to_ros_time(stamp_ns)
     return Time(sec=sec, nanosec=nanosec)
+
+
+def transform_msg(stamp: Time, parent: str, child: str, T_parent_child: np.ndarray) -> TransformStamped:
+    """A TF message of the rigid transform ``T_parent_child`` (4x4): ``child`` in ``parent``."""
+    msg = TransformStamped()
+    msg.header.stamp = stamp
+    msg.header.frame_id, msg.child_frame_id = parent, child
+    t = msg.transform.translation
+    t.x, t.y, t.z = (float(v) for v in T_parent_child[:3, 3])
+    q = msg.transform.rotation
+    q.x, q.y, q.z, q.w = (float(v) for v in quat_xyzw_from_rotation(T_parent_child[:3, :3]))
+    return msg
 
 
 def point_cloud_msg(header: Any, points: np.ndarray) -> PointCloud2:

@@ -63,3 +63,54 @@ def test_the_record_says_how_far_the_window_moved_the_poses() -> None:
     bad[0, 3] = np.nan
     with pytest.raises(AssertionError, match="correction"):
         dataclasses.replace(r, correction=bad)
+
+
+def test_a_continuous_converter_keeps_the_pose_and_puts_the_corrections_into_map_to_odom() -> None:
+    """REP-105 (the node's ``map_frame_id``): with two corrections along a path, the continuous converter's
+    odometry pose moves only by each frame's motion (its step between frames equals the true step, also at
+    the corrected frames), ``T_map_odom`` is the product of the corrections in the base frame (identity
+    before the first), ``T_map_odom @ pose`` is the pipeline's corrected pose exactly as the jumping
+    converter publishes it, the twist and the covariance's size are the same, and points follow odom."""
+    from epi_vo.core.transforms import invert_T, rotation_angle_deg
+
+    step = make_T(_rot_y(2.0), np.array([0.0, 0.0, 0.1]))
+    C1 = make_T(_rot_y(0.5), np.array([0.03, 0.0, -0.01]))
+    C2 = make_T(_rot_y(-0.3), np.array([-0.02, 0.01, 0.02]))
+    cov = np.diag([1e-4, 2e-4, 3e-4, 1e-6, 2e-6, 3e-6])
+    jumping, continuous = OdometryConverter(), OdometryConverter(continuous=True)
+    T, moved = np.eye(4), np.eye(4)  # the pipeline's pose; the corrections so far
+    outs = []
+    for i in range(8):
+        T = T @ step if i else T
+        corr = C1 if i == 3 else C2 if i == 6 else None
+        if corr is not None:
+            moved = corr @ moved
+        T_pub = moved @ T  # the pipeline publishes the corrected pose
+        a = jumping.convert(1_000_000_000 + i * 100_000_000, T_pub, cov, True, correction_w=corr)
+        b = continuous.convert(1_000_000_000 + i * 100_000_000, T_pub, cov, True, correction_w=corr)
+        outs.append((a, b))
+    base_step = jumping.base_pose(step)  # the true step as a base motion (T_base_cam @ step @ T_cam_base)
+
+    def pose(s: object) -> np.ndarray:
+        from scipy.spatial.transform import Rotation
+
+        return make_T(Rotation.from_quat(s.quat_xyzw).as_matrix(), s.position)  # type: ignore[attr-defined]
+
+    for i, (a, b) in enumerate(outs):
+        assert a.T_map_odom is None and b.T_map_odom is not None
+        expect_moved = 0 if i < 3 else 1 if i < 6 else 2
+        assert (rotation_angle_deg(b.T_map_odom[:3, :3]) > 0.1) == (expect_moved > 0)
+        np.testing.assert_allclose(b.T_map_odom @ pose(b), pose(a), atol=1e-12)
+        np.testing.assert_allclose(b.linear_velocity, a.linear_velocity, atol=1e-12)
+        np.testing.assert_allclose(b.angular_velocity, a.angular_velocity, atol=1e-12)
+        assert np.trace(b.pose_covariance) == pytest.approx(np.trace(a.pose_covariance), rel=1e-12)
+        if i:
+            np.testing.assert_allclose(invert_T(pose(outs[i - 1][1])) @ pose(b), base_step, atol=1e-12)
+    # the jumping converter's pose jumps at the corrected frames
+    jump = invert_T(pose(outs[2][0])) @ pose(outs[3][0])
+    assert np.linalg.norm(jump[:3, 3] - base_step[:3, 3]) > 0.02
+    np.testing.assert_allclose(continuous.T_map_odom, jumping.base_pose(C2 @ C1), atol=1e-12)
+    pts_w = np.array([[0.0, 0.0, 5.0], [1.0, -0.5, 7.0]])
+    odom_pts = continuous.odom_points(pts_w)
+    map_pts = odom_pts @ continuous.T_map_odom[:3, :3].T + continuous.T_map_odom[:3, 3]
+    np.testing.assert_allclose(map_pts, jumping.odom_points(pts_w), atol=1e-12)

@@ -266,6 +266,78 @@ def test_node_falls_back_to_the_parameters_when_tf_never_comes(ros: RosSession) 
         probe.close()
 
 
+class RecordingBroadcaster:
+    """tf2_ros.TransformBroadcaster's sendTransform: keeps every TransformStamped sent."""
+
+    def __init__(self) -> None:
+        self.sent: list[Any] = []
+
+    def sendTransform(self, transforms: Any) -> None:
+        self.sent.extend(transforms if isinstance(transforms, list) else [transforms])
+
+
+def test_map_frame_id_keeps_the_odometry_continuous_and_broadcasts_the_corrections(
+        ros: RosSession, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """REP-105 with the window on (4 keyframes, in line: the replay's poses): with ``map_frame_id: map`` every
+    frame's TF is odom -> base_link and map -> odom; map -> odom is the identity until the window's first
+    correction and moves at it; map -> odom x vo/odometry is, frame by frame, the pose the replay publishes
+    (which jumps by the corrections), and vo/odometry's own step at a corrected frame is not that jump. The
+    summary says how far map is from odom. tf2_ros is not on PyPI: a recording broadcaster stands in."""
+    import dataclasses
+
+    from epi_vo.core.config import VoConfig
+    from epi_vo.core.transforms import invert_T, make_T, rotation_angle_deg, rotation_from_quat_xyzw
+    from epi_vo.io.odometry_bag import read_odometry
+    from epi_vo.ros import node as node_module
+    from epi_vo.tools.replay import run_replay
+
+    n = 52
+    run_replay(BAG, tmp_path, dataclasses.replace(VoConfig(), ba_window_keyframes=4, ba_solver="inline"))
+    ref = read_odometry(tmp_path / "output.mcap")
+    expected = {int(st): make_T(rotation_from_quat_xyzw(q), p)
+                for st, p, q in zip(ref.stamps_ns, ref.positions, ref.quats_xyzw, strict=True)}
+    tf = RecordingBroadcaster()
+    monkeypatch.setattr(node_module, "make_tf_broadcaster", lambda node: (tf, ""))
+    node = _in_process_node(ros, FakeBuffer(), tf_timeout_s=0.0, camera_xyz=[0.0, 0.0, 0.0], map_frame_id="map",
+                            ba_window_keyframes=4, ba_solver="inline")
+    probe = Probe(ros, "probe_map_odom")
+    probe.executor.add_node(node)
+    try:
+        probe.send(bag_frames_rclpy(BAG, n))
+        assert probe.spin_until(lambda: len(probe.odom) >= n), len(probe.odom)
+        assert probe.spin_until(lambda: any("map_to_odom" in s for s in probe.summaries()))
+    finally:
+        probe.executor.remove_node(node)
+        node.destroy_node()
+        probe.close()
+
+    def T_of(t: Any) -> np.ndarray:
+        r, q = t.transform.translation, t.transform.rotation
+        return make_T(rotation_from_quat_xyzw([q.x, q.y, q.z, q.w]), [r.x, r.y, r.z])
+
+    map_odom = {_stamp_ns(t.header.stamp): T_of(t) for t in tf.sent
+                if (t.header.frame_id, t.child_frame_id) == ("map", "odom")}
+    odom_base = {_stamp_ns(t.header.stamp) for t in tf.sent
+                 if (t.header.frame_id, t.child_frame_id) == ("odom", "base_link")}
+    poses = []
+    for m in probe.odom:
+        st = _stamp_ns(m.header.stamp)
+        q = m.pose.pose.orientation
+        T = make_T(rotation_from_quat_xyzw([q.x, q.y, q.z, q.w]), _position(m))
+        assert st in map_odom and st in odom_base
+        np.testing.assert_allclose(map_odom[st] @ T, expected[st], atol=1e-6)
+        poses.append((st, T, map_odom[st]))
+    moved = [rotation_angle_deg(M[:3, :3]) > 1e-6 or np.linalg.norm(M[:3, 3]) > 1e-9 for _, _, M in poses]
+    assert not moved[0] and sum(moved) >= 30, sum(moved)  # general_motion: corrected from frame 18 on
+    first = moved.index(True)
+    (s0, T0, _), (s1, T1, M1) = poses[first - 1], poses[first]
+    own_step = invert_T(T0) @ T1
+    published_step = invert_T(expected[s0]) @ expected[s1]  # the replay's, with the jump in it
+    assert np.linalg.norm(own_step[:3, 3] - published_step[:3, 3]) > 0.5 * np.linalg.norm(M1[:3, 3])
+    last = [s for s in probe.summaries() if "map_to_odom" in s][-1]["map_to_odom"]
+    assert "(units of vo/odometry)" in last and float(last.split()[0]) > 0.0
+
+
 # -- subprocess nodes -------------------------------------------------------------------------------------------
 def test_auto_transport_namespace_extrinsic_fallback_and_warnings(ros: RosSession) -> None:
     """Defaults in a namespace: the status names the topics it waits on; compressed images are picked up
