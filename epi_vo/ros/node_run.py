@@ -18,7 +18,6 @@ from sensor_msgs.msg import Image, PointCloud2, PointField
 
 from epi_vo.core.config import VoConfig
 from epi_vo.core.errors import ConfigError
-from epi_vo.core.transforms import quat_xyzw_from_rotation
 from epi_vo.io import msgconv
 from epi_vo.io.node_options import NodeOptions
 
@@ -29,15 +28,15 @@ def stamp_msg(stamp_ns: int) -> Time:
     return Time(sec=sec, nanosec=nanosec)
 
 
-def transform_msg(stamp: Time, parent: str, child: str, T_parent_child: np.ndarray) -> TransformStamped:
-    """A TF message of the rigid transform ``T_parent_child`` (4x4): ``child`` in ``parent``."""
+def transform_msg(stamp: Time, parent: str, child: str, xyz: Any, quat_xyzw: Any) -> TransformStamped:
+    """A TF message: ``child`` at ``xyz`` with orientation ``quat_xyzw`` in ``parent``."""
     msg = TransformStamped()
     msg.header.stamp = stamp
     msg.header.frame_id, msg.child_frame_id = parent, child
     t = msg.transform.translation
-    t.x, t.y, t.z = (float(v) for v in T_parent_child[:3, 3])
+    t.x, t.y, t.z = (float(v) for v in xyz)
     q = msg.transform.rotation
-    q.x, q.y, q.z, q.w = (float(v) for v in quat_xyzw_from_rotation(T_parent_child[:3, :3]))
+    q.x, q.y, q.z, q.w = (float(v) for v in quat_xyzw)
     return msg
 
 
