@@ -232,7 +232,7 @@ def _say(line: str, *, stdout: bool = False) -> None:
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from epi_vo.io.params import load_config
+    from epi_vo.io.params import load_config, load_node_options
     from epi_vo.tools.fleet import is_fleet, nested_bags
     from epi_vo.tools.replay import format_summary, run_replay
 
@@ -252,7 +252,8 @@ def _replay(args: argparse.Namespace) -> int:
     cfg = load_config(args.params)
     summary = run_replay(args.bag[0], args.output, cfg, image_topic=args.image_topic,
                          camera_info_topic=args.camera_info_topic, gt_tum=args.gt,
-                         progress=not args.no_progress, rate=args.rate)
+                         progress=not args.no_progress, rate=args.rate,
+                         map_frame_id=load_node_options(args.params).map_frame_id)
     _say(format_summary(summary), stdout=True)
     if args.report:
         from epi_vo.tools.report import write_report
@@ -265,7 +266,7 @@ def _replay(args: argparse.Namespace) -> int:
 
 
 def _replay_fleet(args: argparse.Namespace) -> int:
-    from epi_vo.io.params import load_config
+    from epi_vo.io.params import load_config, load_node_options
     from epi_vo.tools.fleet import find_bags, run_fleet
     from epi_vo.tools.fleet_summary import exit_code
 
@@ -280,7 +281,8 @@ def _replay_fleet(args: argparse.Namespace) -> int:
     bags = find_bags(args.bag)
     result = run_fleet(bags, args.output, cfg, jobs=args.jobs, force=args.force, report=args.report,
                        progress=not args.no_progress, image_topic=args.image_topic,
-                       camera_info_topic=args.camera_info_topic)
+                       camera_info_topic=args.camera_info_topic,
+                       map_frame_id=load_node_options(args.params).map_frame_id)
     _print_rows(result.rows, result.summary_files)
     if result.signum is not None:
         hangup = result.signum == getattr(signal, "SIGHUP", None)

@@ -50,11 +50,13 @@ ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
 POINT_CLOUD2_TYPE = "sensor_msgs/msg/PointCloud2"
 PATH_TYPE = "nav_msgs/msg/Path"
 DIAGNOSTIC_ARRAY_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
+TF_MESSAGE_TYPE = "tf2_msgs/msg/TFMessage"
 
 ODOMETRY_TOPIC = "/vo/odometry"
 POINTS_TOPIC = "/vo/points"
 PATH_TOPIC = "/vo/path"
 DIAGNOSTICS_TOPIC = "/diagnostics"
+TF_TOPIC = "/tf"
 
 # Message definitions for serialising output and for bags recorded without them (old sqlite3).
 _TYPESTORE = get_typestore(Stores.ROS2_JAZZY)

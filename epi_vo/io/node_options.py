@@ -131,6 +131,13 @@ def node_option_problems(values: dict[str, Any]) -> list[str]:
         v = values.get(name)
         if v is not None and (not isinstance(v, str) or not v.strip()):
             problems.append(f"{name}={v!r} (a frame name)")
+    v = values.get("map_frame_id")
+    if v is not None and v != "":
+        if not isinstance(v, str) or not v.strip() or v != v.strip():
+            problems.append(f"map_frame_id={v!r} ('' or a frame name)")
+        elif v in (values.get("frame_id", NodeOptions.frame_id),
+                   values.get("child_frame_id", NodeOptions.child_frame_id)):
+            problems.append(f"map_frame_id={v!r} (must differ from frame_id and child_frame_id)")
     return problems
 
 

@@ -31,6 +31,8 @@ from epi_vo.io.bagio import (
     PATH_TYPE,
     POINT_CLOUD2_TYPE,
     POINTS_TOPIC,
+    TF_MESSAGE_TYPE,
+    TF_TOPIC,
 )
 from epi_vo.io.msgconv import (
     NS_PER_S,
@@ -65,6 +67,7 @@ _OUTPUT_TOPICS: dict[str, str] = {
     POINTS_TOPIC: POINT_CLOUD2_TYPE,
     PATH_TOPIC: PATH_TYPE,
     DIAGNOSTICS_TOPIC: DIAGNOSTIC_ARRAY_TYPE,
+    TF_TOPIC: TF_MESSAGE_TYPE,
 }
 
 
@@ -162,8 +165,8 @@ class OutputBag:
     """Write VO results to one MCAP file with the ROS 2 profile (see the module docstring).
 
     Topics: /vo/odometry (nav_msgs/Odometry), /vo/points (sensor_msgs/PointCloud2), /vo/path
-    (nav_msgs/Path), /diagnostics (diagnostic_msgs/DiagnosticArray); all four channels are declared
-    up front. Stamps are integer nanoseconds; each message is logged at its header stamp. A stamp
+    (nav_msgs/Path), /diagnostics (diagnostic_msgs/DiagnosticArray), /tf (tf2_msgs/TFMessage); all five
+    channels are declared up front. Stamps are integer nanoseconds; each message is logged at its header stamp. A stamp
     that is no valid ROS time (outside [0, (2**31 - 1) s + 999999999 ns]) is refused with a BagError
     before anything of that message is written (the file stays valid and readable).
 
@@ -290,6 +293,21 @@ class OutputBag:
         # angular; covariance): 85 float64 fields with nothing between them.
         message.f64(np.concatenate(values))
         self._write(ODOMETRY_TOPIC, stamp_ns, message)
+
+    def write_tf(self, stamp_ns: int, transforms: Sequence[tuple[str, str, ArrayLike, ArrayLike]]) -> None:
+        """tf2_msgs/TFMessage on /tf: one geometry_msgs/TransformStamped per ``(parent, child, xyz (3,),
+        quat_xyzw (4,))``, each stamped ``stamp_ns``: ``child`` in ``parent``."""
+        stamp_ns = self._check_time(TF_TOPIC, stamp_ns)
+        rows = [(parent, child, np.concatenate([checked_array(xyz, (3,), "xyz"),
+                                                checked_array(quat, (4,), "quat_xyzw")]))
+                for parent, child, xyz, quat in transforms]
+        message = _Cdr()
+        message.u32(len(rows))
+        for parent, child, values in rows:
+            message.header(stamp_ns, parent)
+            message.string(child)
+            message.f64(values)  # Transform: translation (x y z), rotation (x y z w)
+        self._write(TF_TOPIC, stamp_ns, message)
 
     def write_points(self, stamp_ns: int, frame_id: str, points_xyz: ArrayLike) -> None:
         """sensor_msgs/PointCloud2 (x, y, z float32) on /vo/points; ``points_xyz`` (N, 3) in

@@ -23,7 +23,7 @@ from epi_vo.core.config import (
     unknown_names_text,
 )
 from epi_vo.core.errors import ConfigError
-from epi_vo.io.node_options import NODE_DOCS, NODE_OPTION_NAMES, NodeOptions, is_read_only
+from epi_vo.io.node_options import NODE_DOCS, NODE_OPTION_NAMES, NodeOptions, is_read_only, make_node_options
 
 
 def load_params_file(path: str | Path, node_name: str = "vo_node") -> dict[str, Any]:
@@ -72,6 +72,19 @@ def load_config(path: str | Path | None = None) -> VoConfig:
     if unknown:
         raise ConfigError(f"parameter file {path}: invalid epi_vo parameters: {unknown_text}")
     return cfg
+
+
+def load_node_options(path: str | Path | None = None) -> NodeOptions:
+    """vo_node's own parameters in a ROS 2 parameter file (defaults for those it does not set), for the
+    offline tools that honour some of them (``epi-vo replay``: ``map_frame_id``); ConfigError naming
+    every bad value. The file's other names are ``load_config``'s to check."""
+    if path is None:
+        return NodeOptions()
+    params = load_params_file(path)
+    try:
+        return make_node_options({k: v for k, v in params.items() if k in NODE_OPTION_NAMES})
+    except ConfigError as exc:
+        raise ConfigError(f"parameter file {path}: {exc}") from None
 
 
 def to_params_yaml(cfg: VoConfig, extra: dict[str, Any] | None = None, node: NodeOptions | None = None) -> str:

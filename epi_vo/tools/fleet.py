@@ -180,6 +180,7 @@ class FleetJob:
     camera_info_topic: str | None = None
     report: bool = False
     force: bool = False
+    map_frame_id: str = ""
 
 
 _worker_events: Any = None  # the progress queue of this worker process (set by _init_worker)
@@ -220,7 +221,8 @@ def completed(job: FleetJob) -> ReplaySummary | None:
     if summary is None or status.get("status") not in (BagStatus.OK.value, BagStatus.PROBLEMS.value,
                                                           BagStatus.FAILED.value):
         return None
-    if summary.bag != job.bag or summary.parameters != parameters_json(job.cfg):
+    if summary.bag != job.bag or summary.parameters != parameters_json(job.cfg) or \
+            summary.map_frame_id != job.map_frame_id:
         return None
     if job.image_topic not in (None, summary.image_topic) or \
             job.camera_info_topic not in (None, summary.camera_info_topic):
@@ -256,7 +258,7 @@ def replay_one(job: FleetJob) -> BagRow:
     try:
         summary = run_replay(job.bag, out, job.cfg, image_topic=job.image_topic,
                              camera_info_topic=job.camera_info_topic, on_result=progress.frame,
-                             on_open=progress.total)
+                             on_open=progress.total, map_frame_id=job.map_frame_id)
     except Interrupted as exc:
         by = "the fleet was interrupted" if _worker_stop is not None and _worker_stop.is_set() else \
             _signal_name(exc.signum)
@@ -356,7 +358,8 @@ class FleetResult:
 
 def run_fleet(bags: Sequence[Path], output_dir: str | Path, cfg: VoConfig, *, jobs: int | None = None,
               force: bool = False, report: bool = False, progress: bool = False, image_topic: str | None = None,
-              camera_info_topic: str | None = None, on_row: Callable[[BagRow], None] | None = None) -> FleetResult:
+              camera_info_topic: str | None = None, on_row: Callable[[BagRow], None] | None = None,
+              map_frame_id: str = "") -> FleetResult:
     """Replay ``bags`` (see :func:`find_bags`) into ``output_dir/<name>/`` with ``jobs`` processes (default: the
     number of cores) and write the summary. See the module doc for resume, signals and failures.
 
@@ -367,7 +370,7 @@ def run_fleet(bags: Sequence[Path], output_dir: str | Path, cfg: VoConfig, *, jo
     names = output_names(bags)
     # Absolute bag paths: stats.json then names the bag whatever the directory a later run starts from.
     todo = [FleetJob(i, name, str(bag.absolute()), str(out / name), cfg, image_topic, camera_info_topic, report,
-                     force) for i, (bag, name) in enumerate(zip(bags, names, strict=True))]
+                     force, map_frame_id) for i, (bag, name) in enumerate(zip(bags, names, strict=True))]
     rows: dict[int, BagRow] = {}
     attempts = dict.fromkeys(range(len(todo)), 0)
     workers = max(1, min(jobs or os.cpu_count() or 1, len(todo)))

@@ -39,6 +39,7 @@ from epi_vo.core.frame import FrameResult
 from epi_vo.core.odometry import OdometryConverter, OdometrySample, sample_status_pose, status_pose
 from epi_vo.core.pipeline import VoPipeline
 from epi_vo.core.status import frame_status
+from epi_vo.core.transforms import quat_xyzw_from_rotation
 from epi_vo.io import bagio, outbag, tum
 from epi_vo.io.msgconv import decode_frame, ns_to_ros_time
 from epi_vo.tools.consistency import OdometryLog, consistency_metrics, format_consistency
@@ -87,6 +88,8 @@ class ReplaySummary:
     wall_s: float = 0.0  # run_replay from start to finish (opening the bag .. evaluation), seconds
     end_to_end_fps: float = 0.0  # frames / wall_s: reading, decoding, VO, writing, evaluation (process start-up
     # and imports excluded)
+    map_frame_id: str = ""  # vo_node's map_frame_id: '' the odometry carries the window's corrections; else
+    # it stays continuous and /tf carries them as map_frame_id -> odom
 
     @property
     def has_problems(self) -> bool:
@@ -162,7 +165,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                gt_tum: str | Path | None = None, progress: bool = False,
                on_result: Callable[[FrameResult], None] | None = None,
                on_open: Callable[[int], None] | None = None, lookahead: bool = True,
-               rate: float | None = None) -> ReplaySummary:
+               rate: float | None = None, map_frame_id: str = "") -> ReplaySummary:
     """Replay every image of a bag through the pipeline and write the outputs (see module doc).
 
     A frame that cannot be used (undecodable message or image, header stamp that is no ROS time,
@@ -180,6 +183,10 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     would deliver them (KLT in line, no lookahead), so work beside the frame loop (the windowed
     adjustment's worker) has the time it would have live; a gap between stamps counts at most
     ``PACE_MAX_GAP_S``. None: as fast as possible. The outputs are the same either way.
+    ``map_frame_id``: as vo_node's (its parameter file may set it): '' /vo/odometry is the pipeline's pose,
+    which jumps by the windowed adjustment's corrections; a frame name keeps /vo/odometry continuous and
+    puts the corrections into the ``map_frame_id -> odom`` transform on /tf (beside ``odom -> base_link``,
+    written at every frame with a pose either way), as the node broadcasts them.
 
     Raises:
         BagError: unreadable or empty bag, missing or ambiguous topics.
@@ -191,7 +198,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     out = ensure_output_dir(output_dir)
     _remove_stats(out)  # stats.json is written last: without it the directory holds no finished replay
     pipeline = VoPipeline(cfg)
-    converter = OdometryConverter()
+    converter = OdometryConverter(continuous=bool(map_frame_id))
     cameras = CameraModelCache()
     results_pose: list[tuple[float, np.ndarray, np.ndarray]] = []
     metric_stamps: list[dict[str, Any]] = []  # the poses published in metres (see evaluation.metric_poses)
@@ -263,7 +270,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                         path_length += float(np.linalg.norm(p - last_pos))
                     last_pos = p.copy()
                 if not result.skipped:  # a skipped frame gets its record and status, but no pose
-                    sample = _write_outputs(obag, converter, result, path_poses, record)
+                    sample = _write_outputs(obag, converter, result, path_poses, record, map_frame_id)
                     if odo_log is not None:
                         odo_log.add(sample, record)
                 else:
@@ -313,7 +320,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
         rejected=[f"{n} frame(s) from frame {first_rejected[r]}: {r}" for r, n in rejected.items()],
         rejected_frames=sum(rejected.values()), skipped_messages=skipped, scale_source=cfg.scale_source,
         units=units, metric_from_frame=metric_from, poses_before_metric=held, wall_s=wall_s,
-        end_to_end_fps=n_frames / max(wall_s, 1e-9))
+        end_to_end_fps=n_frames / max(wall_s, 1e-9), map_frame_id=map_frame_id)
     write_stats(out, summary)
     return summary
 
@@ -587,19 +594,23 @@ class _PathWindow:
 
 
 def _write_outputs(obag: outbag.OutputBag, converter: OdometryConverter, result: FrameResult,
-                   path_poses: _PathWindow, record: dict[str, Any] | None = None) -> OdometrySample:
+                   path_poses: _PathWindow, record: dict[str, Any] | None = None,
+                   map_frame_id: str = "") -> OdometrySample:
     sample = converter.convert_result(result)
     obag.write_odometry(result.stamp_ns, ODOM_FRAME, BASE_FRAME, sample.position, sample.quat_xyzw,
                         sample.pose_covariance, sample.linear_velocity, sample.angular_velocity,
                         sample.twist_covariance)
     if result.points_w.shape[0]:
         # Points are in the pipeline frame w (first optical frame); publish them in odom.
-        T = converter.T_base_cam
-        pts_odom = result.points_w @ T[:3, :3].T + T[:3, 3]
-        obag.write_points(result.stamp_ns, ODOM_FRAME, pts_odom)
+        obag.write_points(result.stamp_ns, ODOM_FRAME, converter.odom_points(result.points_w))
     if result.has_pose:
         path_poses.append(result.stamp_ns, sample.position, sample.quat_xyzw)
         obag.write_path(result.stamp_ns, ODOM_FRAME, *path_poses.window())
+        transforms = [(ODOM_FRAME, BASE_FRAME, sample.position, sample.quat_xyzw)]
+        if sample.T_map_odom is not None:  # as vo_node's TF with map_frame_id (REP-105)
+            transforms.append((map_frame_id, ODOM_FRAME, sample.T_map_odom[:3, 3],
+                               quat_xyzw_from_rotation(sample.T_map_odom[:3, :3])))
+        obag.write_tf(result.stamp_ns, transforms)
     obag.write_diagnostics(result.stamp_ns, [frame_status(
         result, "epi_vo", "replay", sample_status_pose(sample, ODOM_FRAME, BASE_FRAME), record)])
     return sample

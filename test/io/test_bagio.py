@@ -515,6 +515,8 @@ def _write_everything(out: OutputBag, stamp_ns: int) -> dict[str, np.ndarray]:
         values["twist_covariance"],
     )
     out.write_points(stamp_ns, "odom", values["points_xyz"])
+    out.write_tf(stamp_ns, [("odom", "camera", values["position"], values["quat_xyzw"]),
+                            ("map", "odom", np.array([1.0, -2.0, 0.5]), np.array([0.0, 0.6, 0.0, 0.8]))])
     out.write_path(
         stamp_ns,
         "odom",
@@ -544,8 +546,21 @@ def test_output_bag_round_trip(tmp_path: Path) -> None:
         written = {stamp: _write_everything(out, stamp) for stamp in (1_000_000_000, 1_500_000_000)}
 
     messages = _read_back(path)
-    assert sorted(messages) == ["/diagnostics", "/vo/odometry", "/vo/path", "/vo/points"]
+    assert sorted(messages) == ["/diagnostics", "/tf", "/vo/odometry", "/vo/path", "/vo/points"]
     assert all(len(v) == 2 for v in messages.values())
+
+    for log_time_ns, tf in messages["/tf"]:  # tf2_msgs/TFMessage: one TransformStamped per transform
+        values = written[log_time_ns]
+        first, second = tf.transforms
+        for t in (first, second):
+            assert (t.header.stamp.sec, t.header.stamp.nanosec) == divmod(log_time_ns, 10**9)
+        assert (first.header.frame_id, first.child_frame_id, second.header.frame_id, second.child_frame_id) == (
+            "odom", "camera", "map", "odom")
+        r, q = first.transform.translation, first.transform.rotation
+        np.testing.assert_array_equal([r.x, r.y, r.z, q.x, q.y, q.z, q.w],
+                                      [*values["position"], *values["quat_xyzw"]])
+        r, q = second.transform.translation, second.transform.rotation
+        assert [r.x, r.y, r.z, q.x, q.y, q.z, q.w] == [1.0, -2.0, 0.5, 0.0, 0.6, 0.0, 0.8]
 
     for log_time_ns, odom in messages["/vo/odometry"]:
         values = written[log_time_ns]
@@ -598,13 +613,14 @@ def test_output_bag_is_a_ros2_mcap(tmp_path: Path) -> None:
         assert reader.get_header().profile == "ros2"
         summary = reader.get_summary()
     assert summary is not None
-    assert summary.statistics.message_count == 4
+    assert summary.statistics.message_count == 5
     schemas = {s.name: s for s in summary.schemas.values()}
     assert set(schemas) == {
         "nav_msgs/msg/Odometry",
         "sensor_msgs/msg/PointCloud2",
         "nav_msgs/msg/Path",
         "diagnostic_msgs/msg/DiagnosticArray",
+        "tf2_msgs/msg/TFMessage",
     }
     assert all(s.encoding == "ros2msg" for s in schemas.values())
     assert "MSG: geometry_msgs/PoseWithCovariance" in schemas["nav_msgs/msg/Odometry"].data.decode()
@@ -613,7 +629,7 @@ def test_output_bag_is_a_ros2_mcap(tmp_path: Path) -> None:
         assert channel.metadata["offered_qos_profiles"] == ""
         assert channel.metadata["topic_type_hash"].startswith("RIHS01_")
     with path.open("rb") as stream:
-        assert len(list(make_reader(stream).iter_messages())) == 4
+        assert len(list(make_reader(stream).iter_messages())) == 5
 
 
 def test_output_bag_stays_readable_after_interrupt(tmp_path: Path) -> None:

@@ -148,6 +148,13 @@ def test_resume_skips_complete_bags_and_force_redoes_them(fleet_dir: Path, tmp_p
     assert main([*args, "--params", str(params), "--force"]) == 1
     assert _summary(out)["general_motion"]["run"] == "replayed"
     assert all(f.stat().st_mtime_ns != b for f, b in zip(files, before, strict=True))
+    # vo_node's map_frame_id changes /vo/odometry and /tf: not the same replay either.
+    params.write_text("/**:\n  ros__parameters:\n    max_features: 400\n    map_frame_id: map\n")
+    assert main([*args, "--params", str(params)]) == 1
+    assert _summary(out)["general_motion"]["run"] == "replayed"
+    assert json.loads((out / "general_motion" / "stats.json").read_text())["map_frame_id"] == "map"
+    assert main([*args, "--params", str(params)]) == 1
+    assert _summary(out)["general_motion"]["run"] == "skipped: complete"
 
 
 def test_summarize_rebuilds_the_summary(fleet_run: tuple[Path, int], tmp_path: Path,
