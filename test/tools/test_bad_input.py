@@ -579,7 +579,8 @@ def test_nothing_lost_with_injected_bad_frames(tmp_path: Path, source: list[Sour
     with AnyReader([out / "output.mcap"], default_typestore=TYPESTORE) as reader:
         for con, _, rawdata in reader.messages():
             msg = reader.deserialize(rawdata, con.msgtype)
-            stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+            head = msg.transforms[0].header if con.topic == "/tf" else msg.header  # TFMessage: per transform
+            stamp = head.stamp.sec * 10**9 + head.stamp.nanosec
             if con.topic == "/diagnostics":
                 (status,) = msg.status
                 diag_stamps.append(stamp)
@@ -805,10 +806,12 @@ def assert_every_written_stamp_is_a_ros_time(out: Path) -> dict[str, list[int]]:
     with AnyReader([out / "output.mcap"], default_typestore=TYPESTORE) as reader:
         for con, log_time_ns, rawdata in reader.messages():
             msg = reader.deserialize(rawdata, con.msgtype)
-            heads = [msg.header.stamp] + [p.header.stamp for p in getattr(msg, "poses", [])]
+            # a TFMessage (/tf) has no header of its own: each of its transforms has one
+            inner = [*getattr(msg, "poses", []), *getattr(msg, "transforms", [])]
+            heads = ([] if con.topic == "/tf" else [msg.header.stamp]) + [p.header.stamp for p in inner]
             for st in heads:
                 assert _valid_ros_time(st.sec, st.nanosec), (con.topic, st)
-            assert msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec == log_time_ns
+            assert heads[0].sec * 10**9 + heads[0].nanosec == log_time_ns
             stamps.setdefault(con.topic, []).append(log_time_ns)
     for line in (out / "trajectory.tum").read_text().splitlines():
         sec, frac = line.split()[0].split(".")
