@@ -71,6 +71,12 @@ class OdometrySample:
     # (identity until one comes); None for a converter that moves the pose by them.
     T_map_odom: F64 | None = None
 
+    def map_odom_xyz_quat(self) -> tuple[F64, F64] | None:
+        """``T_map_odom`` as (translation, quaternion x y z w), the form a TF message carries; None without."""
+        if self.T_map_odom is None:
+            return None
+        return self.T_map_odom[:3, 3].copy(), quat_xyzw_from_rotation(self.T_map_odom[:3, :3])
+
 
 class OdometryConverter:
     """Turns successive camera poses T_w_c (with covariance) into odom -> base odometry samples.

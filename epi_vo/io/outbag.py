@@ -166,9 +166,10 @@ class OutputBag:
 
     Topics: /vo/odometry (nav_msgs/Odometry), /vo/points (sensor_msgs/PointCloud2), /vo/path
     (nav_msgs/Path), /diagnostics (diagnostic_msgs/DiagnosticArray), /tf (tf2_msgs/TFMessage); all five
-    channels are declared up front. Stamps are integer nanoseconds; each message is logged at its header stamp. A stamp
-    that is no valid ROS time (outside [0, (2**31 - 1) s + 999999999 ns]) is refused with a BagError
-    before anything of that message is written (the file stays valid and readable).
+    channels are declared up front. Stamps are integer nanoseconds; each message is logged at its header
+    stamp (a TFMessage's transforms all carry it). A stamp that is no valid ROS time (outside
+    [0, (2**31 - 1) s + 999999999 ns]) is refused with a BagError before anything of that message is
+    written (the file stays valid and readable).
 
     Use as a context manager: leaving the block, also by an exception or KeyboardInterrupt, writes
     the summary and index so the file stays readable.

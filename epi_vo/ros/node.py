@@ -58,7 +58,7 @@ from epi_vo.core.frame import FrameResult
 from epi_vo.core.odometry import OdometryConverter, T_base_cam_from_params, status_pose
 from epi_vo.core.pipeline import VoPipeline
 from epi_vo.core.status import frame_status, summary_status
-from epi_vo.core.transforms import invert_T, quat_xyzw_from_rotation, rotation_angle_deg
+from epi_vo.core.transforms import invert_T, rotation_angle_deg
 from epi_vo.io import msgconv
 from epi_vo.io.association import CameraInfoAssociator, Ready
 from epi_vo.io.node_options import NodeOptions, changed_names
@@ -508,9 +508,8 @@ class VoNodeBase:
             if self._tf is not None:
                 transforms = [transform_msg(stamp_msg, self.opts.frame_id, self.opts.child_frame_id, s.position,
                                             s.quat_xyzw)]
-                if s.T_map_odom is not None:  # map_frame_id: the corrections, map -> odom (REP-105)
-                    transforms.append(transform_msg(stamp_msg, self.opts.map_frame_id, self.opts.frame_id,
-                                                    s.T_map_odom[:3, 3], quat_xyzw_from_rotation(s.T_map_odom[:3, :3])))
+                if (map_odom := s.map_odom_xyz_quat()) is not None:  # map_frame_id: the corrections (REP-105)
+                    transforms.append(transform_msg(stamp_msg, self.opts.map_frame_id, self.opts.frame_id, *map_odom))
                 self._tf.sendTransform(transforms)
         if r.points_w.shape[0]:
             self._pub_points.publish(point_cloud_msg(odom.header, self._converter.odom_points(r.points_w)))

@@ -39,7 +39,6 @@ from epi_vo.core.frame import FrameResult
 from epi_vo.core.odometry import OdometryConverter, OdometrySample, sample_status_pose, status_pose
 from epi_vo.core.pipeline import VoPipeline
 from epi_vo.core.status import frame_status
-from epi_vo.core.transforms import quat_xyzw_from_rotation
 from epi_vo.io import bagio, outbag, tum
 from epi_vo.io.msgconv import decode_frame, ns_to_ros_time
 from epi_vo.tools.consistency import OdometryLog, consistency_metrics, format_consistency
@@ -607,9 +606,8 @@ def _write_outputs(obag: outbag.OutputBag, converter: OdometryConverter, result:
         path_poses.append(result.stamp_ns, sample.position, sample.quat_xyzw)
         obag.write_path(result.stamp_ns, ODOM_FRAME, *path_poses.window())
         transforms = [(ODOM_FRAME, BASE_FRAME, sample.position, sample.quat_xyzw)]
-        if sample.T_map_odom is not None:  # as vo_node's TF with map_frame_id (REP-105)
-            transforms.append((map_frame_id, ODOM_FRAME, sample.T_map_odom[:3, 3],
-                               quat_xyzw_from_rotation(sample.T_map_odom[:3, :3])))
+        if (map_odom := sample.map_odom_xyz_quat()) is not None:  # as vo_node's TF with map_frame_id (REP-105)
+            transforms.append((map_frame_id, ODOM_FRAME, *map_odom))
         obag.write_tf(result.stamp_ns, transforms)
     obag.write_diagnostics(result.stamp_ns, [frame_status(
         result, "epi_vo", "replay", sample_status_pose(sample, ODOM_FRAME, BASE_FRAME), record)])
