@@ -69,6 +69,14 @@ def _add_benchmark(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--output", default=None, help="also write the table as JSON here")
 
 
+def _add_gtcheck(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("gtcheck", help="does a bag's ground truth agree with its images? (before it judges a "
+                                       "covariance: exit 1 when some pair of frames contradicts it)")
+    p.add_argument("bag", help="bag directory or .mcap file")
+    p.add_argument("--gt", default=None, help="ground truth, TUM (default: groundtruth_tum.txt in or beside the bag)")
+    p.add_argument("--gap", type=int, default=4, help="frames between the two images of a pair (default 4)")
+
+
 def _add_latency(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("latency", help="live latency of vo_node (image publish -> odometry) over DDS on loopback")
     p.add_argument("--rates", default="30,60,90,120", help="comma-separated publish rates (Hz) to try")
@@ -156,6 +164,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     _add_inspect(sub)
     _add_play(sub)
     _add_soak(sub)
+    _add_gtcheck(sub)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
@@ -193,6 +202,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 0
         if args.command == "play":
             return _play(args)
+        if args.command == "gtcheck":
+            from epi_vo.tools.gt_check import run as gtcheck_run
+
+            return gtcheck_run(args)
         if args.command == "soak":
             from epi_vo.tools.soak import run as soak_run
 

@@ -54,6 +54,15 @@ def chain_world(cov_w_a: F64, p_w_a: F64, p_w_b: F64, cov_w_b_given_a: F64) -> F
     return J @ cov_w_a @ J.T + cov_w_b_given_a
 
 
+def given(cov_w_b: F64, cov_w_a: F64, p_w_a: F64, p_w_b: F64) -> F64:
+    """The inverse of ``chain_world``: pose b's covariance given pose a's (the motion from a to b's),
+    ``cov_w_b - J cov_w_a J^T`` with the lever-arm J, made positive semi-definite as ``floored`` does
+    (a covariance that is not a pure chain, e.g. a window's marginal, can leave a negative direction)."""
+    J = np.eye(6)
+    J[:3, 3:] = -skew(np.asarray(p_w_b, dtype=np.float64) - np.asarray(p_w_a, dtype=np.float64))
+    return floored(cov_w_b - J @ cov_w_a @ J.T)
+
+
 def step(cov_rel: F64, prev_rel: F64 | None) -> F64:
     """Covariance of the motion between two consecutive frames from their covariances relative to the
     same keyframe (one frame), ``prev_rel`` None when the previous frame is the keyframe itself.

@@ -46,6 +46,7 @@ from evo.core.metrics import APE, RPE, PoseRelation, StatisticsType, Unit
 from evo.core.trajectory import PoseTrajectory3D
 from numpy.typing import NDArray
 
+from epi_vo.core.covariance import given
 from epi_vo.core.errors import EpiVoError, EvaluationError
 from epi_vo.core.odometry import default_T_base_cam
 from epi_vo.core.transforms import invert_T
@@ -351,12 +352,10 @@ class AlignmentAnchor(enum.Enum):
     """How the estimate is put into the ground truth's frame before the errors are taken.
 
     ORIGIN: rotation and translation from the anchor pose (the odometry origin, where the published
-    covariance is ~0 and which defines the odom frame); only the scale is fitted (least squares over
-    the evaluated positions, relative to the anchor). This matches what the covariance describes: the
-    error accumulated since the origin. UMEYAMA: the whole Sim(3) (or SE(3)) fitted to the evaluated
-    positions (evo's Umeyama), as for ATE; it absorbs 7 dof of error and puts an error on the early
-    frames whose covariance is still small.
-    """
+    covariance is ~0); only the scale is fitted (least squares over the evaluated positions, relative to
+    the anchor): the error accumulated since the origin, as the covariance describes it. UMEYAMA: the
+    whole Sim(3) (or SE(3)) fitted to the evaluated positions (evo's), as for ATE; it absorbs 7 dof of
+    error and puts an error on the early frames whose covariance is still small."""
 
     ORIGIN = "origin"
     UMEYAMA = "umeyama"
@@ -597,21 +596,24 @@ def replay_nees(
     T_base_cam: NDArray[np.float64] | None = None,
     anchor: AlignmentAnchor = AlignmentAnchor.ORIGIN,
     max_time_diff: float = 0.01,
+    from_ns: int | None = None,
 ) -> NeesResult:
     """Covariance consistency of a replay: its frame records, its /vo/odometry messages and ground truth.
 
     ``records`` are frames.jsonl (``stamp_ns``, ``index``, ``state``, ``metric_scale``); ``odometry`` the
-    replay's output.mcap /vo/odometry (pose of base_link in odom and the 6x6 covariance as published,
-    matched to the records by header stamp); ``gt`` ground-truth camera optical-frame poses (TUM),
-    turned into base poses with ``T_base_cam`` (the replay's extrinsic: the default optical rotation,
-    no offset) and paired with the nearest stamp within ``max_time_diff`` s.
+    replay's /vo/odometry (base_link in odom, covariance as published, matched by header stamp); ``gt``
+    ground-truth camera optical-frame poses (TUM), turned into base poses with ``T_base_cam`` (default:
+    the optical rotation) and paired with the nearest stamp within ``max_time_diff`` s.
 
     Only frames in state ``tracking`` are evaluated; lost, initializing, rotation_only and static frames
     keep their meaning (a held pose with an "unknown" or "still" covariance) and are counted in
-    ``skipped`` by state. When the run established a metric scale (a record with ``metric_scale``), the
-    alignment is SE(3) over the metric frames and the tracking frames before it are skipped ("metric
-    scale not established"); otherwise Sim(3). The anchor is the first odometry message with ground
-    truth (the odometry origin).
+    ``skipped`` by state. Once the run established metres (a record with ``metric_scale``) the alignment
+    is SE(3) over the metric frames (earlier ones skipped: "metric scale not established"), else Sim(3).
+    The anchor is the first odometry message with ground truth (the odometry origin).
+
+    ``from_ns``: judge only from this image stamp on (earlier ground truth contradicted by the images:
+    ``tools.gt_check``), anchored at the first tracking frame there, each covariance given the anchor's
+    (``conditioned_on``); earlier frames are skipped as "before the checked ground truth".
 
     Raises:
         EvaluationError: no odometry message, or none paired with ground truth.
@@ -649,16 +651,35 @@ def replay_nees(
             skipped["no ground truth"] += 1
         elif metric and not rec.get("metric_scale"):
             skipped["metric scale not established"] += 1
+        elif from_ns is not None and int(rec["stamp_ns"]) < from_ns:
+            skipped["before the checked ground truth"] += 1
         else:
             evaluate[row] = True
     T_est = poses_from_xyz_quat(odometry.positions, odometry.quats_xyzw)
     T_gt = poses_from_xyz_quat(gt_pos[j], gt_quat[j]) @ T_cb  # T_g_base = T_g_cam T_cam_base
+    cov = odometry.pose_covariance
     anchor_row = int(np.argmax(has_gt))
-    return covariance_consistency(T_est, odometry.pose_covariance, T_gt, evaluate, metric=metric, anchor=anchor,
+    if from_ns is not None:
+        if not evaluate.any():
+            msg = f"no tracking frame with ground truth at or after {from_ns} ns"
+            raise EvaluationError(msg)
+        anchor_row = int(np.argmax(evaluate))
+        evaluate[anchor_row] = False  # its error is zero by construction
+        skipped["anchor"] = 1
+        cov = conditioned_on(T_est, cov, anchor_row)
+    return covariance_consistency(T_est, cov, T_gt, evaluate, metric=metric, anchor=anchor,
                                   anchor_row=anchor_row, frame_index=frame_index, skipped=dict(skipped))
 
 
-def replay_dir_nees(directory: str | Path, anchor: AlignmentAnchor = AlignmentAnchor.ORIGIN) -> NeesResult | None:
+def conditioned_on(T_o_b: NDArray[np.float64], cov_o: NDArray[np.float64], a: int) -> NDArray[np.float64]:
+    """Each pose's covariance given pose ``a``'s (as published, in o), as the pipeline's chain composes
+    them: ``core.covariance.given`` (P_i - J P_a J^T, J the lever arm from a to i)."""
+    p = T_o_b[:, :3, 3]
+    return np.array([given(cov_o[i], cov_o[a], p[a], p[i]) for i in range(cov_o.shape[0])]).reshape(cov_o.shape)
+
+
+def replay_dir_nees(directory: str | Path, anchor: AlignmentAnchor = AlignmentAnchor.ORIGIN,
+                    from_ns: int | None = None) -> NeesResult | None:
     """:func:`replay_nees` of an ``epi-vo replay`` output directory (frames.jsonl, output.mcap,
     groundtruth.tum); None when it has no ground truth.
 
@@ -676,4 +697,4 @@ def replay_dir_nees(directory: str | Path, anchor: AlignmentAnchor = AlignmentAn
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, EpiVoError) as exc:
         msg = f"{d}: cannot read the replay output for the covariance check: {exc}"
         raise EvaluationError(msg) from None
-    return replay_nees(records, odometry, gt, anchor=anchor)
+    return replay_nees(records, odometry, gt, anchor=anchor, from_ns=from_ns)

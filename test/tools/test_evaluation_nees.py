@@ -15,12 +15,14 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from epi_vo.core.errors import BagError, EvaluationError
+from epi_vo.core.geometry import skew
 from epi_vo.core.odometry import OdometryConverter, rotate_covariance
 from epi_vo.io.odometry_bag import read_odometry
 from epi_vo.io.outbag import OutputBag
 from epi_vo.tools.evaluation import (
     CHI2_3DOF_99,
     AlignmentAnchor,
+    conditioned_on,
     covariance_consistency,
     poses_from_xyz_quat,
     replay_dir_nees,
@@ -369,3 +371,70 @@ def test_vectorised_pose_helpers_equal_the_per_pose_transforms() -> None:
         poses_from_xyz_quat(p[:2], np.array([[0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 0.0, 0.0]]))
     with pytest.raises(EpiVoError, match="non-finite"):
         poses_from_xyz_quat(np.array([[np.nan, 0.0, 0.0]]), q[:1])
+
+
+def chain_run(n: int, rng: np.random.Generator, T_gt: F64) -> tuple[F64, F64]:
+    """Odometry as the pipeline chains it: each frame's error (world frame, left) is the previous one's
+    moved by the lever arm plus a new step, e_i = F_i e_(i-1) + w_i, F_i = [[I, -[p_i - p_(i-1)]x], [0, I]];
+    the published covariance propagates the same way. Returns (T_est, P) in g."""
+    p = T_gt[:, :3, 3]
+    e, P = np.zeros((n, 6)), np.zeros((n, 6, 6))
+    for i in range(1, n):
+        A = rng.normal(size=(6, 6)) * np.r_[[0.004] * 3, [0.0008] * 3][:, None]
+        Q = A @ A.T + np.diag([1e-7] * 3 + [1e-9] * 3)
+        F = np.eye(6)
+        F[:3, 3:] = -skew(p[i] - p[i - 1])
+        e[i] = F @ e[i - 1] + rng.multivariate_normal(np.zeros(6), Q)
+        P[i] = F @ P[i - 1] @ F.T + Q
+    P[0] = np.eye(6) * 1e-12
+    return perturb(T_gt, e), P
+
+
+def test_conditioned_on_recovers_the_motion_since_the_anchor() -> None:
+    """P_i = J P_a J^T + Q (J the lever arm from a to i): conditioned on a, what is left is Q."""
+    rng = np.random.default_rng(5)
+    T = gt_path(20, rng)
+    P_a = random_covariances(2, rng)[1]
+    Q = random_covariances(20, rng)
+    Q[7] = 0.0  # the anchor's own covariance is P_a
+    P = np.empty_like(Q)
+    for i in range(20):
+        J = np.eye(6)
+        J[:3, 3:] = -skew(T[i, :3, 3] - T[7, :3, 3])
+        P[i] = J @ P_a @ J.T + Q[i]
+    C = conditioned_on(T, P, 7)
+    np.testing.assert_allclose(C[8:], Q[8:], rtol=1e-9, atol=1e-15)
+    assert np.all(np.linalg.eigvalsh(C) > 0.0)  # floored, as published covariances are
+
+
+def test_nees_from_a_later_anchor_is_chi_square_when_the_chain_is() -> None:
+    """Errors that accumulate along the chain, judged from frame 10 on (anchored there, each covariance
+    given frame 10's): NEES 3 for position and rotation. The covariance as published (from the origin)
+    would claim the error frame 10 already had: 1.3 (position) and 1.4 (rotation) instead of 3."""
+    rng = np.random.default_rng(8)
+    n, a = 30, 10
+    T_gt = gt_path(n, rng)
+    pos, rot, raw_pos = [], [], []
+    for _ in range(300):
+        T_est, P = chain_run(n, rng, T_gt)
+        mask = np.arange(n) > a
+        r = covariance_consistency(T_est, conditioned_on(T_est, P, a), T_gt, mask, metric=True, anchor_row=a)
+        pos.append(r.mean_nees_pos)
+        rot.append(r.mean_nees_rot)
+        raw_pos.append(covariance_consistency(T_est, P, T_gt, mask, metric=True, anchor_row=a).mean_nees_pos)
+    assert float(np.mean(pos)) == pytest.approx(3.0, abs=0.3)
+    assert float(np.mean(rot)) == pytest.approx(3.0, abs=0.3)
+    assert float(np.mean(raw_pos)) < 2.0
+
+
+def test_replay_nees_from_a_stamp_anchors_there_and_skips_what_is_before(tmp_path: Path) -> None:
+    d, exp = write_replay(tmp_path / "run", ["initializing"] * 2 + ["tracking"] * 38)
+    r = replay_dir_nees(d, from_ns=exp["stamps"][10])
+    assert r is not None
+    # frames 2..9 tracking before it (3 has no odometry), frame 10 the anchor, n-2 has no ground truth
+    assert r.skipped == {"initializing": 2, "no odometry message": 1, "before the checked ground truth": 7,
+                         "anchor": 1, "no ground truth": 1}
+    assert r.frame_index[0] == 11 and r.evaluated == 28
+    recs = [json.loads(line) for line in (d / "frames.jsonl").read_text().splitlines()]
+    with pytest.raises(EvaluationError, match="no tracking frame with ground truth at or after"):
+        replay_nees(recs, read_odometry(d / "output.mcap"), _tum(d / "groundtruth.tum"), from_ns=exp["stamps"][-1] + 1)
