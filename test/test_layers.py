@@ -7,8 +7,7 @@ private name taken from another module, no module over 700 lines.
 * core/: numpy, cv2 and the standard library only (plus the optimiser the metric-scale work adds);
 * io/: core, rosbags, mcap, yaml; never rclpy;
 * ros/: core, io, rclpy and ROS message packages (and rich for the monitor); never tools;
-* tools/: core, io, evo, matplotlib, tqdm, scipy (the ground-truth check's own pose fit); never rclpy,
-  never ros;
+* tools/: core, io, evo, matplotlib, tqdm; never rclpy, never ros;
 * cli.py: anything, lazily.
 """
 
@@ -28,7 +27,7 @@ THIRD_PARTY = {
     "core": {"numpy", "cv2", "gtsam", "scipy"},
     "io": {"numpy", "cv2", "rosbags", "mcap", "yaml"},
     "ros": {"numpy", "cv2", "rich"} | ROS_PACKAGES,  # rich: the monitor's terminal view
-    "tools": {"numpy", "cv2", "evo", "matplotlib", "tqdm", "rosbags", "mcap", "yaml", "scipy"},
+    "tools": {"numpy", "cv2", "evo", "matplotlib", "tqdm", "rosbags", "mcap", "yaml"},
 }
 MAY_IMPORT = {"core": {"core"}, "io": {"core", "io"}, "ros": {"core", "io", "ros"}, "tools": {"core", "io", "tools"}}
 MAX_LINES = 700

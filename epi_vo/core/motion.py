@@ -268,8 +268,10 @@ class MotionStage:
                 st.reasons.append(f"planar scene, low parallax ({st.median_parallax_deg:.2f} deg < "
                                   f"{cfg.init_min_parallax_deg}): waiting for baseline, position held")
                 return Motion(TrackingState.INITIALIZING, R_p, zero, covm.block(1e-6, rot_cov), in_h)
-            norm = float(np.linalg.norm(t_p))
-            return self._initialize(ctx, R_p, t_p / norm, in_h, st, "homography (planar scene)", planar=True)
+            R_p, t_dir, note = geo.refine_planar_pose(R_p, t_p / float(np.linalg.norm(t_p)), xn_kf, xn_cur,
+                                                      in_h if sel.inliers_e is None else in_h & sel.inliers_e)
+            st.reasons.append(f"planar scene: {note}")
+            return self._initialize(ctx, R_p, t_dir, in_h, st, "homography (planar scene)", planar=True)
         if sel.E is not None and sel.inliers_e is not None and st.median_parallax_deg >= cfg.plane_e_min_parallax_deg:
             # RH is ORB-SLAM's test for the uncalibrated 8-point F, which a plane makes degenerate. The
             # calibrated 5-point E is not degenerate on a plane (only two-fold ambiguous), and with a map

@@ -133,24 +133,10 @@ def transfer_px(H: F64, x1: F64, x2: F64, f: float) -> F64:
 
 
 def refine_pose(R: F64, t: F64, x1: F64, x2: F64, f: float) -> tuple[F64, F64]:
-    """The relative pose (R, unit t) minimising the Sampson distances of x1 -> x2 (Levenberg-Marquardt,
-    scipy), from RANSAC's: the images' own pose at their own noise, not at the minimal sample's."""
-    from scipy.optimize import least_squares
-    from scipy.spatial.transform import Rotation
-
-    t = t / np.linalg.norm(t)
-    B = np.linalg.svd(np.eye(3) - np.outer(t, t))[0][:, :2]  # the tangent plane of t on the sphere
-
-    def pose(v: F64) -> tuple[F64, F64]:
-        d = t + B @ v[3:]
-        return Rotation.from_rotvec(v[:3]).as_matrix() @ R, d / np.linalg.norm(d)
-
-    def residuals(v: F64) -> F64:
-        Rv, tv = pose(v)
-        return sampson_px(skew(tv) @ Rv, x1, x2, f)
-
-    sol = least_squares(residuals, np.zeros(5), method="lm" if len(x1) >= 5 else "trf")
-    return pose(sol.x)
+    """The images' own pose at their own noise, not at RANSAC's minimal sample's: Levenberg-Marquardt on
+    the Sampson distances (``geometry.refine_relative_pose``), from RANSAC's pose."""
+    out = geometry.refine_relative_pose(R, t, x1, x2)
+    return (R, t / np.linalg.norm(t)) if out is None else (out[0], out[1])
 
 
 def _fit_motion(x1: F64, x2: F64, R_gt: F64, t_gt: F64, f: float, translates: bool
