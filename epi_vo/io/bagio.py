@@ -29,6 +29,7 @@ from rosbags.typesys import Stores, get_typestore
 from epi_vo.core.errors import BagError, EpiVoError
 from epi_vo.core.frame import clamp_stamp_ns
 from epi_vo.io.msgconv import (
+    decode_frame,
     stamp_problem,
     stamp_to_ns,
 )
@@ -357,6 +358,17 @@ class CameraBag:
         # bisect_right lands after every stamp <= stamp_ns, so an exact match is the one taken.
         position = bisect.bisect_right(self._camera_info_stamps_ns, stamp_ns)
         return self._camera_info_msgs[max(position - 1, 0)]
+
+    def usable_gray(self, frame: BagFrame) -> NDArray[np.uint8] | None:
+        """The frame's grayscale pixels when the replay would process it, else None: a frame with a
+        ``problem``, without camera_info, or whose pixels cannot be decoded (for tools that only need
+        the frames the pipeline sees)."""
+        if frame.problem is not None or frame.camera_info_msg is None:
+            return None
+        try:
+            return decode_frame(frame.image_msg, self.image_is_compressed)
+        except EpiVoError:
+            return None
 
     def iter_frames(self) -> Iterator[BagFrame]:
         """Images in bag order, each with ``camera_info_for`` its header stamp.

@@ -42,7 +42,6 @@ from epi_vo.core.config import VoConfig
 from epi_vo.core.errors import EpiVoError, EvaluationError, OutputError
 from epi_vo.core.transforms import quat_xyzw_from_rotation
 from epi_vo.io import bagio, tum
-from epi_vo.io.msgconv import decode_frame
 from epi_vo.io.params import load_config
 from epi_vo.tools.evaluation import StampedPoses, evaluate_trajectory, metric_poses, replay_dir_nees
 from epi_vo.tools.gt_check import AGREE_EXCESS_PX, GroundTruthCheck, check_ground_truth
@@ -204,11 +203,8 @@ def bench_reference(name: str, bag_path: Path, gt_path: Path) -> BenchRow:
             frames += 1
             # A frame epi_vo's replay would reject before decoding (undecodable message, bad stamp, no
             # camera_info, undecodable pixels) is a frame without a pose for the reference too.
-            if frame.problem is not None or frame.camera_info_msg is None:
-                continue
-            try:
-                gray = decode_frame(frame.image_msg, bag.image_is_compressed)
-            except EpiVoError:
+            gray = bag.usable_gray(frame)
+            if gray is None:
                 continue
             if ref is None:
                 info = frame.camera_info_msg

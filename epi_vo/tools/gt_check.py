@@ -41,7 +41,6 @@ from epi_vo.core import geometry
 from epi_vo.core.errors import EpiVoError
 from epi_vo.core.geometry import skew
 from epi_vo.io import bagio, tum
-from epi_vo.io.msgconv import decode_frame
 from epi_vo.tools.evaluation import nearest_rows, poses_from_xyz_quat, rotation_vectors
 
 F64 = NDArray[np.float64]
@@ -221,14 +220,11 @@ def check_ground_truth(bag_path: str | Path, gt: tuple[F64, F64, F64], gap: int 
     kept: list[tuple[int, int, F64, F64, np.ndarray]] = []  # index, stamp, T_w_c, keypoints (px), descriptors
     with bagio.open_camera_bag(bag_path) as bag:
         for index, frame in enumerate(bag.iter_frames()):
-            if index % gap or frame.problem is not None or frame.camera_info_msg is None:
-                continue
             j = int(nearest_rows(gt_s, np.array([frame.stamp_ns * 1e-9]))[0])
-            if abs(gt_s[j] - frame.stamp_ns * 1e-9) > MAX_TIME_DIFF:
+            if index % gap or abs(gt_s[j] - frame.stamp_ns * 1e-9) > MAX_TIME_DIFF:
                 continue
-            try:
-                gray = decode_frame(frame.image_msg, bag.image_is_compressed)
-            except EpiVoError:
+            gray = bag.usable_gray(frame)
+            if gray is None:
                 continue
             if K is None:
                 info = frame.camera_info_msg

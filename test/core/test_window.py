@@ -107,7 +107,9 @@ def test_the_window_publishes_a_positive_definite_covariance(tmp_path) -> None:
     """moving_mover with a window of 8: the window's marginal replaced the keyframe chain while the map's
     scale kept its correlation with the old chain, and 5 poses were published with a negative eigenvalue
     (-2e-4 beside 1.6; position NEES -58 over the bag). ``covariance.floored`` now keeps every published
-    covariance positive definite: NEES 2.5."""
+    covariance positive definite: NEES 2.5; 0.92 since the first map takes the epipolar pose of H's inliers
+    (``geometry.refine_planar_pose``, 2026-11-27: its start is no longer 0.03 deg off). A negative
+    direction would still show, as a negative or enormous NEES."""
     from pathlib import Path
 
     from epi_vo.core.config import VoConfig
@@ -120,7 +122,7 @@ def test_the_window_publishes_a_positive_definite_covariance(tmp_path) -> None:
     assert odometry.pose_covariance.shape[0] == 105
     assert min(float(np.linalg.eigvalsh(C)[0]) for C in odometry.pose_covariance) > 0.0
     assert min(float(np.linalg.eigvalsh(C)[0]) for C in odometry.twist_covariance) > 0.0
-    assert summary.metrics is not None and 1.0 <= summary.metrics["nees_pos"] <= 6.0
+    assert summary.metrics is not None and 0.5 <= summary.metrics["nees_pos"] <= 6.0
 
 
 def test_window_without_gtsam_is_a_config_error_naming_it(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -5,6 +5,7 @@ Test bags are written by fixtures into tmp_path with rosbags' Writer (MCAP and s
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -923,3 +924,18 @@ def test_output_bag_path_stamps_are_checked(tmp_path: Path) -> None:
         out.write_path(10, "odom", np.array([1.9, 2.0]), np.zeros((2, 3)), np.zeros((2, 4)))  # floats: as ints
     ((_, msg),) = _read_back(tmp_path / "output.mcap")["/vo/path"]
     assert [p.header.stamp.nanosec for p in msg.poses] == [1, 2]
+
+
+def test_usable_gray_is_the_pixels_of_a_frame_the_replay_would_process(tmp_path: Path) -> None:
+    bad = _image(2 * 10**8, 7)
+    bad.encoding = "no_such_encoding"
+    records = [Record("/cam/camera_info", CAMERA_INFO, 10**8, _camera_info(10**8, 500.0)),
+               Record("/cam/image_raw", IMAGE, 10**8, _image(10**8, 42)),
+               Record("/cam/image_raw", IMAGE, 2 * 10**8, bad)]
+    with open_camera_bag(write_bag(tmp_path / "bag", records)) as bag:
+        frames = list(bag.iter_frames())
+        good = bag.usable_gray(frames[0])
+        assert good is not None and good.shape == (4, 6) and np.all(good == 42)
+        assert bag.usable_gray(frames[1]) is None
+        assert bag.usable_gray(dataclasses.replace(frames[0], camera_info_msg=None)) is None
+        assert bag.usable_gray(dataclasses.replace(frames[0], problem="image message not decodable")) is None
