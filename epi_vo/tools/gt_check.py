@@ -38,6 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from epi_vo.core import geometry
+from epi_vo.core.camera import CameraModel
 from epi_vo.core.errors import EpiVoError
 from epi_vo.core.geometry import skew
 from epi_vo.io import bagio, tum
@@ -216,7 +217,7 @@ def check_ground_truth(bag_path: str | Path, gt: tuple[F64, F64, F64], gap: int 
     min_baseline = MIN_BASELINE * float(np.mean(steps)) if np.mean(steps) > 0.0 else math.inf
     sift = cv2.SIFT_create(max_features)
     matcher = cv2.BFMatcher(cv2.NORM_L2)
-    K = D = None
+    camera: CameraModel | None = None
     kept: list[tuple[int, int, F64, F64, np.ndarray]] = []  # index, stamp, T_w_c, keypoints (px), descriptors
     with bagio.open_camera_bag(bag_path) as bag:
         for index, frame in enumerate(bag.iter_frames()):
@@ -226,17 +227,15 @@ def check_ground_truth(bag_path: str | Path, gt: tuple[F64, F64, F64], gap: int 
             gray = bag.usable_gray(frame)
             if gray is None:
                 continue
-            if K is None:
-                info = frame.camera_info_msg
-                K = np.asarray(info.k, dtype=np.float64).reshape(3, 3)
-                D = np.asarray(info.d, dtype=np.float64)
+            if camera is None:  # the pipeline's camera model: distortion models, binning and roi
+                camera = CameraModel.from_camera_info(frame.camera_info_msg)
             kps, desc = sift.detectAndCompute(gray, None)
             pts = np.array([k.pt for k in kps], dtype=np.float64).reshape(-1, 2)
             T = poses_from_xyz_quat(gt_p[j:j + 1], gt_q[j:j + 1])[0]
             kept.append((index, int(frame.stamp_ns), T, pts, desc))
-    if K is None:
+    if camera is None:
         raise EpiVoError(f"ground-truth check: {bag_path} has no decodable image with camera_info and ground truth")
-    f = float(K[0, 0])
+    f = float(camera.fx)
     pairs: list[PairCheck] = []
     for (i1, s1, T1, p1, d1), (i2, s2, T2, p2, d2) in itertools.pairwise(kept):
         if i2 - i1 != gap:
@@ -249,8 +248,7 @@ def check_ground_truth(bag_path: str | Path, gt: tuple[F64, F64, F64], gap: int 
             continue
         a = np.array([m.queryIdx for m in matches])
         b = np.array([m.trainIdx for m in matches])
-        x1 = cv2.undistortPoints(p1[a].reshape(-1, 1, 2), K, D).reshape(-1, 2)
-        x2 = cv2.undistortPoints(p2[b].reshape(-1, 1, 2), K, D).reshape(-1, 2)
+        x1, x2 = camera.normalize(p1[a]), camera.normalize(p2[b])
         model = "epipolar" if translates else "rotation"
         checked = check_pair(x1, x2, T1, T2, f, translates)
         if checked is None:

@@ -282,8 +282,6 @@ def refine_pose_pnp(X_ref: F64, uv_cur: F64, K: F64, R_cur_ref: F64, t_cur_ref: 
     return np.asarray(R, dtype=np.float64), tvec.reshape(3), keep, cov
 
 
-
-
 def _signed_sampson(R: F64, t: F64, h_ref: F64, h_cur: F64) -> F64:
     """Signed Sampson distances (normalised units) of homogeneous correspondences under (R, t)."""
     E = essential_from_pose(R, t)
@@ -302,9 +300,9 @@ def refine_relative_pose(R_cur_ref: F64, t_dir: F64, xn_ref: F64, xn_cur: F64, i
     separate minimum). Returns ``(R, t_dir, rms_before, rms_after)`` (normalised units), or None for
     fewer than six correspondences or a non-finite start.
 
-    Why: a homography's decomposition takes the plane's own fit, which points off the plane (and how
-    many of them H's threshold lets in) bias. ground_robot's first map, from H at frame 1: 0.021 deg
-    off in pitch; the same KLT tracks refined on their epipolar distances: 0.003 deg (2026-11-27)."""
+    Why: a homography's decomposition takes the plane's own fit, which the near-plane points H's
+    threshold lets in bias. ground_robot's first map, from H at frame 1: 0.023 deg off in pitch; its
+    pose refined on the same tracks' epipolar distances: 0.006 deg (2026-11-27, ``refine_planar_pose``)."""
     n = xn_ref.shape[0]
     if n < 6 or not (np.all(np.isfinite(R_cur_ref)) and np.all(np.isfinite(t_dir))) or np.linalg.norm(t_dir) == 0:
         return None
@@ -361,9 +359,9 @@ def refine_planar_pose(R_cur_ref: F64, t_dir: F64, xn_ref: F64, xn_cur: F64, inl
 
     The test: the refinement's drop in the squared residuals over their variance after it,
     ``n (rms_before^2 / rms_after^2 - 1)``, above the chi-square 5-dof 99.9 % bound. A floor with a
-    few points off it (ground_robot, moving_mover, the robot drives) gives 250-300: H's fit leans to
+    few points off it (ground_robot, moving_mover, the robot drives) gives 179-455: H's fit leans to
     the points its threshold let in, and its pose was 0.02-0.03 deg off (the epipolar one 0.002-0.008).
-    A true plane (bags/planar) gives 0-13: its points leave E's pose in a flat valley, where the
+    A true plane (bags/planar) gives 0.5-7: its points leave E's pose in a flat valley, where the
     refinement only wanders (with ``klt_window_px`` 21 / 31 it took planar's rotation NEES 2.8 / 5.9
     to 10 / 18). The result must also stay within ``max_rotation_deg`` and ``max_direction_deg``."""
     idx = np.flatnonzero(inliers)
