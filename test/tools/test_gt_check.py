@@ -109,3 +109,27 @@ def test_benchmark_prints_the_verdict_and_the_nees_from_the_confirmed_frame() ->
     assert lines[3] == ("    epi_vo from frame 12 (anchored there): NEES pos 34.57 (2.6 % in 3σ), rot 1.48 "
                         "(100.0 %)")
     assert lines[4] == "  x: not checked: no camera_info"
+
+
+def test_benchmark_row_gets_the_nees_from_the_confirmed_frame() -> None:
+    """A check that found the ground truth contradicted before frame 12: the row's ``nees_*_checked`` are the
+    NEES from frame 12's stamp on (anchored there); a check that agrees everywhere adds nothing."""
+    from epi_vo.core.config import VoConfig
+    from epi_vo.tools.benchmark import bench_epi_vo
+    from epi_vo.tools.gt_check import GroundTruthCheck, PairCheck
+
+    d = BAGS / "general_motion"
+    stamps = tum.read_tum(d / "groundtruth_tum.txt")[0]
+    ns = [round(s * 1e9) for s in stamps]
+    bad = PairCheck(8, 12, ns[8], ns[12], 500, 2.0, 0.05, 0.4, 0.3, "epipolar", False)
+    good = PairCheck(12, 16, ns[12], ns[16], 500, 0.05, 0.05, 0.01, 0.3, "epipolar", True)
+    row = bench_epi_vo("general_motion", d / "bag", d / "groundtruth_tum.txt", VoConfig(),
+                       checked=GroundTruthCheck([bad, good], 12, ns[12]))
+    assert row.gt_checked_from == 12
+    # general_motion's from frame 12 (1.92 / 3.71 measured), not its all-frames 2.02 / 4.96
+    assert row.nees_pos_checked == pytest.approx(1.92, abs=0.02)
+    assert row.nees_rot_checked == pytest.approx(3.71, abs=0.02)
+    assert row.nees_rot == pytest.approx(4.96, abs=0.01)
+    plain = bench_epi_vo("general_motion", d / "bag", d / "groundtruth_tum.txt", VoConfig(),
+                         checked=GroundTruthCheck([good], 0, ns[0]))
+    assert plain.gt_checked_from is None and np.isnan(plain.nees_rot_checked)
