@@ -41,8 +41,9 @@ from epi_vo.core import geometry
 from epi_vo.core.camera import CameraModel
 from epi_vo.core.errors import EpiVoError
 from epi_vo.core.geometry import skew
+from epi_vo.core.transforms import rotation_angle_deg
 from epi_vo.io import bagio, tum
-from epi_vo.tools.evaluation import nearest_rows, poses_from_xyz_quat, rotation_vectors
+from epi_vo.tools.evaluation import nearest_rows, poses_from_xyz_quat
 
 F64 = NDArray[np.float64]
 
@@ -162,12 +163,9 @@ def _fit_motion(x1: F64, x2: F64, R_gt: F64, t_gt: F64, f: float, translates: bo
         inl = mask.ravel() > 0
         gt = transfer_px(R_gt, x1[inl], x2[inl], f)
         im = transfer_px(H, x1[inl], x2[inl], f)
-        # the homography of a rotation is the rotation up to scale: its nearest rotation
-        U, _, Vt = np.linalg.svd(H / np.cbrt(np.linalg.det(H)))
-        R_im = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+        R_im = geometry.rotation_from_homography(H, np.eye(3))  # normalised coordinates: K = I
         direction = math.nan
-    rot = math.degrees(float(np.linalg.norm(rotation_vectors((R_im @ R_gt.T)[None])[0])))
-    return inl, float(np.median(gt)), float(np.median(im)), rot, direction
+    return inl, float(np.median(gt)), float(np.median(im)), rotation_angle_deg(R_im @ R_gt.T), direction
 
 
 def check_pair(x1: F64, x2: F64, T_w_c1: F64, T_w_c2: F64, f: float, translates: bool
@@ -221,8 +219,10 @@ def check_ground_truth(bag_path: str | Path, gt: tuple[F64, F64, F64], gap: int 
     kept: list[tuple[int, int, F64, F64, np.ndarray]] = []  # index, stamp, T_w_c, keypoints (px), descriptors
     with bagio.open_camera_bag(bag_path) as bag:
         for index, frame in enumerate(bag.iter_frames()):
+            if index % gap:
+                continue
             j = int(nearest_rows(gt_s, np.array([frame.stamp_ns * 1e-9]))[0])
-            if index % gap or abs(gt_s[j] - frame.stamp_ns * 1e-9) > MAX_TIME_DIFF:
+            if abs(gt_s[j] - frame.stamp_ns * 1e-9) > MAX_TIME_DIFF:
                 continue
             gray = bag.usable_gray(frame)
             if gray is None:
