@@ -151,8 +151,8 @@ class VoConfig:
         "scale is never known better (ground_plane)", 0.0, 1.0)
     wheel_odometry_topic: str = _knob("/odom", "nav_msgs/Odometry topic of the wheel odometry (wheel_odometry)")
     wheel_odometry_rel_sigma: float = _knob(
-        0.03, "relative error (1 sigma) of a wheel distance between keyframes; mostly calibration (tyre radius, "
-        "slip), common to every keyframe, so the metric scale is never known better", 0.001, 1.0)
+        0.03, "relative calibration error (1 sigma) of the wheel distances (tyre radius): common to every keyframe, "
+        "so the metric scale is never known better; their random error is measured from their spread", 0.001, 1.0)
     wheel_odometry_timeout_s: float = _knob(
         0.5, "wheel messages further than this from an image stamp are stale: the last scale is held (s)", 0.01,
         60.0)
