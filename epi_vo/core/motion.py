@@ -125,6 +125,11 @@ class MotionStage:
                 return self._from_homography(ctx, sel, st)
             if sel.model is Model.ESSENTIAL:
                 assert sel.E is not None and sel.inliers_e is not None
+                if (not self.has_map(ctx.kf) and sel.inliers_h is not None and sel.rh >= self.cfg.rh_threshold - 0.05
+                        and np.count_nonzero(sel.inliers_h) >= 0.5 * np.count_nonzero(sel.inliers_e)
+                        and self._e_moves_off_plane(ctx, sel, st)):
+                    st.model = Model.HOMOGRAPHY
+                    return self._from_homography(ctx, sel, st, e_moves=True)
                 st.model = Model.ESSENTIAL
                 return self._from_essential(ctx, sel.E, sel.inliers_e, st)
             st.reasons.append("no two-view model could be estimated")
@@ -195,7 +200,25 @@ class MotionStage:
             return self._initialize(ctx, R, t_dir, inl, st, "essential matrix")
         return self._track_with_map(ctx, R, t_dir, inl, st, rot_cov, plane)
 
-    def _from_homography(self, ctx: MotionContext, sel: ModelSelection, st: FrameStats) -> Motion | None:
+    def _e_moves_off_plane(self, ctx: MotionContext, sel: ModelSelection, st: FrameStats) -> bool:
+        """Before a first map: E's motion is none H's plane allows (``geo.agrees_with_plane``): part of its consensus
+        moves (moving_mover from frame 45: a cart's 60 points); the plane is taken as static. Where E won RH, only
+        if a plane nearly did (RH within 0.05 of the threshold, 0.43-0.45 there): far points at low parallax
+        fit an H whose decompositions mean nothing (RH 0.26-0.33)."""
+        assert sel.E is not None and sel.inliers_e is not None and sel.H is not None and sel.inliers_h is not None
+        kf, cfg = ctx.kf, self.cfg
+        R, t, _ = geo.recover_pose(sel.E, kf.uv[ctx.rows], ctx.uv_cur, kf.camera.K, sel.inliers_e)
+        sols = geo.homography_solutions(sel.H, kf.camera.K, kf.xn[ctx.rows], ctx.xn_cur, sel.inliers_h,
+                                        cfg.max_reprojection_error_px, cfg.min_triangulation_angle_deg)
+        if not sols or geo.agrees_with_plane(R, t, sols):
+            return False
+        rot, dirn = geo.nearest_plane_motion(R, t, sols)
+        st.reasons.append(f"E's motion is none of H's plane's ({rot:.2f} deg, {dirn:.0f} deg of direction from "
+                          "the nearest): part of its consensus moves; the map starts from the plane")
+        return True
+
+    def _from_homography(self, ctx: MotionContext, sel: ModelSelection, st: FrameStats,
+                         e_moves: bool = False) -> Motion | None:
         assert sel.H is not None and sel.inliers_h is not None
         H, in_h = sel.H, sel.inliers_h
         cfg = self.cfg
@@ -227,8 +250,10 @@ class MotionStage:
         if not self.has_map(kf):
             R_off = None
             off_plane = 0 if sel.inliers_e is None else int(np.count_nonzero(sel.inliers_e & ~in_h))
-            if sel.E is not None and sel.inliers_e is not None and off_plane >= max(
-                    NOT_A_PLANE_OFF[0], NOT_A_PLANE_OFF[1] * np.count_nonzero(sel.inliers_e)):
+            many_off = sel.E is not None and sel.inliers_e is not None and off_plane >= max(
+                NOT_A_PLANE_OFF[0], NOT_A_PLANE_OFF[1] * np.count_nonzero(sel.inliers_e))
+            e_moves = e_moves or (many_off and self._e_moves_off_plane(ctx, sel, st))
+            if many_off and not e_moves and sel.E is not None and sel.inliers_e is not None:
                 # RH favours H at low parallax whatever the scene; with this many of E's inliers off its
                 # plane the scene is no plane, and H's decomposition would give the map a wrong pose
                 # (moving_mover started at frame 20: 23 of 162, the map 1.6 deg off, 6.5 % ATE).
@@ -236,7 +261,7 @@ class MotionStage:
                 st.reasons.append(f"not a plane: {off_plane} of E's {int(np.count_nonzero(sel.inliers_e))} "
                                   "inliers lie off H's plane; initialising from E")
                 return self._from_essential(ctx, sel.E, sel.inliers_e, st)
-            if sel.inliers_e is not None and off_plane >= MIN_OFF_PLANE_FOR_E_HINT:
+            if not e_moves and sel.inliers_e is not None and off_plane >= MIN_OFF_PLANE_FOR_E_HINT:
                 # The points off H's plane (E's inliers that H rejects) say which of H's decompositions is
                 # the motion when they tell them apart (``geometry.solution_off_plane``). Not E's own
                 # rotation: E fitted to a plane and a few points off it is near-degenerate and can take
@@ -268,8 +293,8 @@ class MotionStage:
                 st.reasons.append(f"planar scene, low parallax ({st.median_parallax_deg:.2f} deg < "
                                   f"{cfg.init_min_parallax_deg}): waiting for baseline, position held")
                 return Motion(TrackingState.INITIALIZING, R_p, zero, covm.block(1e-6, rot_cov), in_h)
-            R_p, t_dir, note = geo.refine_planar_pose(R_p, t_p / float(np.linalg.norm(t_p)), xn_kf, xn_cur,
-                                                      in_h if sel.inliers_e is None else in_h & sel.inliers_e)
+            on = in_h if sel.inliers_e is None or e_moves else in_h & sel.inliers_e  # E's, unless they move
+            R_p, t_dir, note = geo.refine_planar_pose(R_p, t_p / float(np.linalg.norm(t_p)), xn_kf, xn_cur, on)
             st.reasons.append(f"planar scene: {note}")
             return self._initialize(ctx, R_p, t_dir, in_h, st, "homography (planar scene)", planar=True)
         if sel.E is not None and sel.inliers_e is not None and st.median_parallax_deg >= cfg.plane_e_min_parallax_deg:
@@ -608,7 +633,7 @@ class MotionStage:
         K = ctx.kf.camera.K
         # Cheap first: when E's pose (with the map's scale) already puts nearly all map points where they
         # are seen, the map agrees with it and its own pose need not be computed.
-        err_e = _reprojection_errors(R_e, t_e, X[depth], ctx.uv_cur[depth], K)
+        err_e = geo.reprojection_errors(R_e, t_e, X[depth], ctx.uv_cur[depth], K)
         if np.count_nonzero(err_e <= E_MAP_AGREE_PX) >= E_MAP_AGREE_FRACTION * err_e.shape[0]:
             return None
         prev = ctx.T_cur_kf_prev
@@ -623,7 +648,7 @@ class MotionStage:
             # fit does: that fit, not E, went wrong (LM from the previous pose into a wrong minimum:
             # KITTI, 15 points against E's 100).
             return None
-        err_map = _reprojection_errors(refined[0], refined[1], X[depth], ctx.uv_cur[depth], K)
+        err_map = geo.reprojection_errors(refined[0], refined[1], X[depth], ctx.uv_cur[depth], K)
         if held_by_e >= E_MAP_HELD_SHARE * held_by_map \
                 and np.median(err_e) <= E_MAP_RESIDUAL_RATIO * np.median(err_map):
             # The fit is made to hold its points, so it holds a few more than E's pose whenever the
@@ -642,15 +667,6 @@ class MotionStage:
         agree = np.zeros(depth.shape[0], bool)
         agree[np.flatnonzero(depth)[refined[2]]] = True
         return agree
-
-
-def _reprojection_errors(R_cur_kf: F64, t_cur_kf: F64, X_kf: F64, uv: F64, K: F64) -> F64:
-    """Pixel distances of the map points ``X_kf`` under the pose from where they are seen (``uv``);
-    infinite behind the camera (so no distance gate counts them)."""
-    Xc = np.einsum("ij,nj->ni", R_cur_kf, X_kf) + t_cur_kf
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv_p = np.einsum("ij,nj->ni", K[:2, :2], Xc[:, :2] / Xc[:, 2:3]) + K[:2, 2]
-    return np.where(Xc[:, 2] > 0, np.linalg.norm(uv_p - uv, axis=1), np.inf)
 
 
 def _undetermined(cov: F64 | None, t: F64, cfg: VoConfig) -> str:

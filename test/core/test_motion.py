@@ -736,6 +736,34 @@ def test_points_off_the_floor_pick_the_decomposition_that_explains_them() -> Non
     assert geo.solution_off_plane(sols, K, np.zeros((0, 2)), np.zeros((0, 2)), CFG.ransac_threshold_px) is None
 
 
+def test_a_motion_the_floor_does_not_allow_is_told_from_the_ones_it_does() -> None:
+    """A static plane allows only H's decompositions' motions: E's pose must be one of them unless part of
+    its consensus moves (``geometry.agrees_with_plane``: within 0.5 deg and 30 deg of direction)."""
+    from scipy.spatial.transform import Rotation
+
+    s = _floor_scene(110, 0, seed=2, step=0.05, far=6.0)
+    K = s.K
+    xn_ref = np.linalg.solve(K, np.c_[s.uv_ref_obs, np.ones(s.n)].T).T[:, :2]
+    xn_cur = np.linalg.solve(K, np.c_[s.uv_cur_obs, np.ones(s.n)].T).T[:, :2]
+    sols = geo.homography_solutions(s.H_true, K, xn_ref, xn_cur, np.ones(s.n, bool), CFG.max_reprojection_error_px,
+                                    CFG.min_triangulation_angle_deg)
+    assert len(sols) >= 2
+    R, t = s.R_cur_ref, s.t_cur_ref
+    assert geo.agrees_with_plane(R, t, sols) and geo.agrees_with_plane(R, 3.0 * t, sols)  # any length
+    rot, dirn = geo.nearest_plane_motion(R, t, sols)
+    assert rot < 0.05 and dirn < 1.0
+    assert all(geo.agrees_with_plane(x.R, x.t, sols) for x in sols)  # the other solution is the plane's too
+    tilt = Rotation.from_rotvec(np.radians([0.0, 0.2, 0.0])).as_matrix()
+    assert geo.agrees_with_plane(tilt @ R, t, sols)
+    # moving_mover from frame 45: 1.0 deg and 110 deg from the nearest; from frame 75 0.9 deg, 48 deg.
+    turn = Rotation.from_rotvec(np.radians([0.0, 1.0, 0.0])).as_matrix()
+    assert not geo.agrees_with_plane(turn @ R, t, sols)
+    side = np.cross(t, [0.0, 1.0, 0.0])
+    sideways = t / np.linalg.norm(t) + side / np.linalg.norm(side)  # 45 deg off the direction of travel
+    assert not geo.agrees_with_plane(R, sideways, sols)
+    assert geo.nearest_plane_motion(R, t, []) == (math.inf, math.inf) and not geo.agrees_with_plane(R, t, [])
+
+
 def test_floor_initialisation_lets_few_points_off_the_floor_pick_among_h_solutions() -> None:
     """A floor seen from a camera moving forward: H has two physically valid decompositions and the
     wrong one (here 6.5 deg about x) passes more points through the triangulation gates, so it wins

@@ -4,12 +4,22 @@
 * ``pose``: pose recovery with cheirality, homography rotation / planar pose, parallax, refinement
   of a pose on map points;
 * ``triangulation``: triangulation through its gates, scale of a direction from map points;
-* ``common``: homogeneous coordinates, cross-product matrix, ray depths, nearest rotation.
+* ``common``: homogeneous coordinates, cross-product matrix, ray depths, nearest rotation, reprojection
+  errors.
 
 Everything is re-exported here: ``from epi_vo.core import geometry as geo`` then ``geo.recover_pose``.
 """
 
-from epi_vo.core.geometry.common import F64, Mask, as_float64, homogeneous, nearest_rotation, ray_depths, skew
+from epi_vo.core.geometry.common import (
+    F64,
+    Mask,
+    as_float64,
+    homogeneous,
+    nearest_rotation,
+    ray_depths,
+    reprojection_errors,
+    skew,
+)
 from epi_vo.core.geometry.models import (
     CHI2_1DOF,
     CHI2_2DOF,
@@ -29,8 +39,10 @@ from epi_vo.core.geometry.models import (
 from epi_vo.core.geometry.pose import (
     PNP_MIN_SIGMA_PX,
     PlanarSolution,
+    agrees_with_plane,
     focal_for_rotation,
     homography_solutions,
+    nearest_plane_motion,
     parallax_deg,
     pose_from_homography,
     recover_pose,
@@ -60,6 +72,7 @@ __all__ = [
     "PlanarSolution",
     "ScaleEstimate",
     "Triangulation",
+    "agrees_with_plane",
     "as_float64",
     "epipolar_distances_sq",
     "essential_from_pose",
@@ -72,6 +85,7 @@ __all__ = [
     "homogeneous",
     "homography_solutions",
     "map_information",
+    "nearest_plane_motion",
     "nearest_rotation",
     "parallax_deg",
     "pose_from_homography",
@@ -81,6 +95,7 @@ __all__ = [
     "refine_planar_pose",
     "refine_pose_pnp",
     "refine_relative_pose",
+    "reprojection_errors",
     "reprojection_rms",
     "rh_ratio",
     "rotation_from_homography",

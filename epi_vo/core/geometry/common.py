@@ -66,3 +66,12 @@ def nearest_rotation(M: F64) -> F64:
 
 def as_float64(x: Any) -> F64:
     return np.ascontiguousarray(x, dtype=np.float64)
+
+
+def reprojection_errors(R_cur_kf: F64, t_cur_kf: F64, X_kf: F64, uv: F64, K: F64) -> F64:
+    """Pixel distances of the map points ``X_kf`` under the pose from where they are seen (``uv``);
+    infinite behind the camera (so no distance gate counts them)."""
+    Xc = np.einsum("ij,nj->ni", R_cur_kf, X_kf) + t_cur_kf
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv_p = np.einsum("ij,nj->ni", K[:2, :2], Xc[:, :2] / Xc[:, 2:3]) + K[:2, 2]
+    return np.where(Xc[:, 2] > 0, np.linalg.norm(uv_p - uv, axis=1), np.inf)
