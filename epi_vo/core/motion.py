@@ -107,8 +107,7 @@ class MotionStage:
     def __init__(self, cfg: VoConfig) -> None:
         self.cfg = cfg
         self.static = False  # the last frame was judged static (hysteresis: staying static is easier)
-        # An ambiguous planar initialisation: (keyframe stamp, plane normals of its valid solutions at the
-        # first such frame, frames waited).
+        # An ambiguous planar initialisation: (keyframe stamp, its valid solutions' normals at first, frames waited).
         self._plane_views: tuple[int, list[F64], int] | None = None
         self._focal_hint: float | None = None  # the last focal ratio a rotation was taken under (see below)
 
@@ -546,7 +545,8 @@ class MotionStage:
                 R0, t0 = ctx.T_cur_kf_prev[:3, :3], ctx.T_cur_kf_prev[:3, 3]
                 st.reasons.append("E's inliers hold almost none of the map's points (a moving object took its "
                                   "consensus?): pose from the map")
-        refined = geo.refine_pose_pnp(X[has_depth], uv_cur[has_depth], K, R0, t0, cfg.max_reprojection_error_px)
+        refined = geo.refine_pose_pnp(X[has_depth], uv_cur[has_depth], K, R0, t0, cfg.max_reprojection_error_px,
+                                      robust_start=e_inliers is not None)  # a mover: not LM from the last pose
         if refined is None:
             st.reasons.append(f"too few map points to carry the scale ({int(np.count_nonzero(has_depth))})")
             return None

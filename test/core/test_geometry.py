@@ -711,6 +711,27 @@ def test_refine_pose_pnp_far_off_start_never_returns_a_wrong_pose(general_scene:
         assert _rot_err_deg(out[0], s.R_cur_ref) < 0.1
 
 
+@pytest.mark.parametrize("off_deg", [10.0, 20.0])
+def test_refine_pose_pnp_robust_start_keeps_the_static_consensus(general_scene: TwoViewScene, off_deg: float) -> None:
+    """A third of the map's points on one rigid mover (25 px off where the static scene puts them), the
+    start 10-20 deg away: LM from the start loses the static points at its gates (no pose), the
+    consensus start (``robust_start``) keeps the static points and no mover."""
+    s = general_scene
+    n = s.X_ref.shape[0]
+    mover = np.arange(n) >= 2 * n // 3
+    uv = s.uv_cur_obs.copy()
+    uv[mover] += np.array([25.0, 5.0])
+    R0 = _rotation((0.0, math.radians(off_deg), 0.0)) @ s.R_cur_ref
+    plain = geo.refine_pose_pnp(s.X_ref, uv, s.K, R0, 0.5 * s.t_cur_ref, 2.0)
+    assert plain is None or np.count_nonzero(plain[2] & ~mover) < np.count_nonzero(~mover) // 2
+    out = geo.refine_pose_pnp(s.X_ref, uv, s.K, R0, 0.5 * s.t_cur_ref, 2.0, robust_start=True)
+    assert out is not None and _rot_err_deg(out[0], s.R_cur_ref) < 0.1
+    assert np.count_nonzero(out[2] & mover) == 0 and np.count_nonzero(out[2] & ~mover) >= 0.9 * np.count_nonzero(~mover)
+    clean = geo.refine_pose_pnp(s.X_ref, s.uv_cur_obs, s.K, s.R_cur_ref, s.t_cur_ref, 2.0, robust_start=True)
+    ref = geo.refine_pose_pnp(s.X_ref, s.uv_cur_obs, s.K, s.R_cur_ref, s.t_cur_ref, 2.0)
+    assert clean is not None and ref is not None and _rot_err_deg(clean[0], ref[0]) < 1e-3
+
+
 # --- nearest rotation ------------------------------------------------------------------------------------
 
 
