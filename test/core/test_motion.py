@@ -641,7 +641,7 @@ def test_the_map_overrules_e_only_when_its_fit_holds_clearly_more_points(
     seen: list[int] = []
 
     def fit(X_m: np.ndarray, uv: np.ndarray, K: np.ndarray, R0: np.ndarray, t0: np.ndarray,
-            max_err: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+            max_err: float, robust_start: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         Xc = X_m @ s.R_cur_ref.T + np.array(s.t_cur_ref) * MAP_SCALE
         uv_e = Xc[:, :2] / Xc[:, 2:3] @ K[:2, :2].T + K[:2, 2]
         held_by_e = int(np.count_nonzero(np.linalg.norm(uv_e - uv, axis=1) <= max_err))

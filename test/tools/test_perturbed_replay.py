@@ -61,7 +61,8 @@ def test_a_pose_from_the_map_with_a_mover_in_view_comes_from_its_consensus(tmp_p
     pose. Levenberg-Marquardt from the previous frame's pose, with its wide first gate, was pulled by 3 of
     the cart's points in the map (5-19 px off under the true pose) and then dropped 15 static ones: one
     such pose came out 0.138 deg off, with 0.01-0.02 deg claimed (Sim(3) ATE 0.336 %, pose NEES 11.6 /
-    3.6). It now starts from the points' largest consensus (``refine_pose_pnp(robust_start=True)``)."""
+    3.6). The fit from the points' largest consensus holds more of them and is kept
+    (``refine_pose_pnp(robust_start=True)``)."""
     _run(tmp_path, "--start", "20", bag=REPO / "bags" / "moving_mover" / "bag")
     m = json.loads((tmp_path / "out" / "stats.json").read_text())["metrics"]
     assert m["ate_percent_of_path"] < 0.25
