@@ -203,11 +203,18 @@ class MotionStage:
         """Before a first map: E's motion is none H's plane allows (``geo.agrees_with_plane``): part of its consensus
         moves (moving_mover from frame 45: a cart's 60 points); the plane is taken as static. Where E won RH, only
         if a plane nearly did (RH within 0.05 of the threshold, 0.43-0.45 there): far points at low parallax
-        fit an H whose decompositions mean nothing (RH 0.26-0.33)."""
+        fit an H whose decompositions mean nothing (RH 0.26-0.33). Only an E its points determine
+        (``geo.pose_undetermined``) can disagree: a still camera's blurred frames (static_mover with motion
+        blur) gave E 1.05 deg from the plane with 0.76 deg of its own sigma, and the plane started a map."""
         assert sel.E is not None and sel.inliers_e is not None and sel.H is not None and sel.inliers_h is not None
         kf, cfg = ctx.kf, self.cfg
-        R, t, _ = geo.recover_pose(sel.E, kf.uv[ctx.rows], ctx.uv_cur, kf.camera.K, sel.inliers_e)
-        sols = geo.homography_solutions(sel.H, kf.camera.K, kf.xn[ctx.rows], ctx.xn_cur, sel.inliers_h,
+        K = kf.camera.K
+        R, t, inl = geo.recover_pose(sel.E, kf.uv[ctx.rows], ctx.uv_cur, K, sel.inliers_e)
+        cov = geo.essential_pose_covariance(R, t, kf.xn[ctx.rows][inl], ctx.xn_cur[inl], cfg.pixel_noise_px / K[0, 0],
+                                            1.0, cfg.scale_drift_per_keyframe**2)
+        if geo.pose_undetermined(cov, t, cfg.init_max_rotation_sigma_deg, cfg.init_max_direction_sigma_deg):
+            return False
+        sols = geo.homography_solutions(sel.H, K, kf.xn[ctx.rows], ctx.xn_cur, sel.inliers_h,
                                         cfg.max_reprojection_error_px, cfg.min_triangulation_angle_deg)
         if not sols or geo.agrees_with_plane(R, t, sols):
             return False
@@ -473,7 +480,8 @@ class MotionStage:
         cov = None if planar else geo.essential_pose_covariance(
             R, t_dir, xn_kf[inl], xn_cur[inl], cfg.pixel_noise_px / K[0, 0], baseline, cfg.scale_drift_per_keyframe**2)
         if not planar:
-            undetermined = _undetermined(cov, t, cfg)
+            undetermined = geo.pose_undetermined(cov, t, cfg.init_max_rotation_sigma_deg,
+                                                 cfg.init_max_direction_sigma_deg)
             if undetermined:
                 st.reasons.append(f"initialization deferred: E's pose is not determined by these points "
                                   f"({undetermined}); waiting for baseline, position held")
@@ -667,26 +675,6 @@ class MotionStage:
         agree = np.zeros(depth.shape[0], bool)
         agree[np.flatnonzero(depth)[refined[2]]] = True
         return agree
-
-
-def _undetermined(cov: F64 | None, t: F64, cfg: VoConfig) -> str:
-    """Why a first pose from E is not determined by its points ('' when it is): its covariance's largest
-    rotation standard deviation above ``init_max_rotation_sigma_deg`` or the direction of travel's above
-    ``init_max_direction_sigma_deg``. This is the bas-relief ambiguity of a small baseline seen over part
-    of the image: moving_mover replayed from frame 31 (a cart on 40 % of the view, 0.77 deg parallax) had
-    0.52 and 18.7 deg, its map started 1 deg off and the run ended at 5.5 % ATE; the largest on a good
-    initialisation of any bundled bag or KITTI, from any start frame, were 0.08 and 2.3 deg. No
-    covariance (no parallax at all): undetermined."""
-    if cov is None or not np.all(np.isfinite(cov)):
-        return "no covariance"
-    rot_sigma = math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(cov[3:, 3:])[-1]), 0.0)))
-    d = t / max(float(np.linalg.norm(t)), 1e-300)
-    across = np.eye(3) - np.outer(d, d)
-    dir_var = float(np.linalg.eigvalsh(across @ cov[:3, :3] @ across)[-1]) / max(float(t @ t), 1e-300)
-    dir_sigma = math.degrees(math.sqrt(max(dir_var, 0.0)))
-    if rot_sigma > cfg.init_max_rotation_sigma_deg or dir_sigma > cfg.init_max_direction_sigma_deg:
-        return f"rotation sigma {rot_sigma:.2f} deg, direction sigma {dir_sigma:.1f} deg"
-    return ""
 
 
 def grid_spread(uv: F64, mask: NDArray[np.bool_], width: int, height: int, cells: int = 4) -> float:

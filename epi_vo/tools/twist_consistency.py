@@ -40,21 +40,33 @@ class TwistNees:
     rows: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     frame_index: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
 
+    # A NaN NEES: not judged (no scale to fit: the ground truth did not move). Means and shares are over
+    # the judged ones; NaN when there is none.
     @property
     def mean_linear(self) -> float:
-        return float(np.mean(self.nees_linear)) if self.nees_linear.size else float("nan")
+        return _mean(self.nees_linear)
 
     @property
     def mean_angular(self) -> float:
-        return float(np.mean(self.nees_angular)) if self.nees_angular.size else float("nan")
+        return _mean(self.nees_angular)
 
     @property
     def inside_linear_percent(self) -> float:
-        return 100.0 * float(np.mean(self.nees_linear <= self.bound)) if self.nees_linear.size else float("nan")
+        return _inside(self.nees_linear, self.bound)
 
     @property
     def inside_angular_percent(self) -> float:
-        return 100.0 * float(np.mean(self.nees_angular <= self.bound)) if self.nees_angular.size else float("nan")
+        return _inside(self.nees_angular, self.bound)
+
+
+def _mean(nees: NDArray[np.float64]) -> float:
+    judged = nees[np.isfinite(nees)]
+    return float(np.mean(judged)) if judged.size else float("nan")
+
+
+def _inside(nees: NDArray[np.float64], bound: float) -> float:
+    judged = nees[np.isfinite(nees)]
+    return 100.0 * float(np.mean(judged <= bound)) if judged.size else float("nan")
 
 
 def twist_consistency(odometry: OdometryTrack, T_g_base_gt: NDArray[np.float64], evaluate: NDArray[np.bool_],
@@ -83,7 +95,10 @@ def twist_consistency(odometry: OdometryTrack, T_g_base_gt: NDArray[np.float64],
         s = float(np.sum(v * v_gt)) / den if den > 0 else 1.0
     e_v = s * v - v_gt
     e_w = w - w_gt
-    nees_v = np.einsum("ki,ki->k", e_v, np.linalg.solve(C[:, :3, :3] * s * s, e_v[..., None])[..., 0])
+    if s > 0.0:
+        nees_v = np.einsum("ki,ki->k", e_v, np.linalg.solve(C[:, :3, :3] * s * s, e_v[..., None])[..., 0])
+    else:  # the ground truth did not move along the estimate: no scale, the linear twist is not judged
+        nees_v = np.full(idx.size, np.nan)
     nees_w = np.einsum("ki,ki->k", e_w, np.linalg.solve(C[:, 3:, 3:], e_w[..., None])[..., 0])
     return TwistNees(nees_v, nees_w, s, rows=idx.astype(np.int64))
 

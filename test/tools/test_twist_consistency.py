@@ -70,6 +70,19 @@ def test_unknown_twists_and_unjudged_frames_are_not_evaluated() -> None:
     assert r.nees_linear.size == 49 - 1 - 2  # frame 10 unknown; 20 and 21 need frame 20
 
 
+def test_a_still_ground_truth_leaves_the_linear_twist_unjudged_not_a_crash() -> None:
+    """A camera the ground truth holds still while the estimate moves (a still camera taken for a moving one)
+    gives no scale to fit in VO units: the linear twist is not judged (NaN, left out of the mean), the
+    angular one is. It was a singular solve and a traceback out of `epi-vo replay` (static_mover with
+    motion blur, 2026-11-27)."""
+    track, T_gt = _synthetic(np.eye(6) * 1e-4, scale=1.0, n=30)
+    still = np.tile(np.eye(4), (30, 1, 1))
+    r = twist_consistency(track, still, np.ones(30, bool), metric=False)
+    assert r.nees_linear.size == 29 and np.all(np.isnan(r.nees_linear))
+    assert np.isnan(r.mean_linear) and np.isnan(r.inside_linear_percent)
+    assert np.all(np.isfinite(r.nees_angular)) and r.mean_angular > 100.0  # it turned 0.2 rad/s, truth still
+
+
 @pytest.mark.parametrize(("bag", "params", "min_linear", "max_mean"), [
     ("general_motion", {"scale_source": "none"}, 1.0, 6.0),
     ("moving_mover", {"scale_source": "none"}, 1.0, 6.0),

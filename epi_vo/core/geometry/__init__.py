@@ -58,6 +58,7 @@ from epi_vo.core.geometry.uncertainty import (
     essential_pose_covariance,
     fuse,
     map_information,
+    pose_undetermined,
     reprojection_rms,
     sampson_rms,
 )
@@ -89,6 +90,7 @@ __all__ = [
     "nearest_rotation",
     "parallax_deg",
     "pose_from_homography",
+    "pose_undetermined",
     "ray_depths",
     "recover_pose",
     "refine_focal_for_rotation",
