@@ -75,7 +75,7 @@ def test_a_still_ground_truth_leaves_the_linear_twist_unjudged_not_a_crash() -> 
     gives no scale to fit in VO units: the linear twist is not judged (NaN, left out of the mean), the
     angular one is. It was a singular solve and a traceback out of `epi-vo replay` (static_mover with
     motion blur, 2026-11-27)."""
-    track, T_gt = _synthetic(np.eye(6) * 1e-4, scale=1.0, n=30)
+    track, _ = _synthetic(np.eye(6) * 1e-4, scale=1.0, n=30)
     still = np.tile(np.eye(4), (30, 1, 1))
     r = twist_consistency(track, still, np.ones(30, bool), metric=False)
     assert r.nees_linear.size == 29 and np.all(np.isnan(r.nees_linear))
