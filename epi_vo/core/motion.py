@@ -87,6 +87,7 @@ E_MAP_HELD_SHARE = 0.7  # E's pose holding this share of the map points the map'
 E_MAP_RESIDUAL_RATIO = 2.0  # ... with a median reprojection error within this factor of the fit's: E stands
 MIN_OFF_PLANE_FOR_E_HINT = 3  # E inliers off H's plane needed before they may pick among H's decompositions
 NOT_A_PLANE_OFF = (10, 0.1)  # E inliers off H's plane, at least this many and this share: no plane, E initialises
+E_PLANE_RH_MARGIN = 0.05  # E won RH within this of rh_threshold: a plane nearly won, E is checked against it
 PLANE_NORMAL_AGREE_DEG = 1.5  # a decomposition's plane this close to one seen from an earlier view: the same plane
 PLANE_MAX_WAIT = 10  # frames an initialisation on a plane with two valid decompositions waits for a view that
 # tells them apart; then the one more points pass the gates is taken (as without the wait)
@@ -124,7 +125,8 @@ class MotionStage:
                 return self._from_homography(ctx, sel, st)
             if sel.model is Model.ESSENTIAL:
                 assert sel.E is not None and sel.inliers_e is not None
-                if (not self.has_map(ctx.kf) and sel.inliers_h is not None and sel.rh >= self.cfg.rh_threshold - 0.05
+                if (not self.has_map(ctx.kf) and sel.inliers_h is not None
+                        and sel.rh >= self.cfg.rh_threshold - E_PLANE_RH_MARGIN
                         and np.count_nonzero(sel.inliers_h) >= 0.5 * np.count_nonzero(sel.inliers_e)
                         and self._e_moves_off_plane(ctx, sel, st)):
                     st.model = Model.HOMOGRAPHY
@@ -202,8 +204,8 @@ class MotionStage:
     def _e_moves_off_plane(self, ctx: MotionContext, sel: ModelSelection, st: FrameStats) -> bool:
         """Before a first map: E's motion is none H's plane allows (``geo.agrees_with_plane``): part of its consensus
         moves (moving_mover from frame 45: a cart's 60 points); the plane is taken as static. Where E won RH, only
-        if a plane nearly did (RH within 0.05 of the threshold, 0.43-0.45 there): far points at low parallax
-        fit an H whose decompositions mean nothing (RH 0.26-0.33). Only an E its points determine
+        if a plane nearly did (RH within E_PLANE_RH_MARGIN of the threshold; 0.43-0.45 there): far points at low
+        parallax fit an H whose decompositions mean nothing (RH 0.26-0.33). Only an E its points determine
         (``geo.pose_undetermined``) can disagree: a still camera's blurred frames (static_mover with motion
         blur) gave E 1.05 deg from the plane with 0.76 deg of its own sigma, and the plane started a map."""
         assert sel.E is not None and sel.inliers_e is not None and sel.H is not None and sel.inliers_h is not None
