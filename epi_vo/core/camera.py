@@ -222,6 +222,11 @@ class CameraModel:
             raise CameraModelError(
                 f"image size {width}x{height} does not match camera_info size {self.width}x{self.height}{how}")
 
+    def same_as(self, other: CameraModel) -> bool:
+        """Same image size, model, intrinsics and distortion (a tracked keyframe stays valid)."""
+        return (self.width, self.height, self.model) == (other.width, other.height, other.model) \
+            and np.array_equal(self.K, other.K) and np.array_equal(self.D, other.D)
+
     def scaled(self, factor: float) -> CameraModel:
         """The same camera for images resized by ``factor`` (pixel-centre convention of cv2.resize)."""
         K = self.K.copy()

@@ -63,6 +63,7 @@ from epi_vo.core.keyframe import Keyframe, make_keyframe
 from epi_vo.core.map_scale import MapScaleCovariance
 from epi_vo.core.mapping import keyframe_map
 from epi_vo.core.odometry import rotate_covariance
+from epi_vo.core.patches import patch_templates
 from epi_vo.core.selection import ModelSelector
 from epi_vo.core.transforms import invert_T, make_T, rotation_angle_deg
 from epi_vo.core.window import WindowedMap
@@ -82,6 +83,7 @@ class VoPipeline:
         self.cfg = cfg or VoConfig()
         validate(self.cfg)
         self._orb = fe.make_orb(self.cfg) if self.cfg.frontend == "orb" else None
+        self._patches = patch_templates(self.cfg)  # KLT tracks refined against their first image (None: off)
         self._motion = mo.MotionStage(self.cfg)
         self._wheel = sc.WheelOdometry()
         self._scale = sc.source_from_config(self.cfg, self._wheel)
@@ -246,7 +248,7 @@ class VoPipeline:
         if self._pending_reason:
             st.reasons.append(self._pending_reason)
             self._pending_reason = ""
-        if self._kf is not None and not _same_camera(self._kf.camera, camera):
+        if self._kf is not None and not self._kf.camera.same_as(camera):
             st.reasons.append("camera_info changed: tracking restarted")
             self._kf = None
 
@@ -260,6 +262,8 @@ class VoPipeline:
         pts_cur, rows, orb_cur, ahead_ms, gain, st.track_noise_px = fe.track(
             gray, self.cfg, self._orb, self._gray_prev, self._pts_prev, self._rows, kf.descriptors,
             (self._ahead, self._key))
+        if self._patches is not None and kf.ids is not None:
+            pts_cur = self._patches.refine(gray, pts_cur, kf.ids[rows])[0]
         # This frame's image noise as a share of pixel_noise_px: its twist's, and one step of its pose's.
         noise_ratio = covm.twist_noise_ratio(st.track_noise_px, self.cfg.twist_noise_fb_factor,
                                              self.cfg.twist_noise_floor_px, self.cfg.pixel_noise_px)
@@ -380,12 +384,11 @@ class VoPipeline:
     def _step_covariance(self, kf: Keyframe, motion: mo.Motion, step_w: F64, ratio: float) -> F64:
         """Covariance of the motion since the previous frame (odometry frame) from both frames' poses
         relative to the keyframe (``covariance.step``); against a new keyframe (the previous frame) only
-        this frame's counts. The image noise is the one the frame's tracks show (``ratio`` of
-        ``pixel_noise_px``, ``covariance.twist_noise_ratio``), not ``pixel_noise_px``: for the rotation always; for the
-        position too when this pose is E's against the previous frame's keyframe
-        (``covariance.track_step``). The map's scale error is the same for both frames: it moves the
-        step by its own fraction (``covariance.shared_scale_part``), not by the sum of both offsets from
-        the keyframe."""
+        this frame's counts. The image noise is the frame's tracks' (``ratio`` of ``pixel_noise_px``,
+        ``covariance.twist_noise_ratio``): for the rotation always, for the position when this pose is E's
+        against the previous frame's keyframe (``covariance.track_step``). The map's scale error is the
+        same for both frames: it moves the step by its own fraction (``covariance.shared_scale_part``),
+        not by the sum of both offsets from the keyframe."""
         c_kf = -motion.R_cur_kf.T @ motion.t_cur_kf
         own = motion.cov_rel - covm.shared_scale_part(c_kf, motion.shared_scale_var)
         cov = rotate_covariance(own, kf.T_w_kf[:3, :3])
@@ -491,6 +494,8 @@ class VoPipeline:
                                  self.cfg, self._orb, orb_cur, ids_tracked, self._next_id)
         if self._kf.ids is not None and self._kf.ids.size:
             self._next_id = max(self._next_id, int(self._kf.ids.max()) + 1)
+            if self._patches is not None:
+                self._patches.anchor(gray, self._kf.pts, self._kf.ids)
         # Movers stay flagged while they are tracked; tracks that ended are forgotten. Fewer than
         # MIN_MOVERS left is no group any more (the object left the view; a straggler may as well be a
         # static track caught at the group's edge): those are forgotten too.
@@ -689,11 +694,6 @@ def _expanded(motion: mo.Motion, use: NDArray[np.bool_]) -> mo.Motion:
 
 def _ms(t0: float) -> float:
     return (time.perf_counter() - t0) * 1e3
-
-
-def _same_camera(a: CameraModel, b: CameraModel) -> bool:
-    return (a.width, a.height, a.model) == (b.width, b.height, b.model) and np.array_equal(a.K, b.K) \
-        and np.array_equal(a.D, b.D)
 
 
 def _transform(T_a_b: F64, X_b: F64) -> F64:

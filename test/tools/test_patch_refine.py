@@ -1,0 +1,34 @@
+"""klt_patch_refine_px end to end: the ground-robot bag (a floor whose patches scale and shear as the robot
+drives over it) replayed with each track refined against its first image, against its ground truth."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import pytest
+
+from epi_vo.core.config import VoConfig
+from epi_vo.tools.replay import ReplaySummary, run_replay
+
+REPO = Path(__file__).resolve().parents[2]
+BAG = REPO / "bags" / "ground_robot" / "bag"
+
+
+@pytest.fixture(scope="module")
+def refined(tmp_path_factory: pytest.TempPathFactory) -> tuple[ReplaySummary, Path]:
+    out = tmp_path_factory.mktemp("refined")
+    return run_replay(BAG, out, dataclasses.replace(VoConfig(), klt_patch_refine_px=15)), out
+
+
+def test_refined_tracks_follow_the_floor_closer(refined: tuple[ReplaySummary, Path]) -> None:
+    """Sim(3) ATE 0.024 % of the path and 0.0069 deg/frame RPE rotation (measured 2026-11-27) where
+    chained KLT gives 0.204 % and 0.0093 (the bag's row in the README's benchmark table; its own test
+    bounds it by 1 %). The bound leaves room for other OpenCV builds, and fails on the default tracks."""
+    s, out = refined
+    assert s.tracked_percent == 100.0 and s.metrics is not None
+    assert s.metrics["ate_percent_of_path"] < 0.08
+    assert s.metrics["rpe_rot_deg_per_frame"] < 0.0085
+    recs = [json.loads(line) for line in (out / "frames.jsonl").read_text().splitlines()]
+    assert sum(r["state"] == "tracking" for r in recs) >= 295
