@@ -88,7 +88,9 @@ METRIC_VARIANTS: dict[str, tuple[tuple[str, dict[str, object]], ...]] = {
         ("ground_plane", {"scale_source": "ground_plane", "camera_height_m": 0.45}),
         ("wheel_odometry", {"scale_source": "wheel_odometry", "wheel_odometry_topic": "/wheel/odom"}),
     ),
-    "kitti06_0-50": (("ground_plane", {"scale_source": "ground_plane", "camera_height_m": 1.65}),),
+    # KITTI's camera is level (its README): the first floor must lie within 10 deg of level, not 35.
+    "kitti06_0-50": (("ground_plane", {"scale_source": "ground_plane", "camera_height_m": 1.65,
+                                       "ground_max_tilt_deg": 10.0}),),
 }
 
 
