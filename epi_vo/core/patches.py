@@ -50,6 +50,15 @@ def _sample(img: F32, t: F64, A: F64, ox: F32, oy: F32) -> F32:
     return cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
+def _singular_values(A: F64) -> tuple[F64, F64]:
+    """Largest and smallest singular values of each 2x2 ``A`` (N, 2, 2), in closed form."""
+    a = A[:, 0, 0] ** 2 + A[:, 1, 0] ** 2
+    d = A[:, 0, 1] ** 2 + A[:, 1, 1] ** 2
+    b = A[:, 0, 0] * A[:, 0, 1] + A[:, 1, 0] * A[:, 1, 1]
+    half, disc = 0.5 * (a + d), np.sqrt(np.maximum(0.25 * (a - d) ** 2 + b * b, 0.0))
+    return np.sqrt(half + disc), np.sqrt(np.maximum(half - disc, 0.0))
+
+
 class PatchTemplates:
     """Templates of the live tracks (by track id) and the affine warp of each into the latest image."""
 
@@ -97,20 +106,30 @@ class PatchTemplates:
         self._sdw, self._hinv, self.A = self._sdw[rows], self._hinv[rows], self.A[rows]
 
     def _set(self, img: F32, pts: F64, ids: NDArray[np.int64]) -> None:
-        """Templates for ``ids`` (unique) from ``img`` at ``pts``, replacing those already held."""
+        """Templates for ``ids`` (unique) from ``img`` at ``pts``, replacing those already held (in place:
+        a few per frame); a point whose patch leaves the image loses its template."""
         ok = self._inside(img.shape, pts)
-        keep = ~np.isin(self.ids, ids)
-        if not ok.any():
-            self._keep(keep)
-            return
-        tm, tss, sdw, hinv = self._templates(img, pts[ok])
-        order = np.argsort(np.concatenate([self.ids[keep], ids[ok]]), kind="stable")
-        self.ids = np.concatenate([self.ids[keep], ids[ok]])[order]
-        self._tm = np.concatenate([self._tm[keep], tm])[order]
-        self._tss = np.concatenate([self._tss[keep], tss])[order]
-        self._sdw = np.concatenate([self._sdw[keep], sdw])[order]
-        self._hinv = np.concatenate([self._hinv[keep], hinv])[order]
-        self.A = np.concatenate([self.A[keep], np.broadcast_to(np.eye(2), (int(ok.sum()), 2, 2))])[order]
+        pos = np.minimum(np.searchsorted(self.ids, ids), max(len(self) - 1, 0))
+        held = (pos < len(self)) & (self.ids[pos] == ids) if len(self) else np.zeros(ids.shape[0], bool)
+        if ok.any():
+            tm, tss, sdw, hinv = self._templates(img, pts[ok])
+            at = pos[ok]
+            replace = held[ok]
+            k = at[replace]
+            self._tm[k], self._tss[k] = tm[replace], tss[replace]
+            self._sdw[k], self._hinv[k] = sdw[replace], hinv[replace]
+            self.A[k] = np.eye(2)
+            add = ~replace
+            if add.any():
+                order = np.argsort(np.concatenate([self.ids, ids[ok][add]]), kind="stable")
+                self.ids = np.concatenate([self.ids, ids[ok][add]])[order]
+                self._tm = np.concatenate([self._tm, tm[add]])[order]
+                self._tss = np.concatenate([self._tss, tss[add]])[order]
+                self._sdw = np.concatenate([self._sdw, sdw[add]])[order]
+                self._hinv = np.concatenate([self._hinv, hinv[add]])[order]
+                self.A = np.concatenate([self.A, np.broadcast_to(np.eye(2), (int(add.sum()), 2, 2))])[order]
+        if (held & ~ok).any():
+            self._keep(~np.isin(self.ids, ids[held & ~ok]))
 
     def anchor(self, gray: NDArray[np.uint8], pts: F32, ids: NDArray[np.int64]) -> None:
         """At a keyframe: templates for the tracks new in it (from ``gray``), and only its tracks kept."""
@@ -159,10 +178,10 @@ class PatchTemplates:
                 break
         finite = np.isfinite(t).all(axis=1) & np.isfinite(A).all(axis=(1, 2)) & np.isfinite(ncc)
         t, A = np.where(finite[:, None], t, out[rows]), np.where(finite[:, None, None], A, self.A[k])
-        sv = np.linalg.svd(A, compute_uv=False)
-        scale = np.sqrt(sv[:, 0] * sv[:, 1])
+        sv_max, sv_min = _singular_values(A)
+        scale = np.sqrt(sv_max * sv_min)
         good = (finite & (np.linalg.norm(t - out[rows], axis=1) <= REFINE_MAX_SHIFT_PX)
-                & (ncc >= REFINE_MIN_NCC) & (sv[:, 0] <= REFINE_MAX_ANISOTROPY * sv[:, 1])
+                & (ncc >= REFINE_MIN_NCC) & (sv_max <= REFINE_MAX_ANISOTROPY * sv_min)
                 & self._inside(gray.shape, t, A))
         out[rows[good]] = t[good]
         self.A[k[good]] = A[good]

@@ -92,6 +92,7 @@ def test_a_track_on_changed_pixels_keeps_its_klt_position(frames: list[np.ndarra
     klt = _truth(1, pts).astype(np.float32)  # as if KLT had found every point exactly
     klt[0] += 0.4
     out, moved = bank.refine(cur, klt, ids)
+    assert len(bank) == pts.shape[0]  # its template replaced, not a second one
     assert np.array_equal(out[0], klt[0])
     assert moved == pts.shape[0] - 1
     assert np.allclose(bank.A[0], np.eye(2))  # template taken again, its warp reset
