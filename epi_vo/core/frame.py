@@ -142,6 +142,8 @@ class FrameResult:
     # The image noise the KLT tracks show this frame: per-axis RMS of their forward-backward errors (px;
     # NaN with ORB or without tracks). It sets the twist's uncertainty (``VoPipeline._step_covariance``)
     track_noise_px: float = math.nan
+    # KLT tracks moved onto their first image's patch this frame (``klt_patch_refine_px``); None: refinement off
+    n_refined: int | None = None
     # 6x6 covariance (odometry frame, position first) of the motion since the previous frame, for the
     # twist; None when the frame has no pose or no previous frame with one
     step_covariance: F64 | None = None
@@ -225,6 +227,7 @@ class FrameResult:
             "moving_region": list(self.moving_region) if self.moving_region is not None else None,
             "focal_ratio": num(self.focal_ratio),
             "track_noise_px": num(self.track_noise_px),
+            "n_refined": self.n_refined,
             # how far the windowed adjustment moved the poses at this frame (position in ``units``)
             "window_correction": None if self.correction is None else float(np.linalg.norm(self.correction[:3, 3])),
             "window_correction_deg": None if self.correction is None else rotation_angle_deg(self.correction[:3, :3]),
@@ -252,6 +255,7 @@ class FrameStats:
     static_score: float = math.nan
     focal_ratio: float = math.nan
     track_noise_px: float = math.nan
+    n_refined: int | None = None
     n_moving: int = 0
     moving_region: tuple[int, int, int, int] | None = None
     points_w: F64 = field(default_factory=lambda: np.zeros((0, 3)))

@@ -263,7 +263,7 @@ class VoPipeline:
             gray, self.cfg, self._orb, self._gray_prev, self._pts_prev, self._rows, kf.descriptors,
             (self._ahead, self._key))
         if self._patches is not None and kf.ids is not None:
-            pts_cur = self._patches.refine(gray, pts_cur, kf.ids[rows])[0]
+            pts_cur, st.n_refined = self._patches.refine(gray, pts_cur, kf.ids[rows])
         # This frame's image noise as a share of pixel_noise_px: its twist's, and one step of its pose's.
         noise_ratio = covm.twist_noise_ratio(st.track_noise_px, self.cfg.twist_noise_fb_factor,
                                              self.cfg.twist_noise_floor_px, self.cfg.pixel_noise_px)
@@ -364,10 +364,8 @@ class VoPipeline:
                                    step_covariance=None if step_cov is None else frozen(covm.floored(step_cov)))
 
     def _book_track_noise(self, kf: Keyframe, ratio: float) -> None:
-        """Add this frame's image noise, ``ratio`` of ``pixel_noise_px`` (``covariance.twist_noise_ratio``:
-        the tracks' measured noise times ``twist_noise_fb_factor``, between ``twist_noise_floor_px`` and
-        ``pixel_noise_px``; 1 for a frame that measured none), squared, to what the tracks gathered since
-        ``kf``; 1 for each frame skipped since the last one."""
+        """Add this frame's image noise squared, ``ratio`` of ``pixel_noise_px`` (``covariance.twist_noise_ratio``;
+        1 for a frame that measured none), to what the tracks gathered since ``kf``; 1 per frame skipped."""
         if self._tracked_noise[0] != kf.index:
             self._tracked_noise = (kf.index, 0.0, kf.index)
         _, noise_sq, last = self._tracked_noise
@@ -648,6 +646,7 @@ class VoPipeline:
             reason="; ".join(st.reasons), matches=st.matches, scale=self._scale.status(), n_moving=st.n_moving,
             moving_fraction=st.n_moving / st.n_tracked if st.n_tracked else 0.0, moving_region=st.moving_region,
             static_score=st.static_score, focal_ratio=st.focal_ratio, track_noise_px=st.track_noise_px,
+            n_refined=st.n_refined,
             correction=None if st.correction is None or T_out is not self._T_w_c else frozen(st.correction))
         self._index += 1
         return res

@@ -32,3 +32,25 @@ def test_refined_tracks_follow_the_floor_closer(refined: tuple[ReplaySummary, Pa
     assert s.metrics["rpe_rot_deg_per_frame"] < 0.0085
     recs = [json.loads(line) for line in (out / "frames.jsonl").read_text().splitlines()]
     assert sum(r["state"] == "tracking" for r in recs) >= 295
+    # The record says how many tracks were refined: 94 % of the tracked ones (median; 137-177 per frame).
+    refined = [r["n_refined"] / r["n_tracked"] for r in recs if r["state"] == "tracking"]
+    assert recs[0]["n_refined"] is None and sorted(refined)[len(refined) // 2] > 0.8
+
+
+def test_without_refinement_the_record_says_none() -> None:
+    from epi_vo.core.camera import CameraModel
+    from epi_vo.core.pipeline import VoPipeline
+    from epi_vo.io.bagio import open_camera_bag
+    from epi_vo.io.msgconv import decode_frame
+
+    pipe = VoPipeline(VoConfig())
+    records = []
+    with open_camera_bag(BAG) as bag:
+        for frame in bag.iter_frames():
+            gray = decode_frame(frame.image_msg, bag.image_is_compressed)
+            res = pipe.process(gray, CameraModel.from_camera_info(frame.camera_info_msg), frame.stamp_ns)
+            records.append(res.to_record())
+            if frame.index == 3:
+                break
+    assert [r["n_refined"] for r in records] == [None] * 4
+    assert records[-1]["n_tracked"] > 100
