@@ -11,7 +11,7 @@ windowed adjustment's observations do not average out (README, "Why it does not 
 position to where an affine warp of that template fits best (inverse-compositional Gauss-Newton,
 Baker & Matthews 2004, with a bias and gain per patch and Gaussian weights, on all tracks at once: one
 ``cv2.remap`` per iteration). The same measurement with 15 px patches and two iterations: 0.06, 0.08,
-0.10, 0.12, 0.14, 0.17 px. A fit that lands far from the KLT position, correlates poorly or degenerates
+0.09, 0.12, 0.14, 0.16 px. A fit that lands far from the KLT position, correlates poorly or degenerates
 keeps the KLT position, and that track's template starts again from the current image; so does one
 whose patch has grown or shrunk by a third (the template's pixels no longer stand for the view's).
 """
