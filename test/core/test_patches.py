@@ -125,3 +125,34 @@ def test_config() -> None:
     for bad in (14, 3):
         with pytest.raises(ConfigError, match="klt_patch_refine_px"):
             validate(VoConfig(klt_patch_refine_px=bad))
+
+
+@pytest.mark.parametrize("patch_px", [5, 101])
+@pytest.mark.parametrize("size", [(640, 480), (40, 36)])
+def test_the_pipeline_with_refinement_survives_odd_images(frames: list[np.ndarray], patch_px: int,
+                                                          size: tuple[int, int]) -> None:
+    """Blank, noisy, black, saturated and zooming images, small images, a patch larger than the image:
+    every frame has a finite pose and covariance, and nothing raises."""
+    from epi_vo.core.camera import CameraModel
+    from epi_vo.core.pipeline import VoPipeline
+
+    w, h = size
+    cam = CameraModel.create(w, h, [0.8 * w, 0, w / 2, 0, 0.8 * w, h / 2, 0, 0, 1], [0.0] * 5)
+    rng = np.random.default_rng(1)
+    sequences = {
+        "blank": [np.full((h, w), 128, np.uint8)] * 6,
+        "noise": [rng.integers(0, 256, (h, w), dtype=np.uint8) for _ in range(6)],
+        "black": [f[:h, :w].copy() for f in frames[:3]] + [np.zeros((h, w), np.uint8)] * 3,
+        "flash": [f[:h, :w].copy() if i % 3 else np.full((h, w), 255, np.uint8) for i, f in enumerate(frames[:6])],
+        "zoom": [f[:h, :w].copy() for f in frames[:8]],
+    }
+    refined = 0
+    for images in sequences.values():
+        pipe = VoPipeline(VoConfig(klt_patch_refine_px=patch_px))
+        for i, img in enumerate(images):
+            res = pipe.process(img, cam, 1_000_000_000 + i * 66_666_667)
+            assert np.all(np.isfinite(res.T_w_c)) and np.all(np.isfinite(res.covariance))
+            assert res.n_refined is None or 0 <= res.n_refined <= res.n_tracked
+            refined += res.n_refined or 0
+    if size == (640, 480) and patch_px == 5:
+        assert refined > 100  # the refinement did run on the textured sequences
