@@ -110,7 +110,7 @@ class PatchTemplates:
         a few per frame); a point whose patch leaves the image loses its template."""
         ok = self._inside(img.shape, pts)
         pos = np.minimum(np.searchsorted(self.ids, ids), max(len(self) - 1, 0))
-        held = (pos < len(self)) & (self.ids[pos] == ids) if len(self) else np.zeros(ids.shape[0], bool)
+        held = self.ids[pos] == ids if len(self) else np.zeros(ids.shape[0], bool)
         if ok.any():
             tm, tss, sdw, hinv = self._templates(img, pts[ok])
             at = pos[ok]
@@ -142,9 +142,8 @@ class PatchTemplates:
         """The tracked points ``pts`` (N, 2) of tracks ``ids`` moved to their templates' affine fit in
         ``gray``, and how many were moved. Tracks without a template, or whose fit fails, keep their
         position (a failed one's template is taken again from ``gray`` there)."""
-        n = pts.shape[0]
         out = pts.astype(np.float64)
-        if n == 0 or len(self) == 0:
+        if pts.shape[0] == 0 or len(self) == 0:
             return pts, 0
         img = gray.astype(np.float32)
         pos = np.minimum(np.searchsorted(self.ids, ids), len(self) - 1)
