@@ -99,7 +99,7 @@ class PatchTemplates:
         sd = np.stack([gx, gy, gx * ox, gx * oy, gy * ox, gy * oy], axis=1)  # (n, 6, m)
         sdw = sd * self._w
         h = (sdw @ sd.transpose(0, 2, 1)).astype(np.float64) + 1e-6 * np.eye(6)
-        return tm, np.maximum((tm * tm).sum(axis=1), 1e-6), sdw, np.linalg.pinv(h).astype(np.float32)
+        return tm, np.maximum((tm * tm).sum(axis=1), 1e-6), sdw, np.linalg.inv(h).astype(np.float32)
 
     def _keep(self, rows: NDArray[np.bool_]) -> None:
         self.ids, self._tm, self._tss = self.ids[rows], self._tm[rows], self._tss[rows]
@@ -154,7 +154,7 @@ class PatchTemplates:
         rows, k = rows[inside], k[inside]
         if rows.size == 0:
             return pts, 0
-        t, A = out[rows].copy(), self.A[k].copy()
+        t, A = out[rows], self.A[k]  # fancy indexing copies
         tm, tss, sdw, hinv = self._tm[k], self._tss[k], self._sdw[k], self._hinv[k]
         ncc = np.zeros(rows.size, np.float32)
         for _ in range(REFINE_ITERATIONS):
