@@ -248,6 +248,57 @@ def test_a_floor_plane_with_a_known_camera_height_fixes_the_scale() -> None:
     assert np.degrees(np.arccos(min(1.0, -n[1]))) < 1.0 and d == pytest.approx(height, rel=0.03)
 
 
+def test_a_floor_plane_under_a_camera_looking_straight_down_fixes_the_scale() -> None:
+    """The floor frame's x axis comes from keyframe 0's optical axis along the floor; looking straight
+    down there is none (its x axis is taken): the window still comes back to metres and level."""
+    rng = np.random.default_rng(5)
+    height = 1.2
+    down = _rot([1.0, 0.0, 0.0], -np.pi / 2)  # optical z along the world's +y (down)
+    T = np.stack([np.eye(4)] * 5)
+    for k in range(5):
+        T[k, :3, :3] = _rot([0.0, 1.0, 0.0], np.radians(4.0 * k)) @ down
+        T[k, :3, 3] = [0.25 * k, 0.0, 0.05 * k]
+    floor = np.stack([rng.uniform(-1.0, 2.0, 200), np.full(200, height), rng.uniform(-0.8, 1.0, 200)], axis=1)
+    boxes = np.stack([rng.uniform(-0.5, 1.5, 60), rng.uniform(0.6, 0.9, 60), rng.uniform(-0.5, 0.6, 60)], axis=1)
+    P = np.concatenate([floor, boxes])
+    kf, pt, xn = _observe(rng, T, P, min_obs=3, max_obs=5)
+    T0, P0 = _perturb(rng, T, P, 1, 1.15, pos_m=0.01, rot_deg=0.3)
+    plane = ba.PlanePrior(points=np.arange(200), height=height, sigma_height=0.01, sigma_plane=0.005)
+    result = ba.adjust(ba.Window(T0, P0, kf, pt, xn, SIGMA_PX, FX, n_fixed=1, plane_prior=plane))
+    assert result is not None and result.plane_w is not None
+    assert _path_scale(T0, T) == pytest.approx(1.15, abs=0.02)
+    assert abs(_path_scale(result.T_w_kf, T) - 1.0) < 0.02
+    n, d = result.plane_w[:3], result.plane_w[3]
+    assert np.degrees(np.arccos(min(1.0, -n[1]))) < 1.0 and d == pytest.approx(height, rel=0.02)
+
+
+def test_the_floor_window_does_not_depend_on_the_world_frame() -> None:
+    """The same window in another world frame (rotated and moved) gives the same window back, moved
+    alike: poses, points, plane and the newest keyframe's covariance (rotated)."""
+    height = 1.2
+    s = _scene(4, n_points=250, n_fixed=1, scale=1.2, n_floor=60, floor_y=height)
+    plane = ba.PlanePrior(points=np.arange(250, 310), height=height, sigma_height=0.02, sigma_plane=0.02)
+    G = np.eye(4)
+    G[:3, :3] = _rot([0.3, -1.0, 0.5], 2.0)
+    G[:3, 3] = [5.0, -2.0, 30.0]
+    a = ba.adjust(s.window(n_fixed=1, plane_prior=plane))
+    b = ba.adjust(ba.Window(np.einsum("ij,kjl->kil", G, s.T0), s.P0 @ G[:3, :3].T + G[:3, 3], s.kf, s.pt, s.xn,
+                            SIGMA_PX, FX, n_fixed=1, plane_prior=plane))
+    assert a is not None and b is not None and a.plane_w is not None and b.plane_w is not None
+    extent = np.linalg.norm(a.T_w_kf[-1, :3, 3] - a.T_w_kf[0, :3, 3])
+    moved = np.einsum("ij,kjl->kil", G, a.T_w_kf)
+    assert np.abs(b.T_w_kf[:, :3, 3] - moved[:, :3, 3]).max() < 1e-6 * extent
+    assert np.abs(b.T_w_kf[:, :3, :3] - moved[:, :3, :3]).max() < 1e-6
+    used = np.isfinite(a.points_w[:, 0])
+    assert np.array_equal(used, np.isfinite(b.points_w[:, 0]))
+    assert np.abs(b.points_w[used] - (a.points_w[used] @ G[:3, :3].T + G[:3, 3])).max() < 1e-5 * extent
+    n = G[:3, :3] @ a.plane_w[:3]
+    assert np.abs(b.plane_w[:3] - n).max() < 1e-6 and b.plane_w[3] == pytest.approx(a.plane_w[3] - n @ G[:3, 3])
+    A = np.zeros((6, 6))
+    A[:3, :3] = A[3:, 3:] = G[:3, :3]
+    np.testing.assert_allclose(b.cov_newest, A @ a.cov_newest @ A.T, rtol=1e-3, atol=1e-9 * np.abs(a.cov_newest).max())
+
+
 def test_without_priors_one_fixed_keyframe_keeps_the_initial_distance_to_the_farthest_keyframe() -> None:
     """The longest baseline but the newest keyframe's carries the window's scale: its initial length is
     kept, the shorter ones (keyframe 0 to 1) are adjusted."""
