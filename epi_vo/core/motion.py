@@ -616,16 +616,24 @@ class MotionStage:
         while the map points (off the degeneracy) fix it. Independent to first order. The map points'
         reprojections carry the noise their own residuals show, as on the map-PnP frames around this
         one (RMS per axis, at least PNP_MIN_SIGMA_PX), MAP_INFO_SIGMA_FACTOR more for their depths.
-        Both E's covariances are fused: at ``pixel_noise_px`` (``cov``) and at the tracks' (``pose``)."""
+        Both E's covariances are fused: at ``pixel_noise_px`` (``cov``) and at the tracks' (``pose``).
+        The pose stays E's (moved to the fusion, it lost elsewhere: README), so each fused covariance also
+        takes the Gauss-Newton step d from E's pose to that fusion as d d^T: how far the published pose
+        may be, not the fusion's precision at a pose that is not the fusion's (README, "E's ridge")."""
         fx = ctx.kf.camera.K[0, 0]
         rms = geo.reprojection_rms(R, t, X, xn)
         sigma_n = MAP_INFO_SIGMA_FACTOR * max(rms if rms is not None else self.cfg.pixel_noise_px / fx,
                                               geo.PNP_MIN_SIGMA_PX / fx)
-        info = geo.map_information(R, t, X, xn, sigma_n)
-        if info is None:
+        normal = geo.map_normal_equations(R, t, X, xn, sigma_n)
+        if normal is None:
             return cov, pose
-        fused, fused_pose = geo.fuse(cov, info), geo.fuse(pose, info)
-        return (cov if fused is None else fused), (pose if fused_pose is None else fused_pose)
+        info, grad = normal
+        out = []
+        for P in (cov, pose):
+            fused = geo.fuse(P, info)
+            d = np.zeros(6) if fused is None else fused @ grad
+            out.append(P if fused is None else fused + np.outer(d, d))
+        return out[0], out[1]
 
     def _map_disagrees(self, ctx: MotionContext, X: F64, R_e: F64, t_e: F64, st: FrameStats,
                        plane: bool = False) -> NDArray[np.bool_] | None:

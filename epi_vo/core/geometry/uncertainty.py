@@ -161,6 +161,16 @@ def map_information(R_cur_kf: F64, t_cur_kf: F64, X_kf: F64, xn_cur: F64, sigma_
     at ``xn_cur`` (M, 2; normalised) with noise ``sigma_n``; the points are taken as exact, so the
     caller discounts them (their depths carry the previous pair's noise). None with fewer than six
     points in front of the camera."""
+    normal = map_normal_equations(R_cur_kf, t_cur_kf, X_kf, xn_cur, sigma_n)
+    return None if normal is None else normal[0]
+
+
+def map_normal_equations(R_cur_kf: F64, t_cur_kf: F64, X_kf: F64, xn_cur: F64, sigma_n: float
+                         ) -> tuple[F64, F64] | None:
+    """``map_information`` and the gradient ``g = J^T (xn_cur - proj) / sigma_n^2`` of the same
+    reprojections at the pose, over (c, phi): ``info^-1 g`` is the Gauss-Newton step that moves the pose
+    towards where the map points put it (``(P^-1 + info)^-1 g`` with a prior of covariance ``P``
+    there). None as ``map_information``."""
     if X_kf.shape[0] < 6:
         return None
     rows = _subsample(X_kf.shape[0], MAX_POINTS)
@@ -172,15 +182,18 @@ def map_information(R_cur_kf: F64, t_cur_kf: F64, X_kf: F64, xn_cur: F64, sigma_
     c_st = np.repeat(c[None], 7, axis=0)
     c_st[1:4] += np.eye(3) * h
     Xc = np.einsum("kji,knj->kni", R_kf_st, X[None] - c_st[:, None, :])  # R_cur_kf (X - c) per pose
+    seen = xn_cur[rows]
     if not np.all(Xc[0, :, 2] > 0):
         keep = Xc[0, :, 2] > 0
         if np.count_nonzero(keep) < 6:
             return None
-        Xc = Xc[:, keep]
+        Xc, seen = Xc[:, keep], seen[keep]
     proj = Xc[..., :2] / Xc[..., 2:3]
-    J = ((proj[1:] - proj[0]) / h).reshape(6, -1).T  # (2m, 6)
-    info = np.einsum("ni,nj->ij", J, J) * (X_kf.shape[0] / rows.size) / sigma_n**2
-    return info if np.all(np.isfinite(info)) else None
+    J = ((proj[1:] - proj[0]) / h).reshape(6, -1).T  # (2m, 6), rows (point, axis) as reshape(-1) orders them
+    weight = (X_kf.shape[0] / rows.size) / sigma_n**2
+    info = np.einsum("ni,nj->ij", J, J) * weight
+    grad = J.T @ (seen - proj[0]).reshape(-1) * weight
+    return (info, grad) if np.all(np.isfinite(info)) and np.all(np.isfinite(grad)) else None
 
 
 def sampson_rms(R_cur_kf: F64, t_dir: F64, xn_kf: F64, xn_cur: F64) -> float | None:
