@@ -484,7 +484,7 @@ def _gauge(p: _Problem, rot_sigma: float, trans_sigma: float, free: float) -> li
         gtsam.PoseRotationPrior3D(X(0), gtsam.Rot3(R0), gtsam.noiseModel.Gaussian.SqrtInformation(sqrt_info))]
     rigid = gtsam.noiseModel.Diagonal.Sigmas(np.array([rot_sigma] * 3 + [trans_sigma] * 3))
     for k in range(1, p.n_fixed):
-        factors.append(gtsam.BetweenFactorPose3(X(0), X(k), gtsam.Pose3(np.linalg.inv(T0) @ p.T_rigid[k]), rigid))
+        factors.append(gtsam.BetweenFactorPose3(X(0), X(k), gtsam.Pose3(invert_T(T0) @ p.T_rigid[k]), rigid))
     return factors
 
 
@@ -589,8 +589,7 @@ def _solve(p: _Problem) -> tuple[F64, F64, BoolArray, F64, int, float, float, F6
         return None
     T_F_w = _floor_frame(p.T_rigid[0], plane0)
     T_F_kf = np.einsum("ij,kjl->kil", T_F_w, p.T_rigid)
-    in_floor = replace(p, T_w_kf=T_F_kf, T_rigid=T_F_kf,
-                                   points_w=p.points_w @ T_F_w[:3, :3].T + T_F_w[:3, 3])
+    in_floor = replace(p, T_w_kf=T_F_kf, T_rigid=T_F_kf, points_w=p.points_w @ T_F_w[:3, :3].T + T_F_w[:3, 3])
     solved = _solve_in(in_floor)
     if solved is None:
         return None
