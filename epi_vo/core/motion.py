@@ -617,7 +617,7 @@ class MotionStage:
         reprojections carry the noise their own residuals show, as on the map-PnP frames around this
         one (RMS per axis, at least PNP_MIN_SIGMA_PX), MAP_INFO_SIGMA_FACTOR more for their depths.
         Both E's covariances are fused: at ``pixel_noise_px`` (``cov``) and at the tracks' (``pose``).
-        The pose stays E's (moved to the fusion, it lost elsewhere: README), so each fused covariance also
+        The pose stays E's (moving it to the fusion lost accuracy elsewhere: README), so each fused one also
         takes the Gauss-Newton step d from E's pose to that fusion as d d^T: how far the published pose
         may be, not the fusion's precision at a pose that is not the fusion's (README, "E's ridge")."""
         fx = ctx.kf.camera.K[0, 0]
@@ -631,8 +631,7 @@ class MotionStage:
         out = []
         for P in (cov, pose):
             fused = geo.fuse(P, info)
-            d = np.zeros(6) if fused is None else fused @ grad
-            out.append(P if fused is None else fused + np.outer(d, d))
+            out.append(P if fused is None else fused + np.outer(fused @ grad, fused @ grad))
         return out[0], out[1]
 
     def _map_disagrees(self, ctx: MotionContext, X: F64, R_e: F64, t_e: F64, st: FrameStats,
