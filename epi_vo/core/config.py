@@ -80,7 +80,7 @@ class VoConfig:
         "forward-backward errors, between twist_noise_floor_px and pixel_noise_px; the twist takes it (its "
         "rotation; its position between E poses), the pose the sum over the frames since its keyframe "
         "(0: always pixel_noise_px)", 0.0, 100.0)
-    twist_noise_floor_px: float = _knob(0.3, "the least image noise a frame's tracks are taken to have (px)",
+    twist_noise_floor_px: float = _knob(0.25, "the least image noise a frame's tracks are taken to have (px)",
                                         0.01, 50.0)
     rh_threshold: float = _knob(0.45, "choose H when RH = S_H / (S_H + S_E) exceeds this", 0.0, 1.0)
     min_inliers: int = _knob(25, "fewer model inliers than this: the frame gives no pose", 8, 10000)

@@ -93,8 +93,9 @@ def test_the_floor_view_takes_e_with_parallax_and_does_not_drift_in_yaw(none: tu
     # keyframe (NEES 0.29; 5.1 on the old rendering, whose drift it covered); at the noise each step's own
     # frames gathered (2.3 per keyframe here) 0.76; with E's poses at that noise in the current image only
     # (covariance.ONE_IMAGE_SHARE, 2026-11-27) 1.31; 0.92 once the first map took the epipolar pose of H's
-    # inliers (geometry.refine_planar_pose: H's pose was 0.023 deg off, which the NEES had counted).
-    assert 0.85 <= nees.mean_nees_rot <= 6.0
+    # inliers (geometry.refine_planar_pose: H's pose was 0.023 deg off, which the NEES had counted); 1.11
+    # with twist_noise_floor_px 0.25 instead of 0.3 (75 % of its frames sit at the floor).
+    assert 1.0 <= nees.mean_nees_rot <= 6.0
     assert nees.inside_rot_percent >= 90.0
     # Position, VO units after the one global scale: the map's scale drift grows the covariance
     # coherently along the path (it was a random walk per keyframe: NEES 7.8, 73 % inside).
