@@ -919,3 +919,44 @@ def test_a_first_pose_e_does_not_determine_is_not_used_for_the_map(seed: int) ->
     loose = dataclasses.replace(CFG, init_max_rotation_sigma_deg=180.0, init_max_direction_sigma_deg=180.0)
     m, _, _ = _estimate(corner, _no_map(corner), cfg=loose)
     assert m is not None and m.state is TrackingState.TRACKING  # the gate, not another, held it
+
+
+@pytest.mark.parametrize("plane", [False, True])
+def test_on_a_plane_the_map_overrules_an_e_it_explains_clearly_worse(planar_scene, plane: bool) -> None:
+    """E's ridge near a plane (the held-out loop with refined tracks, frame 28): E 0.45 deg off, yet it
+    puts most map points within 1 px and holds them all within max_reprojection_error_px, where the
+    map's own pose puts them at the tracks' 0.04 px. On a plane-dominated view (``plane``) the map decides
+    when it explains its points more than E_MAP_RESIDUAL_RATIO times better and its rotation is further
+    than e_map_max_rotation_diff_deg from E's; elsewhere the cheap agreement within 1 px lets E stand, as
+    before. (Refined tracks on the loop: 0.431 -> 0.053 % ATE; KLT tracks: no replay changed.)"""
+    import cv2
+    from scipy.optimize import least_squares
+
+    s = planar_scene
+    X = _true_map(s)
+    kf = _keyframe(s, X)
+    cam = kf.camera
+    R_true, t_true = np.asarray(s.R_cur_ref), np.asarray(s.t_cur_ref) * MAP_SCALE
+    Xc = X @ R_true.T + t_true
+    uv = Xc[:, :2] / Xc[:, 2:3] @ cam.K[:2, :2].T + cam.K[:2, 2]  # exact observations
+    xn = cam.normalize(uv)
+    ctx = MotionContext(kf, np.arange(s.n, dtype=np.int64), xn, cam.to_pixels(xn), np.eye(4), lambda dt: 1.0)
+    # E on the ridge: rotated 0.45 deg, its translation fitted to the map's points (what E's coupling of
+    # rotation and direction does near a plane)
+    R_e = cv2.Rodrigues(np.radians([0.0, 0.45, 0.0]))[0] @ R_true
+
+    def residual(t: np.ndarray) -> np.ndarray:
+        Xe = X @ R_e.T + t
+        return (Xe[:, :2] / Xe[:, 2:3] @ cam.K[:2, :2].T + cam.K[:2, 2] - uv).ravel()
+
+    t_e = least_squares(residual, t_true).x
+    err_e = np.linalg.norm(residual(t_e).reshape(-1, 2), axis=1)
+    assert 0.05 < np.median(err_e) < 1.0 and np.mean(err_e <= 1.0) >= 0.8  # the cheap check lets it pass
+    assert np.all(err_e <= CFG.max_reprojection_error_px)  # and it holds every point
+    st = FrameStats(stamp_ns=KF_STAMP_NS + DT_NS)
+    agree = MotionStage(CFG)._map_disagrees(ctx, X, R_e, t_e, st, plane)
+    if plane:
+        assert agree is not None and np.count_nonzero(agree) >= 0.9 * s.n
+        assert any(r.startswith("E disagrees with the map's points by 0.4") for r in st.reasons)
+    else:
+        assert agree is None and not st.reasons
