@@ -648,11 +648,12 @@ class MotionStage:
         if np.count_nonzero(depth) < max(cfg.min_scale_points, 6):
             return None
         K = ctx.kf.camera.K
-        # Cheap first: when E's pose (with the map's scale) already puts nearly all map points where they
-        # are seen, the map agrees with it. Not near a plane, where E slides along its ridge and still puts
-        # them within 1 px (the loop's refined tracks: 0.45 deg off, 0.48 px against the map's own 0.04).
+        # Cheap first: E puts nearly all map points where seen; near a plane, where E slides along its ridge
+        # and still does, one Gauss-Newton step towards the map's pose turns E by less than half the angle.
         err_e = geo.reprojection_errors(R_e, t_e, X[depth], ctx.uv_cur[depth], K)
-        if not plane and np.count_nonzero(err_e <= E_MAP_AGREE_PX) >= E_MAP_AGREE_FRACTION * err_e.shape[0]:
+        if (np.count_nonzero(err_e <= E_MAP_AGREE_PX) >= E_MAP_AGREE_FRACTION * err_e.shape[0]) if not plane else (
+                (step := geo.map_step(R_e, t_e, X[depth], ctx.xn_cur[depth])) is not None
+                and math.degrees(float(np.linalg.norm(step[3:]))) <= 0.5 * cfg.e_map_max_rotation_diff_deg):
             return None
         prev = ctx.T_cur_kf_prev
         refined = geo.refine_pose_pnp(X[depth], ctx.uv_cur[depth], K, prev[:3, :3], prev[:3, 3],

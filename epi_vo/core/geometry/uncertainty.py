@@ -196,6 +196,19 @@ def map_normal_equations(R_cur_kf: F64, t_cur_kf: F64, X_kf: F64, xn_cur: F64, s
     return (info, grad) if np.all(np.isfinite(info)) and np.all(np.isfinite(grad)) else None
 
 
+def map_step(R_cur_kf: F64, t_cur_kf: F64, X_kf: F64, xn_cur: F64) -> F64 | None:
+    """The Gauss-Newton step (c, phi) from the pose towards where the map points alone put it (``info^-1
+    g`` of :func:`map_normal_equations`; independent of the noise's scale); None when there is none."""
+    normal = map_normal_equations(R_cur_kf, t_cur_kf, X_kf, xn_cur, 1.0)
+    if normal is None:
+        return None
+    try:
+        step = np.linalg.solve(normal[0], normal[1])
+    except np.linalg.LinAlgError:
+        return None
+    return step if np.all(np.isfinite(step)) else None
+
+
 def sampson_rms(R_cur_kf: F64, t_dir: F64, xn_kf: F64, xn_cur: F64) -> float | None:
     """RMS of the Sampson distances (normalised units) of the correspondences ``xn_kf``/``xn_cur`` (N, 2)
     under the pose (R_cur_kf, direction ``t_dir``), with E's five degrees of freedom taken out
