@@ -43,34 +43,30 @@ class Offset:
         return fx * math.tan(math.radians(self.horizontal_deg)), fx * math.tan(math.radians(self.vertical_deg))
 
 
-def _angles(T: np.ndarray, i: int, j: int) -> tuple[float, float, float]:
-    """(horizontal deg, vertical deg, length) of the step from pose i to pose j in camera i's frame."""
-    t = T[i, :3, :3].T @ (T[j, :3, 3] - T[i, :3, 3])
-    return math.degrees(math.atan2(t[0], t[2])), math.degrees(math.atan2(t[1], t[2])), float(np.linalg.norm(t))
+def _steps(T: np.ndarray, spans: np.ndarray) -> np.ndarray:
+    """Each span's step from pose i to pose j in camera i's frame, (n, 3)."""
+    i, j = spans[:, 0], spans[:, 1]
+    return np.einsum("nji,nj->ni", T[i, :3, :3], T[j, :3, 3] - T[i, :3, 3])
 
 
 def direction_offset(T_est: np.ndarray, T_gt: np.ndarray, rows: list[int], stride: int = 4,
                      min_step: float = 0.1) -> Offset:
     """The offset over the spans ``rows[k] -> rows[k] + stride`` (camera-into-world poses, optical frame,
     one row per frame in both arrays). Raises ValueError when no span is usable."""
-    spans = [(r, r + stride) for r in rows if r + stride < len(T_est)]
-    gt_len = np.array([_angles(T_gt, i, j)[2] for i, j in spans]) if spans else np.zeros(0)
-    est_len = np.array([_angles(T_est, i, j)[2] for i, j in spans]) if spans else np.zeros(0)
-    keep = []
-    for (i, j), lg, le in zip(spans, gt_len, est_len, strict=True):
-        if lg < min_step * float(np.median(gt_len)) or le < min_step * float(np.median(est_len)):
-            continue
-        if (T_gt[i, :3, :3].T @ (T_gt[j, :3, 3] - T_gt[i, :3, 3]))[2] <= 0.0:
-            continue
-        he, ve, _ = _angles(T_est, i, j)
-        hg, vg, _ = _angles(T_gt, i, j)
-        keep.append((he - hg, ve - vg))
-    if not keep:
+    spans = np.array([(r, r + stride) for r in rows if r + stride < len(T_est)], dtype=np.int64).reshape(-1, 2)
+    if spans.shape[0] == 0:
         msg = "no span of forward motion to compare"
         raise ValueError(msg)
-    d = np.array(keep)
-    return Offset(len(keep), float(d[:, 0].mean()), float(d[:, 1].mean()), float(d[:, 0].std()),
-                  float(d[:, 1].std()))
+    te, tg = _steps(T_est, spans), _steps(T_gt, spans)
+    le, lg = np.linalg.norm(te, axis=1), np.linalg.norm(tg, axis=1)
+    keep = (lg >= min_step * np.median(lg)) & (le >= min_step * np.median(le)) & (tg[:, 2] > 0.0)
+    if not keep.any():
+        msg = "no span of forward motion to compare"
+        raise ValueError(msg)
+    te, tg = te[keep], tg[keep]
+    h = np.degrees(np.arctan2(te[:, 0], te[:, 2]) - np.arctan2(tg[:, 0], tg[:, 2]))
+    v = np.degrees(np.arctan2(te[:, 1], te[:, 2]) - np.arctan2(tg[:, 1], tg[:, 2]))
+    return Offset(int(keep.sum()), float(h.mean()), float(v.mean()), float(h.std()), float(v.std()))
 
 
 def replay_offset(directory: Path, start: int = 0, stride: int = 4) -> Offset:
