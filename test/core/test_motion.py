@@ -921,6 +921,16 @@ def test_a_first_pose_e_does_not_determine_is_not_used_for_the_map(seed: int) ->
     assert m is not None and m.state is TrackingState.TRACKING  # the gate, not another, held it
 
 
+def _plane_check(s: Any, uv_cur: np.ndarray) -> tuple[np.ndarray, MotionContext, np.ndarray, np.ndarray]:
+    """The keyframe holding the scene's true map, the current frame seen at ``uv_cur`` (px), and the true
+    pose in map units: (X, ctx, R_true, t_true) for ``MotionStage._map_disagrees``."""
+    X = _true_map(s)
+    kf = _keyframe(s, X)
+    xn = kf.camera.normalize(uv_cur)
+    ctx = MotionContext(kf, np.arange(s.n, dtype=np.int64), xn, kf.camera.to_pixels(xn), np.eye(4), lambda dt: 1.0)
+    return X, ctx, np.asarray(s.R_cur_ref), np.asarray(s.t_cur_ref) * MAP_SCALE
+
+
 @pytest.mark.parametrize("plane", [False, True])
 def test_on_a_plane_the_map_overrules_an_e_it_explains_clearly_worse(planar_scene, plane: bool) -> None:
     """E's ridge near a plane (the held-out loop with refined tracks, frame 28): E 0.45 deg off, yet it
@@ -933,14 +943,10 @@ def test_on_a_plane_the_map_overrules_an_e_it_explains_clearly_worse(planar_scen
     from scipy.optimize import least_squares
 
     s = planar_scene
-    X = _true_map(s)
-    kf = _keyframe(s, X)
-    cam = kf.camera
-    R_true, t_true = np.asarray(s.R_cur_ref), np.asarray(s.t_cur_ref) * MAP_SCALE
-    Xc = X @ R_true.T + t_true
-    uv = Xc[:, :2] / Xc[:, 2:3] @ cam.K[:2, :2].T + cam.K[:2, 2]  # exact observations
-    xn = cam.normalize(uv)
-    ctx = MotionContext(kf, np.arange(s.n, dtype=np.int64), xn, cam.to_pixels(xn), np.eye(4), lambda dt: 1.0)
+    cam = _camera(s)
+    X_true = _true_map(s) @ np.asarray(s.R_cur_ref).T + np.asarray(s.t_cur_ref) * MAP_SCALE
+    uv = X_true[:, :2] / X_true[:, 2:3] @ cam.K[:2, :2].T + cam.K[:2, 2]  # exact observations
+    X, ctx, R_true, t_true = _plane_check(s, uv)
     # E on the ridge: rotated 0.45 deg, its translation fitted to the map's points (what E's coupling of
     # rotation and direction does near a plane)
     R_e = cv2.Rodrigues(np.radians([0.0, 0.45, 0.0]))[0] @ R_true
@@ -970,13 +976,8 @@ def test_on_a_plane_an_e_the_map_agrees_with_costs_no_fit_of_the_map(planar_scen
     import epi_vo.core.motion as motion_module
 
     s = planar_scene
-    X = _true_map(s)
-    kf = _keyframe(s, X)
-    cam = kf.camera
-    R_true, t_true = np.asarray(s.R_cur_ref), np.asarray(s.t_cur_ref) * MAP_SCALE
-    xn = cam.normalize(np.asarray(s.uv_cur_obs))  # 0.3 px noise: E at the truth, the map agreeing
-    ctx = MotionContext(kf, np.arange(s.n, dtype=np.int64), xn, cam.to_pixels(xn), np.eye(4), lambda dt: 1.0)
-    step = geo.map_step(R_true, t_true, X, xn)
+    X, ctx, R_true, t_true = _plane_check(s, np.asarray(s.uv_cur_obs))  # 0.3 px noise: E at the truth
+    step = geo.map_step(R_true, t_true, X, ctx.xn_cur)
     assert step is not None and math.degrees(float(np.linalg.norm(step[3:]))) < 0.05
 
     def no_fit(*args: Any, **kwargs: Any) -> None:
