@@ -77,8 +77,11 @@ def main(argv: list[str]) -> int:
 
     def kept_measure(self: sc.GroundPlaneScale, step: sc.KeyframeStep) -> tuple[float, float] | None:
         out = measure(self, step)
-        if out is not None and self.plane is not None and self._floor_rows is not None:
-            floors.append({"step": step, "plane": self.plane, "rows": self._floor_rows.copy()})
+        if out is not None and self.plane is not None:
+            plane = self.plane  # its inliers: within the source's band of the measured floor
+            with np.errstate(invalid="ignore"):
+                rows = np.abs(step.X_cur @ plane.normal_up + plane.height) < self.inlier_ratio * plane.height
+            floors.append({"step": step, "plane": plane, "rows": rows})
         return out
 
     pl.keyframe_map = kept_keyframe_map  # type: ignore[assignment]

@@ -93,6 +93,7 @@ class VoPipeline:
         self._next_id = 0  # the next feature track id
         self._mover_ids = np.zeros(0, np.int64)  # sorted ids of tracks judged to move on their own
         self._anchor: sc.WindowAnchor | None = None  # the scale source's anchor of the newest keyframe step
+        self._factor = 1.0  # and its correction of that step (``_metric_step``)
         # keyframe stamp and relative covariance of the last pose (without its map's scale part)
         self._rel_prev: tuple[int, F64] | None = None
         self._last_pos_w = np.zeros(3)  # position of the last frame with a pose (for the step's scale error)
@@ -407,7 +408,7 @@ class VoPipeline:
         X_cur = keyframe_map(self.cfg, motion, kf, rows, xn_cur, stamp_ns, st)
         if X_cur is None:
             return False
-        self._anchor = None
+        self._anchor, self._factor = None, 1.0
         t = motion.t_cur_kf
         if motion.state is TrackingState.TRACKING:
             X_cur, t = self._metric_step(motion, kf, X_cur, stamp_ns)
@@ -423,16 +424,16 @@ class VoPipeline:
         ids_tracked = kf.ids[rows] if kf.ids is not None else None
         self._set_keyframe(gray, camera, stamp_ns, cov, pts_cur, X_cur, orb_cur, ids_tracked)
         if motion.state is TrackingState.TRACKING:
-            self._adjust_window(st, ids_tracked)
+            self._adjust_window(st)
         else:
             self._window.clear()
         return True
 
-    def _adjust_window(self, st: FrameStats, ids_tracked: NDArray[np.int64] | None) -> None:
+    def _adjust_window(self, st: FrameStats) -> None:
         """Windowed bundle adjustment (``epi_vo.core.window``): the last keyframe's adjustment comes back and
         this keyframe (and the current pose) moves with the keyframe it adjusted; this one joins the window
-        with its scale anchor (about its tracked rows, ``ids_tracked``) as a prior, and the next adjustment
-        starts when due (beside the frame loop with ``ba_solver: process``; either solver: same poses)."""
+        with its scale anchor and the scale stage's correction of its step, and the next adjustment starts
+        when due (beside the frame loop with ``ba_solver: process``; either solver: same poses)."""
         kf = self._kf
         assert kf is not None
         t0 = time.perf_counter()
@@ -440,13 +441,13 @@ class VoPipeline:
         if update is not None:
             st.timings["window_wait"], st.timings["window_solve"] = _ms(t0), update.ms  # solve: in the worker
             # The window's uncertainty (when it has one; covering the chain's) replaces the keyframe's.
-            T, X, cov = self._window.correct(update, kf.T_w_kf, kf.ids, kf.X_kf, kf.cov_w_kf)
+            T, X, cov = self._window.correct(update, kf.T_w_kf, kf.ids, kf.X_kf, kf.cov_w_kf, self._factor)
             st.correction = update.correction  # the poses before move with it (the twist's reference)
             kf = self._kf = dataclasses.replace(kf, T_w_kf=T, X_kf=X, cov_w_kf=cov)
             self._T_w_c = T.copy()
             if update.cov_w_kf is not None:
                 self._cov_w_c = cov.copy()
-        self._window.add(kf.T_w_kf, kf.ids, kf.xn, kf.X_kf, self._anchor, ids_tracked, kf.cov_w_kf)
+        self._window.add(kf.T_w_kf, kf.ids, kf.xn, kf.X_kf, self._anchor, kf.cov_w_kf, self._factor)
         submitted = self._window.due() and self._window.submit(float(kf.camera.K[0, 0]), self._mover_ids)
         if update is not None or submitted:
             st.timings["window"] = _ms(t0)
@@ -464,7 +465,7 @@ class VoPipeline:
             self._scale.on_new_map()
         was_metric = self._scale.established
         step = sc.KeyframeStep(X_cur, float(np.linalg.norm(t)), kf.stamp_ns, stamp_ns)
-        factor = self._scale.correction(step)
+        factor = self._factor = self._scale.correction(step)
         self._anchor = self._scale.anchor(step)
         if factor == 1.0:
             return X_cur, t

@@ -182,12 +182,10 @@ def fit_ground_plane(X: F64, *, max_tilt_deg: float, inlier_ratio: float, min_po
 
 @dataclass(frozen=True)
 class WindowAnchor:
-    """A keyframe's metric anchor for the windowed bundle adjustment: the rows of its map points that
-    lie on the floor, with the camera height above it (``ground_plane``), or the wheel odometry position
-    at its stamp with the relative sigma of wheel distances (``wheel_odometry``)."""
+    """A keyframe's metric anchor for the windowed bundle adjustment: the wheel odometry position at its
+    stamp with the relative sigma of wheel distances (``wheel_odometry``). The floor gives none: the scale
+    filter owns ``ground_plane``'s scale and the window follows its corrections (``window``)."""
 
-    floor_rows: NDArray[np.bool_] | None = None
-    camera_height_m: float = math.nan
     wheel_xyz: F64 | None = None
     wheel_rel_sigma: float = math.nan
 
@@ -367,13 +365,6 @@ class GroundPlaneScale(ScaleSource):
         self.min_points = min_points
         self.reason = "ground plane not seen yet: scale unknown (VO units)"
         self._normals: deque[F64] = deque(maxlen=7)
-        self._plane_stamp_ns = -1  # stamp of the keyframe whose floor ``self.plane`` is
-        self._floor_rows: NDArray[np.bool_] | None = None  # its map points on that floor (scale-free)
-
-    def anchor(self, step: KeyframeStep) -> WindowAnchor | None:
-        if not self.established or self._floor_rows is None or self._plane_stamp_ns != step.stamp_ns:
-            return None
-        return WindowAnchor(floor_rows=self._floor_rows, camera_height_m=self.camera_height_m)
 
     def _expected_up(self) -> tuple[F64 | None, float]:
         """The floor normal seen over the last keyframes (the camera's mounting changes little), and how
@@ -404,10 +395,6 @@ class GroundPlaneScale(ScaleSource):
                 self.reason = "floor plane above the camera: ignored"
                 return None
         self.plane = plane
-        self._plane_stamp_ns = step.stamp_ns
-        with np.errstate(invalid="ignore"):
-            dist = np.abs(np.einsum("ij,j->i", step.X_cur, plane.normal_up) + plane.height)
-            self._floor_rows = dist < self.inlier_ratio * plane.height
         self.reason = ""
         # The fit's own standard error, at least GROUND_FIT_MIN_REL_STD; the filter's window raises it to
         # the fits' spread.

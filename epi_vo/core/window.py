@@ -4,8 +4,11 @@ After ``mapping`` made a keyframe, the pipeline hands it to :class:`WindowedMap`
 ``ba_every_keyframes`` tracking keyframes the last ``ba_window_keyframes`` keyframes are adjusted
 together (``epi_vo.core.bundle``, GTSAM): map points observed by at least two of them (tracks that
 survived across keyframes, linked by the keyframes' track ids), a Huber loss, the oldest keyframe fixed
-(gauge) and the scale held by the scale source's priors or, without one, by the distance from the oldest
-keyframe to the farthest (the scale stage's metric corrections are already in it). An adjustment is
+(gauge) and the scale held by wheel distances (``wheel_odometry``) or by the distance from the oldest
+keyframe to the farthest. The metric scale of ``ground_plane`` is the scale stage's: its filter, not the
+window, owns it (``add``: a keyframe whose step the scale stage corrected rescales the window's keyframes
+with it; a floor prior inside the window re-decided the scale every few keyframes from too little floor,
+README "The window's scale"). An adjustment is
 submitted at a keyframe and its result collected at the next one, so it can run beside the frame loop
 in a worker process (``ba_solver: process``, ``epi_vo.core.bundle_worker``; ``inline`` solves at the
 submission): either way it is applied at the same keyframe, and the poses are the same. With ``ba_wait:
@@ -59,7 +62,6 @@ class _Entry:
     xn: F64
     X_kf: F64
     anchor: WindowAnchor | None = None  # what the scale source knows in metres about this keyframe
-    floor_ids: I64 | None = None  # track ids of its map points on the floor (ground_plane anchor)
     cov_w: F64 | None = None  # its pose covariance in w (position first), as the pipeline had it
 
 
@@ -142,17 +144,34 @@ class WindowedMap:
         self._stale = 0
 
     def add(self, T_w_kf: F64, ids: I64 | None, xn: F64, X_kf: F64, anchor: WindowAnchor | None = None,
-            anchor_ids: I64 | None = None, cov_w: F64 | None = None) -> None:
-        """A new keyframe; ``anchor`` (with ``anchor_ids``, the track ids of the rows its ``floor_rows``
-        speak of) becomes a scale prior of the adjustments; ``cov_w`` is its pose covariance."""
+            cov_w: F64 | None = None, rescale: float = 1.0) -> None:
+        """A new keyframe; ``anchor`` becomes a scale prior of the adjustments; ``cov_w`` is its pose
+        covariance. ``rescale``: the scale stage corrected this keyframe's step and map points by that
+        factor (the map's scale was wrong by it), so the window's keyframes are rescaled with it first
+        (``_rescale``)."""
         if self.size <= 0 or ids is None:
             return
-        floor_ids = None
-        if anchor is not None and anchor.floor_rows is not None and anchor_ids is not None:
-            floor_ids = anchor_ids[anchor.floor_rows[: anchor_ids.shape[0]]]
-        self._entries.append(_Entry(T_w_kf.copy(), ids.copy(), xn.copy(), X_kf.copy(), anchor, floor_ids,
+        self._rescale(rescale)
+        self._entries.append(_Entry(T_w_kf.copy(), ids.copy(), xn.copy(), X_kf.copy(), anchor,
                                     None if cov_w is None else cov_w.copy()))
         self._since += 1
+
+    def _rescale(self, factor: float) -> None:
+        """The map's scale changes by ``factor`` from the newest keyframe on: every keyframe of the window
+        moves about the newest one's centre by it and its map points scale with it, as does an
+        adjustment under way when it comes back (``_Pending.similarity``). Without this the window kept
+        the old scale and each adjustment undid the scale stage's corrections (KITTI ``ground_plane``,
+        window of 8 and no floor prior: step scale 0.94)."""
+        if factor == 1.0 or not self._entries:
+            return
+        c = self._entries[-1].T_w_kf[:3, 3].copy()
+        for e in self._entries:
+            e.T_w_kf = e.T_w_kf.copy()
+            e.T_w_kf[:3, 3] = c + factor * (e.T_w_kf[:3, 3] - c)
+            e.X_kf = e.X_kf * factor
+        if self._pending is not None:  # p -> c + f (r p + b - c)
+            r, b = self._pending.similarity
+            self._pending.similarity = (factor * r, factor * b + (1.0 - factor) * c)
 
     def due(self) -> bool:
         """An adjustment is due: enough keyframes in the window, ``every`` added since the last, and none
@@ -199,11 +218,14 @@ class WindowedMap:
         if result is None:
             return None
         entries = pending.entries
+        r, b = pending.similarity  # the scale stage's corrections since it was submitted
         for entry, T in zip(entries, result.T_w_kf, strict=True):
             entry.T_w_kf = T.copy()
+            entry.T_w_kf[:3, 3] = r * T[:3, 3] + b
+        points_w = r * result.points_w + b
         newest = entries[-1]
         X_kf = newest.X_kf.copy()
-        ok, Xw = _adjusted_rows(pending.point_ids, result.points_w, newest.ids)
+        ok, Xw = _adjusted_rows(pending.point_ids, points_w, newest.ids)
         T_kf_w = invert_T(newest.T_w_kf)
         X_kf[ok] = Xw[ok] @ T_kf_w[:3, :3].T + T_kf_w[:3, 3]
         newest.X_kf = X_kf
@@ -216,7 +238,7 @@ class WindowedMap:
                 cov = covm.cover(covm.floored(newest.cov_w), cov)
             newest.cov_w = cov
         update = WindowUpdate(newest.T_w_kf.copy(), X_kf, int(np.count_nonzero(np.isfinite(result.points_w[:, 0]))),
-                              len(entries), result.ms, pending.T_w_kf_before, pending.point_ids, result.points_w,
+                              len(entries), result.ms, pending.T_w_kf_before, pending.point_ids, points_w,
                               cov, pending.cov_w_before)
         self._carry(update, pending.entries)
         return update
@@ -240,19 +262,20 @@ class WindowedMap:
         self.collect()
         return self.collect() if self.submit(fx, exclude_ids) else None
 
-    def correct(self, update: WindowUpdate, T_w_kf: F64, ids: I64 | None, X_kf: F64, cov_w: F64
-                ) -> tuple[F64, F64, F64]:
+    def correct(self, update: WindowUpdate, T_w_kf: F64, ids: I64 | None, X_kf: F64, cov_w: F64,
+                factor: float = 1.0) -> tuple[F64, F64, F64]:
         """A keyframe made after the adjusted one (from its pose before the adjustment) moved with it: its
         pose by the adjusted keyframe's correction, its map points that were adjusted put where the
-        adjustment has them, and its covariance with the adjusted keyframe's part replaced by the
-        window's. Returns the pose, the map points (its own frame) and the covariance."""
+        adjustment has them (times ``factor``, the scale stage's correction of this keyframe, not yet in
+        the window: its other points have it), and its covariance with the adjusted keyframe's part
+        replaced by the window's. Returns the pose, the map points (its own frame) and the covariance."""
         T = update.correction @ T_w_kf
         T[:3, :3] = nearest_rotation(T[:3, :3])  # the products' rounding would add up keyframe after keyframe
         X = X_kf.copy()
         if ids is not None:
             ok, Xw = _adjusted_rows(update.point_ids, update.points_w, ids)
             T_kf_w = invert_T(T)
-            X[ok] = Xw[ok] @ T_kf_w[:3, :3].T + T_kf_w[:3, 3]
+            X[ok] = (Xw[ok] @ T_kf_w[:3, :3].T + T_kf_w[:3, 3]) * factor
         cov = cov_w
         if update.cov_w_kf is not None and update.cov_w_before is not None:
             cov = covm.floored(cov_w + update.cov_w_kf - update.cov_w_before)
@@ -265,6 +288,8 @@ class _Pending:
     point_ids: I64  # track id of each adjusted point
     T_w_kf_before: F64  # the newest one's pose when submitted
     cov_w_before: F64 | None  # and its covariance
+    # (r, b): p -> r p + b, the scale stage's corrections since it was submitted (``WindowedMap._rescale``)
+    similarity: tuple[float, F64] = (1.0, np.zeros(3))
 
 
 def _adjusted_rows(point_ids: I64, points_w: F64, ids: I64) -> tuple[NDArray[np.bool_], F64]:
@@ -306,26 +331,20 @@ def _build(bundle_module: ModuleType, entries: list[_Entry], sigma_px: float, fx
         obs_kf.append(np.full(rows.size, k, np.int64))
         obs_pt.append(pos[rows])
         obs_xn.append(e.xn[rows])
-    distances, plane = _scale_priors(bundle_module, entries, ids)
-    # The oldest keyframe holds the gauge. With a metric prior the priors carry the scale; without one,
-    # the distance from the oldest keyframe to the farthest (``bundle``: the longest baseline; the
-    # scale stage's corrections are already in it).
+    # The oldest keyframe holds the gauge. Wheel distances carry the scale; without them the distance
+    # from the oldest keyframe to the farthest (``bundle``: the longest baseline; the scale stage's
+    # corrections are already in it, ``_rescale``).
     window = bundle_module.Window(np.stack([e.T_w_kf for e in entries]), pts_w, np.concatenate(obs_kf),
                                   np.concatenate(obs_pt), np.concatenate(obs_xn), sigma_px, fx, n_fixed=1,
-                                  distance_priors=distances, plane_prior=plane)
+                                  distance_priors=_wheel_priors(bundle_module, entries))
     return window, ids
 
 
-MIN_FLOOR_POINTS = 8  # adjusted floor points needed before the floor becomes a prior
-FLOOR_HEIGHT_REL_SIGMA = 0.02  # the camera height above the floor, relative (mounting, tyres, suspension)
-FLOOR_ROUGHNESS_REL = 0.02  # floor points off the plane, relative to the camera height
 WHEEL_MIN_SIGMA_M = 0.005  # wheel distance noise floor (encoder resolution, stamp jitter)
 
 
-def _scale_priors(bundle_module: ModuleType, entries: list[_Entry], ids: I64
-                  ) -> tuple[tuple[bundle.DistancePrior, ...], bundle.PlanePrior | None]:
-    """The scale source's anchors as priors: wheel distances between consecutive anchored keyframes,
-    and the floor (its points among the adjusted ones, the camera height above it)."""
+def _wheel_priors(bundle_module: ModuleType, entries: list[_Entry]) -> tuple[bundle.DistancePrior, ...]:
+    """The wheel distances between consecutive anchored keyframes, as priors (``wheel_odometry``)."""
     distances = []
     wheel = [(k, e.anchor) for k, e in enumerate(entries) if e.anchor is not None and e.anchor.wheel_xyz is not None]
     for (i, a), (j, b) in itertools.pairwise(wheel):
@@ -333,14 +352,4 @@ def _scale_priors(bundle_module: ModuleType, entries: list[_Entry], ids: I64
         d = float(np.linalg.norm(b.wheel_xyz - a.wheel_xyz))
         if d > WHEEL_MIN_SIGMA_M:
             distances.append(bundle_module.DistancePrior(i, j, d, max(a.wheel_rel_sigma * d, WHEEL_MIN_SIGMA_M)))
-    plane = None
-    floor = [e for e in entries if e.floor_ids is not None and e.anchor is not None]
-    if floor:
-        floor_ids = np.unique(np.concatenate([e.floor_ids for e in floor if e.floor_ids is not None]))
-        rows = np.flatnonzero(np.isin(ids, floor_ids))
-        if rows.size >= MIN_FLOOR_POINTS:
-            assert floor[-1].anchor is not None
-            h = floor[-1].anchor.camera_height_m
-            plane = bundle_module.PlanePrior(rows.astype(np.int64), h, FLOOR_HEIGHT_REL_SIGMA * h,
-                                             FLOOR_ROUGHNESS_REL * h)
-    return tuple(distances), plane
+    return tuple(distances)
