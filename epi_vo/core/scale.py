@@ -52,6 +52,11 @@ SMALL_WINDOW = 7  # fewer measurements than this: their sample variance bounds t
 # measurements; the scale's error after a measurement 0.22 %): it claimed 1.25 % for the scale,
 # `ground_plane` position NEES 0.27. KITTI's fits spread by 5-9 %, so the window sets its noise either way.
 GROUND_FIT_MIN_REL_STD = 0.005
+# Two floor fits establish metric scale only when their normals agree within this (deg): the camera's
+# mounting does not change between keyframes, a wrong plane's normal does. KITTI 06 replayed from frame 5:
+# the first fit leaned 24 deg (pitch 23.9 against 0.7-2.2 after it), the second established the scale with
+# it at 0.41 of the truth, and the filter needed 25 frames to recover (step scale 0.58, SE(3)-only ATE 10 %).
+FLOOR_AGREE_DEG = 10.0
 # The wheels' random error over one scale measurement (m, 1 sigma): the noise that averages out over
 # keyframes. Their calibration error (tyre radius), which does not, is ``wheel_odometry_rel_sigma`` and is
 # carried once, as the source's systematic error (``ScaleSource.systematic_rel``).
@@ -365,6 +370,35 @@ class GroundPlaneScale(ScaleSource):
         self.min_points = min_points
         self.reason = "ground plane not seen yet: scale unknown (VO units)"
         self._normals: deque[F64] = deque(maxlen=7)
+        self._waiting: list[tuple[F64, float, float]] = []  # fits before metric scale: (normal, z, r)
+
+    def on_new_map(self) -> None:
+        super().on_new_map()
+        self._waiting.clear()
+
+    def correction(self, step: KeyframeStep) -> float:
+        """As ``ScaleSource.correction``, but before metric scale is established a fit waits until another
+        fit's normal agrees with its own (``FLOOR_AGREE_DEG``); fits that agree with none are dropped then."""
+        if self.filter.established:
+            return super().correction(step)
+        measured = self.measure(step)
+        if measured is None:
+            return 1.0
+        normal = self._normals[-1]
+        cos = math.cos(math.radians(FLOOR_AGREE_DEG))
+        agree = [w for w in self._waiting if float(w[0] @ normal) >= cos]
+        if not agree:
+            self._waiting.append((normal, *measured))
+            self.reason = (f"{len(self._waiting)} floor fit(s), no two with normals within {FLOOR_AGREE_DEG:g} deg: "
+                           "metric scale waits for two that agree (VO units)")
+            return 1.0
+        self._waiting.clear()
+        self._normals = deque([w[0] for w in agree] + [normal], maxlen=self._normals.maxlen)
+        factor = 1.0
+        for _, z, r in [*agree, (normal, *measured)]:
+            factor *= self.filter.update(z, r)
+        self.on_corrected(factor)
+        return factor
 
     def _expected_up(self) -> tuple[F64 | None, float]:
         """The floor normal seen over the last keyframes (the camera's mounting changes little), and how

@@ -164,6 +164,23 @@ def test_floor_scale_claims_the_spread_its_fits_have() -> None:
     assert 0.6 < float(np.mean(claimed)) / actual < 1.7
 
 
+def test_metric_scale_waits_for_two_floor_fits_that_agree() -> None:
+    """The first fit takes a slope pitched 24 deg for the floor (KITTI 06 from frame 5: its scale then
+    started at 0.41 of the truth). Metric scale is established only by two fits whose normals agree, at
+    the level floor's scale; the fit that agreed with none is dropped."""
+    src = sc.GroundPlaneScale(0.45, 0.01, max_tilt_deg=35.0, inlier_ratio=0.04, min_points=8)
+    S = 2.0  # metres per map unit: the true floor is 0.45 / S below the camera in map units
+    slope = _scene(0.6 / S, 24.0, 0.0, n_floor=80, n_clutter=0, noise=0.0005)  # wrong plane, wrong height
+    factor = src.correction(sc.KeyframeStep(slope, 0.02, 0, 100_000_000))
+    assert factor == 1.0 and not src.established and "no two" in src.reason
+    for k in (1, 2):
+        floor = _scene(0.45 / S, 0.5, 0.0, n_floor=80, n_clutter=20, noise=0.0005, seed=k)
+        factor *= src.correction(sc.KeyframeStep(floor, 0.02, k * 100_000_000, (k + 1) * 100_000_000))
+    assert src.established
+    assert factor == pytest.approx(S, rel=0.01)  # the level floor's scale, not the slope's
+    # Before, the slope and the first level fit established it at 0.87 x S (0.97 x S after the second).
+
+
 def test_scale_filter_shrugs_off_an_outlier() -> None:
     f = sc.ScaleFilter(0.02)
     for z in (0.01, -0.01, 0.0, 0.02, -0.02):
