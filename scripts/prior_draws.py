@@ -3,7 +3,8 @@
 With a scale source, the scale's uncertainty is its prior's: the camera height's (`camera_height_rel_sigma`)
 or the wheels' distance calibration (`wheel_odometry_rel_sigma`). That error is one systematic draw per
 robot, so one replay shows one draw: on a render whose camera height is exact, the claimed 2 % never shows
-as error and the position NEES comes out below 1. Whether the covariance is consistent is a question over
+as error and the position NEES comes out low (0.88 while the scale filter's term was isotropic; 2.53 along
+the step since 2026-11-27). Whether the covariance is consistent is a question over
 the robots a user may have, i.e. over the prior. This script replays a bag once per draw:
 
 * ``ground_plane``: ``camera_height_m = height x (1 + rel_sigma z)``;

@@ -169,6 +169,9 @@ class VoConfig:
     scale_drift_per_keyframe: float = _knob(
         0.01, "relative scale drift of the map per keyframe (1 sigma, a random walk): the scale filter's process "
         "noise, and in VO units the position covariance's scale term, grown coherently along the path", 0.0, 1.0)
+    principal_point_sigma_px: float = _knob(
+        0.0, "uncertainty of the calibration's principal point (1 sigma, px of CameraInfo): a constant offset of "
+        "every step's direction, grown coherently along the path in the position covariance (0: exact)", 0.0, 100.0)
     lost_position_variance: float = _knob(1.0e4, "position variance reported when no pose can be justified",
                                           1.0, 1.0e12)
     lost_rotation_variance: float = _knob(1.0e2, "rotation variance (rad^2) reported when no pose can be justified",

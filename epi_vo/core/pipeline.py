@@ -10,20 +10,16 @@ Frames and poses
 
 Monocular scale convention
     Translation is observable only up to one global scale. The first map is built with a keyframe
-    baseline of length 1 (``|t| = 1`` between the first two keyframes), and every later frame carries
-    that same scale: its translation is scaled so that the map points triangulated between the last
-    pair of keyframes project consistently (robust median of per-point scale estimates, then a
-    motion-only refinement on those points). After tracking is lost, the new map's baseline is set to
-    the last keyframe baseline so the trajectory continues in (approximately) the same units. An
-    external scale source (wheel odometry, known baseline) would replace the baseline length in
-    :class:`epi_vo.core.scale.VoUnitsScale`; that is the seam left for it. The trajectory is therefore
-    correct up to one Sim(3) transform.
+    baseline of length 1 (VO units), and every later frame carries that scale through the map points
+    triangulated between the last pair of keyframes; after a loss the new map's baseline continues from
+    the last keyframe speed. A metric scale source (``scale``: the floor, wheel odometry) corrects each
+    keyframe step and its map into metres once established.
 
 Stages (each a module of ``epi_vo.core`` with its own tests; this object keeps the state and the order)
     features (``frontend``) -> two-view model selection (``selection``) -> motion: pose and scale
-    (``motion``, ``scale``) -> keyframes / map (``mapping``, ``keyframe``) -> frame record (``frame``).
-    Seams for what comes next: a motion check before model selection (``_process``, after the
-    correspondences), a windowed map stage after ``mapping``, and scale sources in ``scale``.
+    (``motion``, ``scale``) -> keyframes / map (``mapping``, ``keyframe``, the optional windowed
+    adjustment ``window``) -> frame record (``frame``); the covariance's map-scale and calibration terms
+    are in ``map_scale``.
 
 What is never invented
     No parallax: no depth and no keyframe. Pure rotation (the homography explains the motion and no
@@ -60,7 +56,7 @@ from epi_vo.core.frame import (
     frozen,
 )
 from epi_vo.core.keyframe import Keyframe, make_keyframe
-from epi_vo.core.map_scale import MapScaleCovariance
+from epi_vo.core.map_scale import DirectionOffset, MapScaleCovariance
 from epi_vo.core.mapping import keyframe_map
 from epi_vo.core.odometry import rotate_covariance
 from epi_vo.core.patches import patch_templates
@@ -88,6 +84,7 @@ class VoPipeline:
         self._wheel = sc.WheelOdometry()
         self._scale = sc.source_from_config(self.cfg, self._wheel)
         self._map_scale = MapScaleCovariance(self.cfg.scale_drift_per_keyframe)
+        self._offset, self._fx = DirectionOffset(self.cfg.principal_point_sigma_px), 1.0  # fx: CameraInfo's
         self._window = WindowedMap(self.cfg.ba_window_keyframes, self.cfg.ba_every_keyframes, self.cfg.pixel_noise_px,
                                    self.cfg.ba_solver)
         self._next_id = 0  # the next feature track id
@@ -222,7 +219,7 @@ class VoPipeline:
         skipped = self._check_stamp(stamp_ns)
         if skipped is not None:
             return skipped
-        stamp_ns, self._key = int(stamp_ns), gray
+        stamp_ns, self._key, self._fx = int(stamp_ns), gray, float(camera.K[0, 0])
         t_start = time.perf_counter()
         held = (self._T_w_c.copy(), self._cov_w_c.copy())
         try:
@@ -419,8 +416,8 @@ class VoPipeline:
         cov = self._cov_w_c.copy()
         if motion.state is TrackingState.TRACKING:
             d = self._T_w_c[:3, 3] - kf.T_w_kf[:3, 3]
-            cov[:3, :3] += self._map_scale.keyframe_cov(self._scale, motion.new_map is not None, d,
-                                                        float(np.linalg.norm(t)))
+            cov[:3, :3] += self._map_scale.keyframe_cov(self._scale, motion.new_map is not None, d)
+            self._offset.add_step(d, kf.T_w_kf[:3, :3], self._fx)
         ids_tracked = kf.ids[rows] if kf.ids is not None else None
         self._set_keyframe(gray, camera, stamp_ns, cov, pts_cur, X_cur, orb_cur, ids_tracked)
         if motion.state is TrackingState.TRACKING:
@@ -480,6 +477,7 @@ class VoPipeline:
             d = factor * (self._T_w_c[:3, 3] - origin)
             self._T_w_c[:3, 3] = origin + d
             self._cov_w_c = self._map_scale.metric_covariance(self._scale, self._cov_w_c, factor, d)
+            self._offset.rescale(factor)
         return X_cur * factor, t
 
     def _set_keyframe(self, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int, cov_w: F64,
@@ -628,9 +626,10 @@ class VoPipeline:
             st.reasons.append("metric scale not established yet: position held")
         elif self._scale.established:
             cov[:3, :3] += self._map_scale.systematic(self._scale, T_out[:3, 3])
+        if (kf := self._kf) is not None:
+            cov[:3, :3] += self._offset.cov(T_out[:3, 3] - kf.T_w_kf[:3, 3], kf.T_w_kf[:3, :3], self._fx)
         cov = covm.floored(cov)
         st.timings["total"] = _ms(t_start)
-        kf = self._kf
         n_features = kf.n_features if kf is not None else 0
         for name in STAT_FIELDS[:1] + STAT_FIELDS[2:]:  # not measured is NaN, never infinite
             if math.isinf(getattr(st, name)):

@@ -20,7 +20,7 @@ def test_the_draws_are_seeded_normals() -> None:
 
 def test_a_mismeasured_camera_height_is_the_scale_error_and_the_nees_shows_it(tmp_path: Path) -> None:
     """Seed 2 draws a camera height 4.6 % too high (z = 2.34 at 2 %): the metric trajectory is 4.6 % long
-    (step scale), and its position NEES is well above what the exact height gives (0.88): the claimed
+    (step scale), and its position NEES is above what the exact height gives (2.53): the claimed
     2 % now shows as error."""
     (d,) = prior_draws.run_draws(BAG, tmp_path, "ground_plane", 1, seed0=2, camera_height=0.45)
     assert d.value == pytest.approx(0.45 * (1.0 + 0.02 * d.z))
