@@ -115,8 +115,9 @@ class DirectionOffset:
         return -skew(d) @ R_w_c[:, :2] * (self.sigma_px / fx)
 
     def add_step(self, d: F64, R_w_c: F64, fx: float) -> None:
-        """A keyframe step ``d`` (odometry frame) taken from a keyframe with orientation ``R_w_c``."""
-        if self.sigma_px > 0.0:
+        """A keyframe step ``d`` (odometry frame) taken from a keyframe with orientation ``R_w_c`` (a
+        non-finite one is not taken: the published covariance stays finite)."""
+        if self.sigma_px > 0.0 and np.all(np.isfinite(d)) and np.all(np.isfinite(R_w_c)):
             self.J += self._step(d, R_w_c, fx)
 
     def rescale(self, factor: float) -> None:
@@ -127,5 +128,6 @@ class DirectionOffset:
         """Position covariance of the offset at a pose ``d`` past the keyframe (orientation ``R_w_c``)."""
         if self.sigma_px <= 0.0:
             return np.zeros((3, 3))
-        J = self.J + self._step(d, R_w_c, fx)
+        finite = np.all(np.isfinite(d)) and np.all(np.isfinite(R_w_c))
+        J = self.J + self._step(d, R_w_c, fx) if finite else self.J
         return J @ J.T

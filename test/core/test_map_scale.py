@@ -74,7 +74,7 @@ def test_the_direction_offset_predicts_the_spread_of_a_constant_turn_of_every_st
     assert np.trace(DirectionOffset(0.0).cov(half, Rs[-1], fx)) == 0.0  # an exact calibration: nothing
 
 
-def test_the_direction_offset_follows_the_paths_rescaling() -> None:
+def test_the_direction_offset_follows_the_paths_rescaling_and_stays_finite() -> None:
     Rs, cs = _path(5)
     off = DirectionOffset(1.0)
     for R, c in zip(Rs, cs, strict=True):
@@ -82,6 +82,8 @@ def test_the_direction_offset_follows_the_paths_rescaling() -> None:
     before = off.cov(np.zeros(3), Rs[-1], 700.0)
     off.rescale(1.5)
     np.testing.assert_allclose(off.cov(np.zeros(3), Rs[-1], 700.0), 2.25 * before)
+    off.add_step(np.array([np.nan, 0.0, 1.0]), Rs[-1], 700.0)  # a defect upstream: not taken
+    np.testing.assert_allclose(off.cov(np.full(3, np.inf), Rs[-1], 700.0), 2.25 * before)
 
 
 def test_a_principal_point_off_by_dx_turns_the_direction_of_travel_by_dx_over_fx() -> None:
