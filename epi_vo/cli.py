@@ -121,8 +121,10 @@ def _add_soak(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_params(sub: argparse._SubParsersAction) -> None:
-    sub.add_parser("params", help="print the default parameter file (ROS 2 YAML: the node's own parameters and "
-                                  "the pipeline's) with one comment per parameter")
+    p = sub.add_parser("params", help="print the default parameter file (ROS 2 YAML: the node's own parameters and "
+                                      "the pipeline's) with one comment per parameter")
+    p.add_argument("--markdown", action="store_true",
+                   help="print the parameter reference as Markdown instead (docs/parameters.md)")
 
 
 def _add_play(sub: argparse._SubParsersAction) -> None:
@@ -193,6 +195,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             from epi_vo.ros.live_bench import main as latency_main
 
             return latency_main([float(r) for r in args.rates.split(",")], args.seconds)
+        if args.command == "params" and args.markdown:
+            from epi_vo.io.params_doc import parameters_markdown
+
+            sys.stdout.write(parameters_markdown())
+            return 0
         if args.command == "params":
             from epi_vo.core.config import VoConfig
             from epi_vo.io.node_options import NodeOptions
