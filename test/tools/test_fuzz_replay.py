@@ -20,7 +20,7 @@ example must satisfy:
 1. no uncaught exception, no "Traceback" on stdout / stderr, no log record carrying an exception;
 2. exit code in {0, 2, 3}; exit code 2 ("the bag itself cannot be read") only for a bag without a
    camera_info topic: the generated bags are always readable containers, a corrupt message is bad input
-   in one frame (README "Bad input"), not a reason to abandon the replay;
+   in one frame (docs/bad_input.md), not a reason to abandon the replay;
 3. exit code 0 or 3: frames.jsonl has exactly one JSON line per image message written, indexed 0..N-1;
 4. nothing non-finite (NaN / inf, also as the strings "NaN" / "Infinity") and every quaternion of unit
    norm (within 1e-6) in trajectory.tum, frames.jsonl and output.mcap (Odometry pose / twist /
@@ -102,11 +102,11 @@ IMAGE_TOPIC_RAW = "/camera/image_raw"
 IMAGE_TOPIC_COMPRESSED = "/camera/image_raw/compressed"
 INFO_TOPIC = "/camera/camera_info"
 
-# The README's encodings ("Offline replay") and their bytes per pixel; other accepted spellings are
+# The documented encodings (docs/bad_input.md) and their bytes per pixel; other accepted spellings are
 # neither required nor forbidden, so frames using them are of unknown validity.
 README_ENCODINGS = {"mono8": 1, "mono16": 2, "bgr8": 3, "rgb8": 3, "bgra8": 4, "rgba8": 4}
 ENCODING_ALIASES = {"8UC1", "16UC1"}
-# README "Bad input": an image smaller than the frontend can use (KLT: 2 x klt_window_px + 2) is rejected.
+# docs/bad_input.md: an image smaller than the frontend can use (KLT: 2 x klt_window_px + 2) is rejected.
 MIN_IMAGE_SIDE = 2 * VoConfig().klt_window_px + 2
 DISTORTION_MODELS = {"plumb_bob": (4, 5), "rational_polynomial": (8,), "equidistant": (4,)}
 
@@ -423,8 +423,8 @@ def _expected_size(info: Any) -> tuple[int, int] | None:
 
 
 def _info_problem(info: Any) -> str | None:
-    """Why the README ("How the pipeline decides": camera model) says this CameraInfo cannot be used, or
-    None. The plausibility limits are checked only without binning / roi (then the README's "image side"
+    """Why docs/bad_input.md ("Calibration") says this CameraInfo cannot be used, or
+    None. The plausibility limits are checked only without binning / roi (then the documented "image side"
     is unambiguous)."""
     k = np.asarray(info.k, np.float64)
     d = np.asarray(info.d, np.float64)
