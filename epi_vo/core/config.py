@@ -142,6 +142,19 @@ class VoConfig:
 
     # --- tracking lost -------------------------------------------------------------------------
     lost_after_frames: int = _knob(3, "consecutive frames without a pose before tracking is declared lost", 1, 1000)
+    # What the platform can do bounds the motion a pose held through a loss may have missed (core/handover.py).
+    max_speed_mps: float = _knob(
+        20.0, "the platform's largest plausible speed (m/s): a map restarted after a loss covers in its position "
+        "covariance what this allows over the time without a map (metric scale; generous: set your robot's)",
+        0.01, 400.0)
+    max_accel_mps2: float = _knob(
+        10.0, "the platform's largest plausible acceleration (m/s^2): over a short loss the speed stays near the "
+        "last one, within this", 0.01, 1000.0)
+    max_turn_rate_deg_s: float = _knob(
+        180.0, "the platform's largest plausible turn rate about any axis (deg/s), for the rotation covariance "
+        "after a loss as max_speed_mps for the position (at most a half turn)", 0.1, 3600.0)
+    max_turn_accel_deg_s2: float = _knob(
+        360.0, "the platform's largest plausible angular acceleration (deg/s^2), as max_accel_mps2", 0.1, 100000.0)
 
     # --- metric scale ----------------------------------------------------------------------------
     scale_source: str = _knob(
