@@ -132,6 +132,13 @@ class VoPipeline:
         """The scale source's state now: source, metric or VO units, scale and its uncertainty."""
         return self._scale.status()
 
+    def set_mounting(self, T_base_cam: F64) -> None:
+        """The declared camera mounting, camera optical frame -> robot base (REP-103: base z up), from TF or
+        the node's camera_xyz / camera_rpy: the floor (``ground_plane``) is sought along the up it implies
+        (a level camera's -y without one). Raises ValueError when it is not finite."""
+        up_cam = np.asarray(T_base_cam, dtype=np.float64)[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+        self._scale.set_mounting_up(up_cam)
+
     def add_wheel_odometry(self, stamp_ns: int, position_xyz: F64) -> bool:
         """One wheel odometry position (any fixed odom frame, metres) at ``stamp_ns``, for the
         ``wheel_odometry`` scale source; give them in stamp order as they arrive. False when the sample is
