@@ -251,8 +251,8 @@ def validate(cfg: VoConfig) -> None:
     if isinstance(cfg.klt_patch_refine_px, int) and cfg.klt_patch_refine_px and cfg.klt_patch_refine_px % 2 == 0:
         problems.append(f"klt_patch_refine_px={cfg.klt_patch_refine_px} (0, or odd)")
     if cfg.scale_source == "ground_plane" and isinstance(cfg.camera_height_m, float) and not cfg.camera_height_m > 0:
-        problems.append("scale_source='ground_plane' needs camera_height_m (height of the camera's optical centre "
-                        "above the floor, m)")
+        problems.append("scale_source='ground_plane' needs camera_height_m > 0 (height of the camera's optical "
+                        "centre above the floor, m)")
     if cfg.scale_source == "wheel_odometry" and isinstance(cfg.wheel_odometry_topic, str) \
             and not cfg.wheel_odometry_topic.strip():
         problems.append("scale_source='wheel_odometry' needs wheel_odometry_topic (a nav_msgs/Odometry topic)")
