@@ -361,19 +361,16 @@ class VoPipeline:
         st.timings["mapping"] = _ms(t0)
         self._gray_prev = gray
         had_pose, had_position = self._measured
-        unknown = covm.block(self.cfg.lost_position_variance, self.cfg.lost_rotation_variance)
         if step_cov is not None and (not had_pose or (self._scale.metric_source and (
                 not self._scale.established or self._jumped))):
             # Nothing measured the step: the previous frame had no pose (a loss, a restart), or metres
             # were asked for while the position is held (scale unknown) or at the frame where the map
             # first becomes metric (the position jumps to metres).
-            step_cov = unknown
+            step_cov = covm.block(self.cfg.lost_position_variance, self.cfg.lost_rotation_variance)
         elif step_cov is not None and not (had_position and state is not TrackingState.INITIALIZING):
             # A position held (initialising: the camera moves on while its keyframe's position is
             # published) on either side: the step's translation spans the frames it was held for.
-            step_cov = step_cov.copy()
-            step_cov[:3, :] = step_cov[:, :3] = 0.0
-            step_cov[:3, :3] = unknown[:3, :3]
+            step_cov = covm.translation_unknown(step_cov, self.cfg.lost_position_variance)
         self._jumped = False
         return dataclasses.replace(self._result(stamp_ns, state, has_pose, is_kf, st, t_start),
                                    step_covariance=None if step_cov is None else frozen(covm.floored(step_cov)))
