@@ -36,9 +36,14 @@ ROS_PARAMETER_NAMES: tuple[str, ...] = ("use_sim_time", "start_type_description_
 
 
 def _knob(default: Any, doc: str, lo: float | None = None, hi: float | None = None,
-          choices: tuple[str, ...] | None = None) -> Any:
-    """A config field with its doc line and allowed range, kept in the dataclass metadata."""
-    return field(default=default, metadata={"doc": doc, "min": lo, "max": hi, "choices": choices})
+          choices: tuple[str, ...] | None = None, off: float | None = None) -> Any:
+    """A config field with its doc line and allowed range, kept in the dataclass metadata.
+
+    The range is physical (what a camera, an image, a robot can be), not a sign: every value in it must
+    work (``test/core/test_config_ranges.py`` runs the pipeline at the ends of each). ``off``: the one
+    value outside ``[lo, hi]`` that is also allowed, meaning "off" or "not set" (its doc line says which).
+    """
+    return field(default=default, metadata={"doc": doc, "min": lo, "max": hi, "choices": choices, "off": off})
 
 
 @dataclass(frozen=True)
@@ -58,10 +63,11 @@ class VoConfig:
     klt_max_fb_error_px: float = _knob(1.0, "forward-backward KLT consistency gate (px)", 0.01, 50.0)
     klt_patch_refine_px: int = _knob(0, "0: off; else the odd size (px) of the patch each KLT track is refined "
                                      "against in the image it was first seen in, by an affine fit (drift-free "
-                                     "tracks, +3-6 ms/frame; core/patches.py)", 0, 101)
+                                     "tracks, +3-6 ms/frame; core/patches.py)", 5, 101, off=0)
     orb_features: int = _knob(1500, "ORB features detected per frame (frontend 'orb')", 50, 20000)
     orb_ratio: float = _knob(0.8, "Lowe ratio test for ORB kNN matching (with mutual check)", 0.1, 1.0)
-    max_image_width: int = _knob(0, "downscale wider images to this width before processing (0: never)", 0, 20000)
+    max_image_width: int = _knob(0, "downscale wider images to this width before processing (0: never)", 160, 20000,
+                                 off=0)
 
     # --- two-view models --------------------------------------------------------------------
     essential_method: str = _knob("magsac", "robust estimator for the 5-point essential matrix",
@@ -79,7 +85,7 @@ class VoConfig:
         5.5, "each frame's image noise is the one its KLT tracks show: this factor x the per-axis RMS of their "
         "forward-backward errors, between twist_noise_floor_px and pixel_noise_px; the twist takes it (its "
         "rotation; its position between E poses), the pose the sum over the frames since its keyframe "
-        "(0: always pixel_noise_px)", 0.0, 100.0)
+        "(0: always pixel_noise_px)", 1.0, 100.0, off=0.0)
     twist_noise_floor_px: float = _knob(0.25, "the least image noise a frame's tracks are taken to have (px)",
                                         0.01, 50.0)
     rh_threshold: float = _knob(0.45, "choose H when RH = S_H / (S_H + S_E) exceeds this", 0.0, 1.0)
@@ -128,8 +134,8 @@ class VoConfig:
     kf_max_interval_s: float = _knob(2.0, "new keyframe at the latest after this time (s)", 0.01, 3600.0)
 
     # --- windowed bundle adjustment -------------------------------------------------------------
-    ba_window_keyframes: int = _knob(0, "keyframes adjusted together by the windowed bundle adjustment (GTSAM); "
-                                     "0: off", 0, 50)
+    ba_window_keyframes: int = _knob(0, "keyframes adjusted together by the windowed bundle adjustment (GTSAM; "
+                                     "it needs three); 0: off", 3, 50, off=0)
     ba_every_keyframes: int = _knob(3, "run the windowed bundle adjustment every this many tracking keyframes",
                                     1, 1000)
     ba_solver: str = _knob("process", "where the windowed bundle adjustment runs: 'process' (a worker process beside "
@@ -142,13 +148,26 @@ class VoConfig:
 
     # --- tracking lost -------------------------------------------------------------------------
     lost_after_frames: int = _knob(3, "consecutive frames without a pose before tracking is declared lost", 1, 1000)
+    # What the platform can do bounds the motion a pose held through a loss may have missed (core/handover.py).
+    max_speed_mps: float = _knob(
+        20.0, "the platform's largest plausible speed (m/s): a map restarted after a loss covers in its position "
+        "covariance what this allows over the time without a map (metric scale; generous: set your robot's)",
+        0.01, 400.0)
+    max_accel_mps2: float = _knob(
+        10.0, "the platform's largest plausible acceleration (m/s^2): over a short loss the speed stays near the "
+        "last one, within this", 0.01, 1000.0)
+    max_turn_rate_deg_s: float = _knob(
+        180.0, "the platform's largest plausible turn rate about any axis (deg/s), for the rotation covariance "
+        "after a loss as max_speed_mps for the position (at most a half turn)", 0.1, 3600.0)
+    max_turn_accel_deg_s2: float = _knob(
+        360.0, "the platform's largest plausible angular acceleration (deg/s^2), as max_accel_mps2", 0.1, 100000.0)
 
     # --- metric scale ----------------------------------------------------------------------------
     scale_source: str = _knob(
         "none", "where metric scale comes from: 'none' (VO units), 'ground_plane' (needs camera_height_m) or "
         "'wheel_odometry' (reads wheel_odometry_topic)", choices=SCALE_SOURCES)
-    camera_height_m: float = _knob(0.0, "height of the camera's optical centre above the floor (m; ground_plane)",
-                                   0.0, 100.0)
+    camera_height_m: float = _knob(0.0, "height of the camera's optical centre above the floor (m; ground_plane; "
+                                   "0: not set)", 0.01, 100.0, off=0.0)
     camera_height_rel_sigma: float = _knob(
         0.02, "relative uncertainty (1 sigma) of camera_height_m: common to every floor measurement, so the metric "
         "scale is never known better (ground_plane)", 0.0, 1.0)
@@ -174,8 +193,8 @@ class VoConfig:
         "every step's direction, grown coherently along the path in the position covariance (0: exact)", 0.0, 100.0)
     lost_position_variance: float = _knob(1.0e4, "position variance reported when no pose can be justified",
                                           1.0, 1.0e12)
-    lost_rotation_variance: float = _knob(1.0e2, "rotation variance (rad^2) reported when no pose can be justified",
-                                          1.0e-3, 1.0e6)
+    lost_rotation_variance: float = _knob(1.0e2, "rotation variance (rad^2) reported when no pose can be justified "
+                                          "(a turn known within a radian is no unknown one)", 1.0, 1.0e6)
 
 
 def config_fields() -> tuple[dataclasses.Field[Any], ...]:
@@ -187,7 +206,20 @@ PIPELINE_NAMES: tuple[str, ...] = tuple(f.name for f in config_fields())
 
 
 def field_doc(f: dataclasses.Field[Any]) -> str:
-    return str(f.metadata.get("doc", ""))
+    """The field's doc line and, for a number, its allowed range (``[lo to hi]``, ``[0, or lo to hi]``)."""
+    doc = str(f.metadata.get("doc", ""))
+    lo, hi, off = f.metadata.get("min"), f.metadata.get("max"), f.metadata.get("off")
+    if lo is None or hi is None:
+        return doc
+    return f"{doc} [{'' if off is None else f'{off:g}, or '}{lo:g} to {hi:g}]"
+
+
+def allowed_range(f: dataclasses.Field[Any]) -> tuple[float, float] | None:
+    """The smallest and largest value ``f`` takes (its ``off`` value included), None for a non-number."""
+    lo, hi, off = f.metadata.get("min"), f.metadata.get("max"), f.metadata.get("off")
+    if lo is None or hi is None:
+        return None
+    return (lo if off is None else min(lo, off)), (hi if off is None else max(hi, off))
 
 
 def validate(cfg: VoConfig) -> None:
@@ -205,17 +237,19 @@ def validate(cfg: VoConfig) -> None:
             problems.append(f"{f.name}={value!r} (not finite)")
             continue
         lo, hi, choices = f.metadata.get("min"), f.metadata.get("max"), f.metadata.get("choices")
+        off = f.metadata.get("off")
         if choices is not None and value not in choices:
             problems.append(f"{f.name}={value!r} (choose one of {', '.join(choices)})")
+        if off is not None and value == off:
+            continue
         if lo is not None and value < lo:
-            problems.append(f"{f.name}={value!r} (minimum {lo})")
+            problems.append(f"{f.name}={value!r} (minimum {lo}" + ("" if off is None else f", or {off:g}") + ")")
         if hi is not None and value > hi:
             problems.append(f"{f.name}={value!r} (maximum {hi})")
     if isinstance(cfg.klt_window_px, int) and cfg.klt_window_px % 2 == 0:
         problems.append(f"klt_window_px={cfg.klt_window_px} (must be odd)")
-    if isinstance(cfg.klt_patch_refine_px, int) and cfg.klt_patch_refine_px and (
-            cfg.klt_patch_refine_px % 2 == 0 or cfg.klt_patch_refine_px < 5):
-        problems.append(f"klt_patch_refine_px={cfg.klt_patch_refine_px} (0, or odd and at least 5)")
+    if isinstance(cfg.klt_patch_refine_px, int) and cfg.klt_patch_refine_px and cfg.klt_patch_refine_px % 2 == 0:
+        problems.append(f"klt_patch_refine_px={cfg.klt_patch_refine_px} (0, or odd)")
     if cfg.scale_source == "ground_plane" and isinstance(cfg.camera_height_m, float) and not cfg.camera_height_m > 0:
         problems.append("scale_source='ground_plane' needs camera_height_m > 0 (height of the camera's optical "
                         "centre above the floor, m)")

@@ -76,6 +76,16 @@ def step(cov_rel: F64, prev_rel: F64 | None) -> F64:
     return cov_rel.copy() if prev_rel is None else cov_rel + prev_rel
 
 
+def translation_unknown(cov: F64, pos_var: float) -> F64:
+    """``cov`` with its translation not measured: ``pos_var`` on the position diagonal, no correlation of
+    the position with the rotation, which keeps its own block."""
+    out = np.array(cov, dtype=np.float64)
+    out[:3, :] = 0.0
+    out[:, :3] = 0.0
+    out[:3, :3] = np.eye(3) * pos_var
+    return out
+
+
 def shared_scale_part(c: F64, scale_rel_var: float) -> F64:
     """The part of a pose's covariance relative to a keyframe that its map's scale error makes: the
     centre ``c`` (offset from the keyframe) moves along itself by the relative scale error,

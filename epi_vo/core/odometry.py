@@ -118,6 +118,7 @@ class OdometryConverter:
         """One odometry sample. ``step_cov_w`` (the frame's ``step_covariance``, odometry frame of the
         pipeline) is the covariance of the motion since the previous frame: the twist's covariance is
         it over dt^2, in the child frame. Without it, the pose covariance gained over the step is used.
+        After a frame without a pose the twist is unknown (zero, ``_UNKNOWN_TWIST_VARIANCE``).
         ``correction_w`` (the frame's ``correction``): the windowed adjustment moved the odometry frame's
         poses by it at this frame; the twist is the motion from the previous pose as moved, not the jump."""
         if correction_w is not None:
@@ -140,8 +141,9 @@ class OdometryConverter:
                 step_twist = step_base / (dt * dt)
                 if np.all(np.isfinite(step_twist)):
                     twist_cov = step_twist
-        if has_pose:
-            self._prev = (stamp_ns, T_odom_base, cov_odom)
+        # No twist is differenced across a frame without a pose: what the camera did in between was not
+        # measured (a blackout, a restart), and a difference over it claims a speed nothing saw.
+        self._prev = (stamp_ns, T_odom_base, cov_odom) if has_pose else None
         return OdometrySample(stamp_ns, T_odom_base[:3, 3].copy(), quat_xyzw_from_rotation(R_ob), cov_odom, lin,
                               ang, twist_cov, self.T_map_odom.copy() if self.continuous else None)
 

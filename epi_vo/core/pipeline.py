@@ -55,13 +55,14 @@ from epi_vo.core.frame import (
     clamp_stamp_ns,
     frozen,
 )
+from epi_vo.core.handover import Handover
 from epi_vo.core.keyframe import Keyframe, make_keyframe
 from epi_vo.core.map_scale import DirectionOffset, MapScaleCovariance
 from epi_vo.core.mapping import keyframe_map
 from epi_vo.core.odometry import rotate_covariance
 from epi_vo.core.patches import patch_templates
 from epi_vo.core.selection import ModelSelector
-from epi_vo.core.transforms import invert_T, make_T, rotation_angle_deg
+from epi_vo.core.transforms import invert_T, make_T
 from epi_vo.core.window import WindowedMap
 
 _log = logging.getLogger(__name__)
@@ -97,10 +98,9 @@ class VoPipeline:
         self._jumped = False  # this frame's position jumped to metres (metric scale just established)
         self._T_w_c = np.eye(4)
         self._cov_w_c = np.zeros((6, 6))
-        # The last pose that had a map behind it (tracking): its stamp, pose and covariance, and the
-        # camera's speed there; a restart hands over from it (``_handover_cov``).
-        self._good: tuple[int, F64, F64] | None = None
-        self._good_rates = (0.0, 0.0)  # (map units / s, rad / s) between the last two good poses
+        self._handover = Handover(self.cfg)  # the last pose with a map behind it; a restart starts from it
+        # The last frame's (pose, position) were measured, not held: its step to the next is then measured.
+        self._measured = (False, False)
         self._kf: Keyframe | None = None
         self._rows = np.zeros(0, np.int64)  # keyframe row of each live track
         self._pts_prev = np.zeros((0, 2), np.float32)
@@ -131,6 +131,13 @@ class VoPipeline:
     def scale_status(self) -> sc.ScaleStatus:
         """The scale source's state now: source, metric or VO units, scale and its uncertainty."""
         return self._scale.status()
+
+    def set_mounting(self, T_base_cam: F64) -> None:
+        """The declared camera mounting, camera optical frame -> robot base (REP-103: base z up), from TF or
+        the node's camera_xyz / camera_rpy: the floor (``ground_plane``) is sought along the up it implies
+        (a level camera's -y without one). Raises ValueError when it is not finite."""
+        up_cam = np.asarray(T_base_cam, dtype=np.float64)[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+        self._scale.set_mounting_up(up_cam)
 
     def add_wheel_odometry(self, stamp_ns: int, position_xyz: F64) -> bool:
         """One wheel odometry position (any fixed odom frame, metres) at ``stamp_ns``, for the
@@ -343,7 +350,7 @@ class VoPipeline:
             self._last_pos_w = T_w_c[:3, 3].copy()
             self._T_cur_kf_prev = T_cur_kf
             if state is TrackingState.TRACKING:
-                self._book_good(stamp_ns)
+                self._handover.book(stamp_ns, self._T_w_c, self._cov_w_c)
             if state is TrackingState.INITIALIZING:
                 # Unknown scale: the position is not justified by anything yet.
                 self._cov_w_c = self._cov_w_c.copy()
@@ -353,10 +360,17 @@ class VoPipeline:
             is_kf = self._maybe_keyframe(motion, kf, rows, pts_cur, xn_cur, gray, camera, stamp_ns, orb_cur, st)
         st.timings["mapping"] = _ms(t0)
         self._gray_prev = gray
-        if step_cov is not None and self._scale.metric_source and (not self._scale.established or self._jumped):
-            # Metres asked for: while the position is held (scale unknown), and at the frame where the
-            # map first becomes metric (the position jumps to metres), the step is not known.
+        had_pose, had_position = self._measured
+        if step_cov is not None and (not had_pose or (self._scale.metric_source and (
+                not self._scale.established or self._jumped))):
+            # Nothing measured the step: the previous frame had no pose (a loss, a restart), or metres
+            # were asked for while the position is held (scale unknown) or at the frame where the map
+            # first becomes metric (the position jumps to metres).
             step_cov = covm.block(self.cfg.lost_position_variance, self.cfg.lost_rotation_variance)
+        elif step_cov is not None and not (had_position and state is not TrackingState.INITIALIZING):
+            # A position held (initialising: the camera moves on while its keyframe's position is
+            # published) on either side: the step's translation spans the frames it was held for.
+            step_cov = covm.translation_unknown(step_cov, self.cfg.lost_position_variance)
         self._jumped = False
         return dataclasses.replace(self._result(stamp_ns, state, has_pose, is_kf, st, t_start),
                                    step_covariance=None if step_cov is None else frozen(covm.floored(step_cov)))
@@ -560,35 +574,15 @@ class VoPipeline:
         st.n_moving += n
         return moving
 
-    def _book_good(self, stamp_ns: int) -> None:
-        """This frame's pose has a map behind it: remember it (and the camera's speed) for a hand-over."""
-        good = self._good
-        if good is not None and stamp_ns > good[0]:
-            dt = (stamp_ns - good[0]) * 1e-9
-            step = float(np.linalg.norm(self._T_w_c[:3, 3] - good[1][:3, 3]))
-            turn = math.radians(rotation_angle_deg(good[1][:3, :3].T @ self._T_w_c[:3, :3]))
-            self._good_rates = (step / dt, turn / dt)
-        self._good = (stamp_ns, self._T_w_c.copy(), self._cov_w_c.copy())
-
     def _handover_cov(self, stamp_ns: int) -> F64:
-        """Covariance of the held pose a new map starts from (a restart, a reset, a jump back in time).
-
-        It is the covariance of the last pose that had a map behind it, plus the motion the camera may
-        have made since (its last speed and turn rate over the time without a map, 1 sigma), not the
-        'unknown' variance: that one is added to what is published while the new map has no scale
-        (``_result``), so it is never summed over restarts. Before any map: the current covariance.
-        """
-        good = self._good
-        if good is None:
-            return self._cov_w_c.copy()
-        gap_s = max((stamp_ns - good[0]) * 1e-9, 0.0)
-        speed, rate = self._good_rates
-        cov = good[2].copy()
-        if self._scale.established:
-            cov[:3, :3] += self._map_scale.systematic(self._scale, good[1][:3, 3])
-        cov[:3, :3] += np.eye(3) * (speed * gap_s) ** 2
-        cov[3:, 3:] += np.eye(3) * (rate * gap_s) ** 2
-        return covm.floored(cov)
+        """Covariance of the held pose a new map starts from (a restart, a reset, a jump back in time): the
+        last good pose's and the motion possible since (``handover``), not the 'unknown' variance: that one
+        is added to what is published while the new map has no scale (``_result``), so it is never summed
+        over restarts. Before any map: the current covariance."""
+        good, metric = self._handover.good, self._scale.established
+        scale_cov = self._map_scale.systematic(self._scale, good.T_w_c[:3, 3]) if good and metric else None
+        cov = self._handover.covariance(stamp_ns, metric, scale_cov)
+        return self._cov_w_c.copy() if cov is None else covm.floored(cov)
 
     def _on_failure(self, st: FrameStats) -> bool:
         """Count a frame without a pose; True when tracking must restart from the held pose.
@@ -609,6 +603,9 @@ class VoPipeline:
                 t_start: float, *, book: bool = True, unknown: bool = False) -> FrameResult:
         if book:
             self._last_stamp_ns = stamp_ns
+            # A held position is not measured; the first frame's is the origin by definition.
+            self._measured = (has_pose, has_pose and not unknown and (
+                state is not TrackingState.INITIALIZING or self._index == 0))
         self._keep_state_finite(st)
         cov = self._cov_w_c.copy()
         if unknown:  # a new reference keyframe after a restart: where the camera is, is not known yet

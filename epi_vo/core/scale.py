@@ -27,6 +27,7 @@ held where the map started, with a covariance that says the scale is unknown.
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -122,22 +123,50 @@ class GroundPlane:
         return math.degrees(math.atan2(-n[0], -n[1]))
 
 
-def fit_ground_plane(X: F64, *, max_tilt_deg: float, inlier_ratio: float, min_points: int,
-                     up: F64 | None = None, iterations: int = 200) -> GroundPlane | None:
-    """The floor among map points ``X`` (camera frame, x right, y down, z forward), or None.
+@dataclass(frozen=True)
+class FloorSearch:
+    """What :func:`find_floor` found: the floor, or why there is none.
 
-    Deterministic RANSAC over 3-point planes whose upward normal is within ``max_tilt_deg`` of the
-    camera's up axis (-y) and that lie below the camera; inliers are within ``inlier_ratio`` of the
-    candidate's height; ``up`` (a unit vector, default -y) is the expected floor normal. A candidate with
-    points clearly below it is no floor (a plane through objects). The best plane is refit by least
-    squares on its inliers; its height is the median inlier height and its relative spread that of a
-    median (1.25 MAD / sqrt(n)).
+    ``n_candidates`` planes had a normal within the tilt of ``up`` with the camera on their upper side;
+    ``n_unsupported`` of them had at least as many map points well beneath them as on them, and
+    ``best_unsupported`` is the (on, beneath) count of the one with most points on it ((0, 0): none).
+    """
+
+    plane: GroundPlane | None
+    n_points: int
+    n_candidates: int = 0
+    n_unsupported: int = 0
+    best_unsupported: tuple[int, int] = (0, 0)
+
+
+# A map point is beneath a floor candidate when it lies further than this fraction of the candidate's
+# height through it: the floor's own points scatter within ``ground_inlier_ratio`` (a few %) of it.
+BENEATH_FLOOR = 0.2
+LEVEL_UP = np.array([0.0, -1.0, 0.0])  # a level camera's up axis in its optical frame (y down)
+LEVEL_UP.setflags(write=False)
+
+
+def find_floor(X: F64, *, max_tilt_deg: float, inlier_ratio: float, min_points: int,
+               up: F64 | None = None, iterations: int = 200) -> FloorSearch:
+    """The floor among map points ``X`` (camera frame, x right, y down, z forward), and why not.
+
+    Deterministic RANSAC over 3-point planes whose upward normal is within ``max_tilt_deg`` of ``up``
+    (a unit vector in the camera frame: the declared mounting's up, default a level camera's -y) and
+    that lie below the camera; inliers are within ``inlier_ratio`` of the candidate's height.
+
+    The floor carries the scene: every surface the camera sees stands on it, so map points beneath it
+    are errors and few. A candidate with at least as many points well beneath it (``BENEATH_FLOOR``) as
+    on it is no floor: a plane through objects (a table, a car's roof, a wall's foot), or, when the
+    camera is not mounted as declared (upside down, the floor above), whatever surface lies on the
+    declared floor's side. Among the others, points beneath count against a candidate twice. The best
+    plane is refit by least squares on its inliers; its height is the median inlier height and its
+    relative spread that of a median (1.25 MAD / sqrt(n)).
     """
     X = X[np.all(np.isfinite(X), axis=1)]
     n_pts = X.shape[0]
     if n_pts < max(min_points, 3):
-        return None
-    up = np.array([0.0, -1.0, 0.0]) if up is None else up
+        return FloorSearch(None, n_pts)
+    up = LEVEL_UP if up is None else up
     cos_tilt = math.cos(math.radians(max_tilt_deg))
     rng = np.random.default_rng(12345)  # fixed: replay stays deterministic
     idx = rng.integers(0, n_pts, size=(iterations, 3))
@@ -151,23 +180,25 @@ def fit_ground_plane(X: F64, *, max_tilt_deg: float, inlier_ratio: float, min_po
     h = -np.einsum("ij,ij->i", N, A)
     ok = (N @ up >= cos_tilt) & (h > 0)
     if not np.any(ok):
-        return None
+        return FloorSearch(None, n_pts)
     N, h = N[ok], h[ok]
     # einsum, not BLAS: OpenBLAS's worker threads keep spinning after a call and slow the next
     # frame's OpenCV work on a small CPU (measured: KLT +2 ms per frame on 2 cores).
     D = np.einsum("ij,kj->ik", X, N) + h  # signed distances, positive towards the camera
-    band = inlier_ratio * h
-    inliers = np.abs(D) < band
-    # The floor supports the scene from below: a candidate with points clearly below it is a plane
-    # through objects (walls, cars, trees), not the floor.
-    below = D < -0.2 * h  # well below: a fifth of the camera height (noise on the floor stays within)
-    score = inliers.sum(axis=0) - 2 * below.sum(axis=0)
+    inliers = np.abs(D) < inlier_ratio * h
+    n_on, n_beneath = inliers.sum(axis=0), (D < -BENEATH_FLOOR * h).sum(axis=0)
+    carried = n_beneath < n_on
+    search = FloorSearch(None, n_pts, int(N.shape[0]), int(np.count_nonzero(~carried)))
+    if not np.all(carried):
+        most = int(np.argmax(np.where(carried, -1, n_on)))
+        search = dataclasses.replace(search, best_unsupported=(int(n_on[most]), int(n_beneath[most])))
+    if not np.any(carried):
+        return search
+    score = np.where(carried, n_on - 2 * n_beneath, np.iinfo(np.int64).min)
     best = int(np.argmax(score))
-    best_count = int(inliers[:, best].sum())
-    if best_count < min_points:
-        return None
-    best_mask = inliers[:, best]
-    P = X[best_mask]
+    if int(n_on[best]) < min_points:
+        return search
+    P = X[inliers[:, best]]
     centroid = P.mean(axis=0)
     Q = P - centroid
     _, vecs = np.linalg.eigh(np.einsum("ij,ik->jk", Q, Q))  # 3x3 scatter: no BLAS threads
@@ -175,14 +206,21 @@ def fit_ground_plane(X: F64, *, max_tilt_deg: float, inlier_ratio: float, min_po
     if n @ up < 0:
         n = -n
     if n @ up < cos_tilt:
-        return None
+        return search
     heights = -(P @ n)
-    h = float(np.median(heights))
-    if not h > 0:
-        return None
-    mad = float(np.median(np.abs(heights - h)))
-    rel_std = 1.253 * 1.4826 * mad / h / math.sqrt(P.shape[0])
-    return GroundPlane(n, h, int(P.shape[0]), rel_std)
+    h_med = float(np.median(heights))
+    if not h_med > 0:
+        return search
+    mad = float(np.median(np.abs(heights - h_med)))
+    rel_std = 1.253 * 1.4826 * mad / h_med / math.sqrt(P.shape[0])
+    return dataclasses.replace(search, plane=GroundPlane(n, h_med, int(P.shape[0]), rel_std))
+
+
+def fit_ground_plane(X: F64, *, max_tilt_deg: float, inlier_ratio: float, min_points: int,
+                     up: F64 | None = None, iterations: int = 200) -> GroundPlane | None:
+    """The floor among map points ``X`` (:func:`find_floor`), or None."""
+    return find_floor(X, max_tilt_deg=max_tilt_deg, inlier_ratio=inlier_ratio, min_points=min_points, up=up,
+                      iterations=iterations).plane
 
 
 @dataclass(frozen=True)
@@ -284,6 +322,16 @@ class ScaleSource:
         # The source's own error common to all its measurements (a calibration): it does not average
         # out over keyframes; an error of the scale it gives runs along the whole metric path.
         self.systematic_rel = 0.0
+        self.up = LEVEL_UP  # the declared mounting's up in the camera frame (``set_mounting_up``)
+
+    def set_mounting_up(self, up: F64) -> None:
+        """The declared mounting's up direction in the camera optical frame (the floor's normal when the
+        robot stands level); default a level camera's -y. Only the floor uses it."""
+        up = np.asarray(up, dtype=np.float64).reshape(3)
+        norm = float(np.linalg.norm(up))
+        if not (math.isfinite(norm) and norm > 0):
+            raise ValueError(f"the mounting's up direction must be a finite non-zero vector, got {up}")
+        self.up = up / norm
 
     @property
     def rel_std(self) -> float:
@@ -400,26 +448,45 @@ class GroundPlaneScale(ScaleSource):
         self.on_corrected(factor)
         return factor
 
-    def _expected_up(self) -> tuple[F64 | None, float]:
+    def set_mounting_up(self, up: F64) -> None:
+        """The floor's normal the declared mounting implies (unit vector, camera optical frame): the camera's
+        up when the robot stands level. The fits seen so far were judged against another: forgotten."""
+        super().set_mounting_up(up)
+        self._normals.clear()
+        self._waiting.clear()
+
+    def _expected_up(self) -> tuple[F64, float]:
         """The floor normal seen over the last keyframes (the camera's mounting changes little), and how
-        far a new fit may lie from it; before three fits, the camera's -y axis and ``max_tilt_deg``."""
+        far a new fit may lie from it; before three fits, the declared up and ``max_tilt_deg``."""
         if len(self._normals) < 3:
-            return None, self.max_tilt_deg
+            return self.up, self.max_tilt_deg
         n = np.median(np.array(self._normals), axis=0)
         return n / np.linalg.norm(n), min(10.0, self.max_tilt_deg)
 
     def measure(self, step: KeyframeStep) -> tuple[float, float] | None:
         up, tilt = self._expected_up()
-        plane = fit_ground_plane(step.X_cur, max_tilt_deg=tilt, inlier_ratio=self.inlier_ratio,
-                                 min_points=self.min_points, up=up)
-        if plane is None:
-            n = int(np.count_nonzero(np.isfinite(step.X_cur[:, 0])))
-            where = "of level" if up is None else "of the floor seen so far"
-            self.reason = (f"no floor plane among {n} map points (need {self.min_points} within {tilt:g} deg "
-                           f"{where}): {self.held}")
+        search = find_floor(step.X_cur, max_tilt_deg=tilt, inlier_ratio=self.inlier_ratio,
+                            min_points=self.min_points, up=up)
+        plane = search.plane
+        if plane is not None and float(plane.normal_up @ self.up) < math.cos(math.radians(self.max_tilt_deg)):
+            self.reason = (f"the floor seen so far leans more than {self.max_tilt_deg:g} deg from the declared "
+                           f"mounting's up: no floor, {self.held}")
             return None
+        if plane is None:
+            where = "of the mounting's up" if len(self._normals) < 3 else "of the floor seen so far"
+            self.reason = f"no floor plane among {search.n_points} map points"
+            on, beneath = search.best_unsupported
+            if on >= self.min_points:
+                self.reason += (f": the largest plane within {tilt:g} deg {where} and below the camera holds {on} "
+                                f"and has {beneath} well beneath it; the floor carries the scene (is the camera "
+                                "mounted as declared?)")
+            else:
+                self.reason += f" (need {self.min_points} within {tilt:g} deg {where})"
+            self.reason += f": {self.held}"
+            return None
+        from_history = len(self._normals) >= 3
         self._normals.append(plane.normal_up)
-        if up is not None:
+        if from_history:
             # The floor's direction is known better from the last keyframes than from this one's few
             # points: measure the height of this fit's inliers along it.
             X = step.X_cur[np.all(np.isfinite(step.X_cur), axis=1)]

@@ -376,6 +376,7 @@ class VoNodeBase:
         self._waiting = ""
         self._converter = OdometryConverter(extrinsic.T_base_cam, continuous=bool(self.opts.map_frame_id))
         self._extrinsic = extrinsic
+        self._pipeline.set_mounting(extrinsic.T_base_cam)  # the floor is sought along the up it declares
         (self.get_logger().warning if extrinsic.warn else self.get_logger().info)(extrinsic.text)
 
     def _apply_config(self, cfg: VoConfig) -> None:
@@ -385,6 +386,8 @@ class VoNodeBase:
         changed = changed_names(self.cfg, cfg)
         T_w_a, cov_w_a, index = self._last_pose
         self._pipeline = VoPipeline(cfg)
+        if self._extrinsic is not None:
+            self._pipeline.set_mounting(self._extrinsic.T_base_cam)
         for advice in live_advice(cfg):
             self.get_logger().warning(advice)
         self._anchor = (T_w_a, cov_w_a, index + 1)

@@ -13,7 +13,7 @@ from typing import Any
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 
-from epi_vo.core.config import VoConfig, config_fields, field_doc, from_dict, unknown_names_text
+from epi_vo.core.config import VoConfig, allowed_range, config_fields, field_doc, from_dict, unknown_names_text
 from epi_vo.core.errors import ConfigError
 from epi_vo.io.node_options import (
     NODE_CHOICES,
@@ -52,7 +52,8 @@ def declare_all(node: Any) -> tuple[VoConfig, NodeOptions]:
     problems: list[str] = []
     values: dict[str, Any] = {}
     for f in config_fields():
-        lo, hi, choices = f.metadata.get("min"), f.metadata.get("max"), f.metadata.get("choices")
+        lo, hi = allowed_range(f) or (None, None)  # a knob's 'off' value too; validate() checks the gap
+        choices = f.metadata.get("choices")
         is_int = isinstance(f.default, int) and not isinstance(f.default, bool)
         desc = descriptor(f.name, field_doc(f), lo, hi, choices, is_int)
         values[f.name] = _declare(node, f.name, f.default, desc, problems)

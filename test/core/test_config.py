@@ -78,6 +78,17 @@ def test_config_yaml_lists_every_field() -> None:
 # --- from_dict / validate ------------------------------------------------------------------------------------
 
 
+def test_a_camera_height_the_code_cannot_use_is_refused() -> None:
+    """5e-324 m passed '> 0' and then raised 'math domain error' in the floor's scale (log of the height over
+    the floor's, which underflowed to 0): replay exit 1, live 89 of 120 frames 'internal error'. A camera
+    height is a physical length: 1 cm to 100 m, or 0 (not set)."""
+    for bad in (5e-324, 0.009, 101.0):
+        with pytest.raises(ConfigError, match=rf"camera_height_m={bad!r} \((minimum 0.01, or 0|maximum 100.0)\)"):
+            validate(dataclasses.replace(VoConfig(), scale_source="none", camera_height_m=bad))
+    validate(dataclasses.replace(VoConfig(), camera_height_m=0.0))
+    validate(dataclasses.replace(VoConfig(), scale_source="ground_plane", camera_height_m=0.01))
+
+
 def test_from_dict_known_answer() -> None:
     cfg = from_dict({"max_features": 500, "frontend": "orb", "ransac_threshold_px": 0.75})
     assert cfg == dataclasses.replace(VoConfig(), max_features=500, frontend="orb", ransac_threshold_px=0.75)
@@ -240,7 +251,7 @@ def test_to_params_yaml_layout_and_extra(tmp_path: Path) -> None:
     text = to_params_yaml(VoConfig(), extra={"image_topic": "/camera/image_raw", "publish_tf": True})
     lines = text.splitlines()
     assert lines[:2] == ["/**:", "  ros__parameters:"]
-    assert "    # features kept per keyframe, spread over the grid" in lines
+    assert "    # features kept per keyframe, spread over the grid [20 to 5000]" in lines  # its range
     assert "    max_features: 200" in lines
     assert "    essential_method: magsac" in lines
     assert "..." not in text

@@ -275,3 +275,15 @@ def test_cover_of_nested_covariances_is_the_wider_one() -> None:
     a = np.diag([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])
     b = np.diag([0.5, 8.0, 1.0, 1.0, 1.0, 1.0])
     np.testing.assert_allclose(covm.cover(a, b), np.diag([1.0, 8.0, 3.0, 4.0, 5.0, 6.0]), atol=1e-12)
+
+
+def test_a_step_whose_translation_nothing_measured_keeps_only_its_rotation() -> None:
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(6, 6))
+    cov = A @ A.T
+    out = covm.translation_unknown(cov, 1e4)
+    np.testing.assert_array_equal(out[:3, :3], np.eye(3) * 1e4)
+    np.testing.assert_array_equal(out[:3, 3:], 0.0)
+    np.testing.assert_array_equal(out[3:, :3], 0.0)
+    np.testing.assert_array_equal(out[3:, 3:], cov[3:, 3:])
+    assert np.all(np.linalg.eigvalsh(out) > 0) and cov[0, 0] != 1e4  # its input is left as it was

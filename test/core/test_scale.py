@@ -113,6 +113,84 @@ def test_floor_fit_is_not_fooled_by_box_tops_above_the_floor() -> None:
     assert plane is not None and plane.height == pytest.approx(1.0, rel=0.01)
 
 
+def _upside_down_scene(height: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A camera mounted upside down (rolled 180 deg, pitched 15 deg down), ``height`` above the floor of a
+    corridor, as a 640 x 480 image (f = 500 px) sees it: the floor and both side walls. Returns the points in
+    the camera frame and the true up (from the floor towards the camera) in that frame."""
+    rng = np.random.default_rng(seed)
+    floor = np.column_stack([rng.uniform(-2.5, 2.5, 80), np.full(80, height), rng.uniform(1.0, 8.0, 80)])
+    walls = np.column_stack([rng.choice([-3.0, 3.0], 300), rng.uniform(-20 * height, -0.5 * height, 300),
+                             rng.uniform(1.0, 9.0, 300)])
+    X_level = np.vstack([floor, walls]) + rng.normal(0.0, 0.001 * height, (380, 3))
+    R_cam = _rot_x(-15.0) @ _rot_z(180.0)  # camera axes in the level frame (x right, y down, z forward)
+    X = X_level @ R_cam
+    seen = (X[:, 2] > 0.1) & (np.abs(X[:, 0]) < 0.64 * X[:, 2]) & (np.abs(X[:, 1]) < 0.48 * X[:, 2])
+    return X[seen], R_cam.T @ np.array([0.0, -1.0, 0.0])
+
+
+def _table_over_its_pedestal(height: float) -> np.ndarray:
+    """A level camera ``height`` above a round table top (12 points, 1.6 m wide, 5 m ahead) whose pedestal
+    (30 points) goes down 5-9 heights beneath it, and no floor in view: a horizontal plane with the scene
+    beneath it, the only plane below the camera within 35 deg of level (the ground-robot bag rotated by 180
+    deg had such planes among 1-4 candidates and took them for its floor: metres 3.3x too large)."""
+    a = np.linspace(0.0, 2.0 * np.pi, 12, endpoint=False)
+    top = np.column_stack([0.8 * np.cos(a), np.full(12, height), 5.0 + 0.8 * np.sin(a)])
+    pedestal = np.column_stack([np.zeros(30), height * np.linspace(6.0, 10.0, 30), np.full(30, 5.0)])
+    return np.vstack([top, pedestal])
+
+
+def test_a_plane_with_the_scene_beneath_it_is_no_floor() -> None:
+    """The floor carries the scene: a plane with as many map points well beneath it as on it is none,
+    however it scores, and the search says why."""
+    X = _table_over_its_pedestal(0.3)
+    assert sc.fit_ground_plane(X, max_tilt_deg=35.0, inlier_ratio=0.04, min_points=8) is None
+    search = sc.find_floor(X, max_tilt_deg=35.0, inlier_ratio=0.04, min_points=8)
+    assert search.plane is None and search.n_unsupported > 0
+    assert search.best_unsupported == (12, 30)
+    # The same plane with the pedestal standing on it is the floor.
+    X_up = X.copy()
+    X_up[12:, 1] = 0.3 - X_up[12:, 1] + 0.3
+    plane = sc.fit_ground_plane(X_up, max_tilt_deg=35.0, inlier_ratio=0.04, min_points=8)
+    assert plane is not None and plane.height == pytest.approx(0.3, rel=1e-6) and plane.n_inliers == 12
+
+
+def test_no_metres_from_a_plane_with_the_scene_beneath_it_and_the_reason_says_why() -> None:
+    src = sc.GroundPlaneScale(0.45, 0.01, max_tilt_deg=35.0, inlier_ratio=0.04, min_points=8)
+    X = _table_over_its_pedestal(0.2)
+    for k in range(12):
+        assert src.correction(sc.KeyframeStep(X, 0.02, k * 100_000_000, (k + 1) * 100_000_000)) == 1.0
+    assert not src.established and not src.status().metric
+    assert src.reason.startswith("no floor plane among 42 map points: the largest plane within 35 deg of the "
+                                 "mounting's up and below the camera holds 12 and has 30 well beneath it")
+    assert "mounted as declared" in src.reason and src.reason.endswith("scale unknown (VO units)")
+
+
+def test_an_upside_down_camera_declared_so_gets_its_floor() -> None:
+    """An upside-down camera (rolled 180 deg, pitched 15 deg down) sees its floor above the image's middle:
+    with the mounting declared (its up in the camera frame, as the node takes it from TF or camera_rpy) the
+    floor is sought there and the scale is right; with the default (a level camera) it is not found."""
+    S = 2.0  # metres per map unit
+    declared = sc.GroundPlaneScale(0.45, 0.01, max_tilt_deg=35.0, inlier_ratio=0.04, min_points=8)
+    declared.set_mounting_up(_upside_down_scene(1.0)[1])
+    level = sc.GroundPlaneScale(0.45, 0.01, max_tilt_deg=35.0, inlier_ratio=0.04, min_points=8)
+    factor = 1.0
+    for k in range(4):
+        X, _ = _upside_down_scene(0.45 / S, seed=k)
+        step = sc.KeyframeStep(X, 0.02, k * 100_000_000, (k + 1) * 100_000_000)
+        factor *= declared.correction(step)
+        level.correction(step)
+    assert declared.established and factor == pytest.approx(S, rel=0.01)
+    assert abs(declared.status().floor_roll_deg) == pytest.approx(180.0, abs=1.0)  # the camera's, to the floor
+    assert level.plane is None or abs(level.plane.height - 0.45 / S) > 0.2 * 0.45 / S
+
+
+def test_a_mounting_up_must_be_a_direction() -> None:
+    src = sc.GroundPlaneScale(0.45, 0.01, max_tilt_deg=35.0, inlier_ratio=0.04, min_points=8)
+    for bad in (np.zeros(3), np.array([0.0, np.nan, 1.0])):
+        with pytest.raises(ValueError, match="finite non-zero vector"):
+            src.set_mounting_up(bad)
+
+
 def test_scale_filter_needs_two_measurements_then_takes_the_median() -> None:
     f = sc.ScaleFilter(0.02)
     assert f.update(math.log(2.1), 0.01) == 1.0 and not f.established

@@ -103,3 +103,60 @@ def test_node_takes_metres_from_the_wheel_topic(ros: RosSession, tmp_path: Path)
     assert ref.scale.metric
     np.testing.assert_allclose(published[-1].position, ref.position, atol=0.05)
     assert 1.0 < float(np.linalg.norm(published[-1].position)) < 4.0
+
+
+def _upside_down(frames: list[tuple[int, Any, Any]]) -> list[tuple[int, Any, Any]]:
+    """The same frames with every image rotated by 180 deg (a camera mounted upside down)."""
+    import cv2
+    from sensor_msgs.msg import CompressedImage
+
+    out = []
+    for stamp, img, info in frames:
+        gray = cv2.imdecode(np.frombuffer(bytes(img.data), np.uint8), cv2.IMREAD_GRAYSCALE)
+        ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(gray[::-1, ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 95])
+        assert ok
+        turned = CompressedImage(format="jpeg", data=buf.tobytes())
+        turned.header = img.header
+        out.append((stamp, turned, info))
+    return out
+
+
+@pytest.mark.parametrize("declared", [True, False])
+def test_node_seeks_the_floor_along_the_mounting_it_declares(ros: RosSession, declared: bool) -> None:
+    """The extrinsic the node uses (here camera_rpy: rolled 180 deg, pitched 15 deg down, as the camera is)
+    gives the floor search its up: an upside-down camera declared so gets metres from its floor; declared
+    level (the default), its floor is above the camera and no plane below it carries the scene: no metres."""
+    from rclpy.parameter import Parameter
+
+    from epi_vo.ros.node import VoNode
+
+    rpy = [float(np.pi), float(np.radians(15.0)), 0.0] if declared else [0.0, 0.0, 0.0]
+    node = VoNode(context=ros.context, parameter_overrides=[
+        Parameter("scale_source", value="ground_plane"), Parameter("camera_height_m", value=0.45),
+        Parameter("camera_rpy", value=rpy), Parameter("tf_timeout_s", value=0.0),
+        Parameter("image_transport", value="compressed"), Parameter("process_every_frame", value=True)])
+    published: list[FrameResult] = []
+    lock = threading.Lock()
+    real_publish = node._publish
+
+    def record(r: FrameResult, stamp_msg: Any, gray: Any) -> None:
+        with lock:
+            published.append(r)
+        real_publish(r, stamp_msg, gray)
+
+    node._publish = record
+    frames = _upside_down(_ros_messages()[0][:40])
+    try:
+        for i, (_, img, info) in enumerate(frames):
+            node._on_camera_info(info)
+            node._on_image(img)
+            assert wait_until(lambda n=i + 1: len(published) >= n, 120.0), f"frame {i} not published"
+    finally:
+        node.destroy_node()
+    metric = [r for r in published if r.scale.metric]
+    if declared:
+        assert len(metric) >= 30
+        # 39 frames at 0.42-0.65 m/s: 1.1-1.7 m from the start, in metres.
+        assert 1.0 < float(np.linalg.norm(published[-1].position)) < 1.9
+    else:
+        assert not metric and all(r.scale.units == "vo" for r in published)

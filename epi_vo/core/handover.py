@@ -1,0 +1,92 @@
+"""The hand-over to a new map: what the camera may have done while no map was behind its pose.
+
+When tracking restarts (lost, a reset, a jump back in time, a new camera_info), the new map starts at
+the last pose that had a map behind it (the "good" pose), held. The camera moved on while nothing
+measured it, so the new map's pose covariance is the good pose's plus every motion that was possible in
+the time without a map (the gap, ``T``), bounded by what the platform can do (``VoConfig``; nav2's
+max_vel_x, acc_lim_x, max_vel_theta, acc_lim_theta are the same figures):
+
+* rotation: at most ``min(w_max T, |w_last| T + a_w T^2 / 2)`` about any axis (``w_last`` the turn rate
+  between the last two good poses, ``w_max`` = ``max_turn_rate_deg_s``, ``a_w`` =
+  ``max_turn_accel_deg_s2``), and never more than a half turn;
+* position, once the map is metric: the same with ``max_speed_mps``, ``max_accel_mps2`` and the last
+  speed. In VO units a speed in metres has no length; there the last speed over ``T`` is one standard
+  deviation (the new map assumes that speed for its baseline too).
+
+A motion known only to lie within a bound ``b`` is taken as spread evenly over ``[-b, b]`` on each axis:
+variance ``b^2 / 3``, so a pose that did move by the whole bound is still inside 3 sigma (a normalised
+error of 3 on each axis). The gap is the time since the good pose: the frames of a blackout and those
+a new map then needs to initialise both count.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from epi_vo.core.config import VoConfig
+from epi_vo.core.transforms import rotation_angle_deg
+
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class GoodPose:
+    """The last pose with a map behind it (tracking): stamp, ``T_w_c`` and its covariance."""
+
+    stamp_ns: int
+    T_w_c: F64
+    cov_w_c: F64
+
+
+def bounded_motion_var(last_rate: float, max_rate: float, max_accel: float, gap_s: float, cap: float) -> float:
+    """Per-axis variance of a motion over ``gap_s`` seconds from ``last_rate``, with the rate at most
+    ``max_rate`` and changing by at most ``max_accel`` per second (and the motion at most ``cap``): spread
+    evenly over its bound ``b``, ``b^2 / 3``."""
+    gap_s = max(gap_s, 0.0)
+    b = min(max_rate * gap_s, abs(last_rate) * gap_s + 0.5 * max_accel * gap_s * gap_s, cap)
+    return b * b / 3.0
+
+
+class Handover:
+    """Keeps the good pose and the rates there; gives the covariance a new map starts from."""
+
+    def __init__(self, cfg: VoConfig) -> None:
+        self.speed_limits = (cfg.max_speed_mps, cfg.max_accel_mps2)
+        self.turn_limits = (math.radians(cfg.max_turn_rate_deg_s), math.radians(cfg.max_turn_accel_deg_s2))
+        self.lost_position_variance = cfg.lost_position_variance
+        self.good: GoodPose | None = None
+        self.rates = (0.0, 0.0)  # (map units / s, rad / s) between the last two good poses
+
+    def book(self, stamp_ns: int, T_w_c: F64, cov_w_c: F64) -> None:
+        """This frame's pose has a map behind it: remember it (and the camera's rates) for a hand-over."""
+        good = self.good
+        if good is not None and stamp_ns > good.stamp_ns:
+            dt = (stamp_ns - good.stamp_ns) * 1e-9
+            step = float(np.linalg.norm(T_w_c[:3, 3] - good.T_w_c[:3, 3]))
+            turn = math.radians(rotation_angle_deg(good.T_w_c[:3, :3].T @ T_w_c[:3, :3]))
+            self.rates = (step / dt, turn / dt)
+        self.good = GoodPose(int(stamp_ns), T_w_c.copy(), cov_w_c.copy())
+
+    def covariance(self, stamp_ns: int, metric: bool, scale_cov: F64 | None = None) -> F64 | None:
+        """Covariance of the held pose a new map starts from at ``stamp_ns``: the good pose's, its map's
+        scale error ``scale_cov`` (3x3 position, metric maps), and the motion possible since (module doc).
+        None before any good pose."""
+        good = self.good
+        if good is None:
+            return None
+        gap_s = max((stamp_ns - good.stamp_ns) * 1e-9, 0.0)
+        speed, turn_rate = self.rates
+        cov = good.cov_w_c.copy()
+        if scale_cov is not None:
+            cov[:3, :3] += scale_cov
+        if metric:
+            pos_var = bounded_motion_var(speed, *self.speed_limits, gap_s, math.sqrt(3.0 * self.lost_position_variance))
+        else:
+            pos_var = (speed * gap_s) ** 2
+        cov[:3, :3] += np.eye(3) * pos_var
+        cov[3:, 3:] += np.eye(3) * bounded_motion_var(turn_rate, *self.turn_limits, gap_s, math.pi)
+        return cov
