@@ -147,3 +147,27 @@ def test_core_runs_without_ros_and_io_libraries() -> None:
             "print(','.join(bad))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
     assert out.stdout.strip() == "", f"the core pulled in: {out.stdout.strip()}"
+
+
+def _reads_reason_text(node: ast.AST) -> bool:
+    """``x.reason`` (or ``x["reason"]``) searched or compared: ``... in r.reason``, ``r.reason == ...``,
+    ``r.reason.startswith(...)``."""
+    def is_reason(n: ast.AST) -> bool:
+        return (isinstance(n, ast.Attribute) and n.attr == "reason") or (
+            isinstance(n, ast.Subscript) and isinstance(n.slice, ast.Constant) and n.slice.value == "reason")
+
+    if isinstance(node, ast.Compare):
+        return (any(isinstance(op, (ast.In, ast.NotIn)) for op in node.ops) and is_reason(node.comparators[-1])) or (
+            any(isinstance(op, (ast.Eq, ast.NotEq)) for op in node.ops)
+            and any(is_reason(n) and isinstance(o, ast.Constant) for n in (node.left, *node.comparators)
+                    for o in (node.left, *node.comparators)))
+    return (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and is_reason(node.func.value)
+            and node.func.attr in ("startswith", "endswith", "find", "index", "count"))
+
+
+def test_no_code_branches_on_a_reason_text() -> None:
+    """Decisions are values (``FrameResult.decisions``, ``epi_vo.core.decisions``): no module of epi_vo searches
+    or compares a ``reason`` sentence, which is rendered for people (``epi_vo.core.reasons``)."""
+    bad = [f"{module}:{node.lineno}" for module, path in MODULES.items()
+           for node in ast.walk(ast.parse(path.read_text(), str(path))) if _reads_reason_text(node)]
+    assert not bad, bad

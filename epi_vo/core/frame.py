@@ -16,6 +16,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from epi_vo.core.decisions import Decision, Note
+from epi_vo.core.reasons import sentence
 from epi_vo.core.scale import ScaleStatus
 from epi_vo.core.transforms import quat_xyzw_from_rotation, rotation_angle_deg
 
@@ -151,6 +153,14 @@ class FrameResult:
     # before it move with it (T_new = correction @ T_old), so the motion since the previous frame, the
     # twist, is this frame's pose against correction @ the previous pose, not the jump; None: no correction
     correction: F64 | None = None
+    # What the stages decided, in order, with their details: ``reason`` is their sentences
+    # (``epi_vo.core.reasons.render``); code asks these, never the text
+    notes: tuple[Note, ...] = ()
+
+    @property
+    def decisions(self) -> tuple[Decision, ...]:
+        """The decisions of ``notes``, in order (``Decision.TIME_JUMPED_BACK in result.decisions``)."""
+        return tuple(n.decision for n in self.notes)
 
     @property
     def rejected(self) -> bool:
@@ -263,5 +273,10 @@ class FrameStats:
     matches: Matches = field(default_factory=Matches.empty)
     F: F64 = field(default_factory=lambda: np.zeros((3, 3)))
     H: F64 = field(default_factory=lambda: np.zeros((3, 3)))
-    reasons: list[str] = field(default_factory=list)
+    notes: list[Note] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def reasons(self) -> list[str]:
+        """The notes' sentences (``epi_vo.core.reasons``)."""
+        return [sentence(n) for n in self.notes]

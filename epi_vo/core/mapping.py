@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 
 from epi_vo.core import geometry as geo
 from epi_vo.core.config import VoConfig
+from epi_vo.core.decisions import Decision, note
 from epi_vo.core.frame import FrameStats, TrackingState
 from epi_vo.core.keyframe import Keyframe
 from epi_vo.core.motion import Motion
@@ -63,7 +64,7 @@ def keyframe_map(cfg: VoConfig, motion: Motion, kf: Keyframe, rows: NDArray[np.i
         good[idx] = tri.good
         X_cur[good] = new[good]
         if not parallax and st.n_triangulated == 0:
-            st.reasons.append("keyframe without parallax: no new depth")
+            st.notes.append(note(Decision.KEYFRAME_WITHOUT_DEPTH))
     elif (motion.state is TrackingState.ROTATION_ONLY and (weak or too_old)) or (
             motion.state in (TrackingState.INITIALIZING, TrackingState.STATIC)
             and (too_old or st.n_tracked < 2 * cfg.min_inliers)):

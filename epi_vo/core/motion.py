@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 from epi_vo.core import covariance as covm
 from epi_vo.core import geometry as geo
 from epi_vo.core.config import VoConfig
+from epi_vo.core.decisions import Decision, note
 from epi_vo.core.frame import FrameStats, Model, TrackingState
 from epi_vo.core.keyframe import Keyframe
 from epi_vo.core.selection import ModelSelection
@@ -91,8 +92,6 @@ E_PLANE_RH_MARGIN = 0.05  # E won RH within this of rh_threshold: a plane nearly
 PLANE_NORMAL_AGREE_DEG = 1.5  # a decomposition's plane this close to one seen from an earlier view: the same plane
 PLANE_MAX_WAIT = 10  # frames an initialisation on a plane with two valid decompositions waits for a view that
 # tells them apart; then the one more points pass the gates is taken (as without the wait)
-MOVER_SUSPECT = "a moving object took its consensus?"  # why E and the map disagree, as the reason says
-PLANE_SUSPECT = "E took the plane's other solution?"  # ... when a plane dominates (H won RH)
 MAP_INFO_SIGMA_FACTOR = math.sqrt(2.0)  # map points' reprojections count as this much noisier (their depths
 # carry the previous pair's image noise)
 FOCAL_SUSPECT_RANGE = (0.8, 1.25)  # focal lengths (x the calibration's) a rotation-only view may suggest ...
@@ -133,7 +132,7 @@ class MotionStage:
                     return self._from_homography(ctx, sel, st, e_moves=True)
                 st.model = Model.ESSENTIAL
                 return self._from_essential(ctx, sel.E, sel.inliers_e, st)
-            st.reasons.append("no two-view model could be estimated")
+            st.notes.append(note(Decision.NO_MODEL))
             return None
         finally:
             st.timings["pose"] = (time.perf_counter() - t0) * 1e3
@@ -169,17 +168,13 @@ class MotionStage:
         st.n_moving = int(np.count_nonzero(moved))
         st.n_inliers = int(np.count_nonzero(still))
         st.median_parallax_deg = 0.0
-        what = "nothing moved"
         if st.n_moving:
             lo = np.percentile(ctx.uv_cur[moved], 5, axis=0)
             hi = np.percentile(ctx.uv_cur[moved], 95, axis=0)
             st.moving_region = (int(lo[0]), int(lo[1]), int(np.ceil(hi[0])), int(np.ceil(hi[1])))
-            x0, y0, x1, y1 = st.moving_region
-            what = (f"{st.n_moving} features ({1 - fraction:.0%}) moved in x {x0}-{x1}, y {y0}-{y1} px: another "
-                    "object's motion, ignored")
         st.model = Model.STATIC
-        st.reasons.append(f"camera static: {fraction:.0%} of tracked features did not move, spread over "
-                          f"{spread:.0%} of the image; {what}; pose held")
+        st.notes.append(note(Decision.CAMERA_STATIC, fraction=fraction, spread=spread, n_moving=st.n_moving,
+                             region=st.moving_region))
         rot_cov = covm.rotation_var(cfg.pixel_noise_px, K.K[0, 0], max(st.n_inliers, 1))
         return Motion(TrackingState.STATIC, np.eye(3), np.zeros(3), covm.block(1e-6, rot_cov), still)
 
@@ -193,12 +188,11 @@ class MotionStage:
         R, t_dir, inl = geo.recover_pose(E, uv_kf, ctx.uv_cur, K, in_e)
         self._inlier_stats(st, inl, R, xn_kf, xn_cur)
         if st.n_inliers < cfg.min_inliers:
-            st.reasons.append(f"too few inliers after cheirality ({st.n_inliers} < {cfg.min_inliers}, RH "
-                              f"{st.rh:.2f})")
+            st.notes.append(note(Decision.TOO_FEW_E_INLIERS, n=st.n_inliers, need=cfg.min_inliers, rh=st.rh))
             return None
         rot_cov = covm.rotation_var(cfg.pixel_noise_px, K[0, 0], st.n_inliers)
         if not self.has_map(kf):
-            return self._initialize(ctx, R, t_dir, inl, st, "essential matrix")
+            return self._initialize(ctx, R, t_dir, inl, st, Decision.MAP_FROM_ESSENTIAL)
         return self._track_with_map(ctx, R, t_dir, inl, st, rot_cov, plane)
 
     def _e_moves_off_plane(self, ctx: MotionContext, sel: ModelSelection, st: FrameStats) -> bool:
@@ -214,15 +208,14 @@ class MotionStage:
         R, t, inl = geo.recover_pose(sel.E, kf.uv[ctx.rows], ctx.uv_cur, K, sel.inliers_e)
         cov = geo.essential_pose_covariance(R, t, kf.xn[ctx.rows][inl], ctx.xn_cur[inl], cfg.pixel_noise_px / K[0, 0],
                                             1.0, cfg.scale_drift_per_keyframe**2)
-        if geo.pose_undetermined(cov, t, cfg.init_max_rotation_sigma_deg, cfg.init_max_direction_sigma_deg):
+        if geo.pose_undetermined(cov, t, cfg.init_max_rotation_sigma_deg, cfg.init_max_direction_sigma_deg) is not None:
             return False
         sols = geo.homography_solutions(sel.H, K, kf.xn[ctx.rows], ctx.xn_cur, sel.inliers_h,
                                         cfg.max_reprojection_error_px, cfg.min_triangulation_angle_deg)
         if not sols or geo.agrees_with_plane(R, t, sols):
             return False
         rot, dirn = geo.nearest_plane_motion(R, t, sols)
-        st.reasons.append(f"E's motion is none of H's plane's ({rot:.2f} deg, {dirn:.0f} deg of direction from "
-                          "the nearest): part of its consensus moves; the map starts from the plane")
+        st.notes.append(note(Decision.E_MOVES_OFF_PLANE, rotation=rot, direction=dirn))
         return True
 
     def _from_homography(self, ctx: MotionContext, sel: ModelSelection, st: FrameStats,
@@ -236,20 +229,17 @@ class MotionStage:
         R_h = geo.rotation_from_homography(H, K)
         self._inlier_stats(st, in_h, R_h, xn_kf, xn_cur)
         if st.n_inliers < cfg.min_inliers:
-            st.reasons.append(f"too few homography inliers ({st.n_inliers} < {cfg.min_inliers})")
+            st.notes.append(note(Decision.TOO_FEW_H_INLIERS, n=st.n_inliers, need=cfg.min_inliers))
             return None
         rot_cov = covm.rotation_var(cfg.pixel_noise_px, K[0, 0], st.n_inliers)
         zero = np.zeros(3)
         if st.median_parallax_deg < cfg.rotation_only_parallax_deg:
             angle = rotation_angle_deg(R_h)
             if angle >= cfg.min_rotation_for_rotation_only_deg:
-                st.reasons.append(f"pure rotation: homography explains the motion (RH {st.rh:.2f}, parallax "
-                                  f"{st.median_parallax_deg:.2f} deg, rotation {angle:.1f} deg); "
-                                  "translation not observable, position held")
+                st.notes.append(note(Decision.PURE_ROTATION, rh=st.rh, parallax=st.median_parallax_deg, angle=angle))
                 return Motion(TrackingState.ROTATION_ONLY, R_h, zero, covm.block(1e-6, rot_cov), in_h)
             if not self.has_map(kf):
-                st.reasons.append(f"low parallax ({st.median_parallax_deg:.2f} deg): waiting for baseline, "
-                                  "position held")
+                st.notes.append(note(Decision.LOW_PARALLAX, parallax=st.median_parallax_deg))
                 return Motion(TrackingState.INITIALIZING, R_h, zero, covm.block(1e-6, rot_cov), in_h)
         else:
             rotation = self._rotation_under_other_focal(ctx, H, in_h, st, rot_cov)
@@ -266,8 +256,7 @@ class MotionStage:
                 # plane the scene is no plane, and H's decomposition would give the map a wrong pose
                 # (moving_mover started at frame 20: 23 of 162, the map 1.6 deg off, 6.5 % ATE).
                 st.model = Model.ESSENTIAL
-                st.reasons.append(f"not a plane: {off_plane} of E's {int(np.count_nonzero(sel.inliers_e))} "
-                                  "inliers lie off H's plane; initialising from E")
+                st.notes.append(note(Decision.NOT_A_PLANE, off=off_plane, n_e=int(np.count_nonzero(sel.inliers_e))))
                 return self._from_essential(ctx, sel.E, sel.inliers_e, st)
             if not e_moves and sel.inliers_e is not None and off_plane >= MIN_OFF_PLANE_FOR_E_HINT:
                 # The points off H's plane (E's inliers that H rejects) say which of H's decompositions is
@@ -281,7 +270,7 @@ class MotionStage:
                     K, kf.uv[ctx.rows][off], ctx.uv_cur[off], cfg.ransac_threshold_px)
                 if chosen is not None:
                     R_off = chosen.R
-                    st.reasons.append(f"planar scene: the {off_plane} points off H's plane pick its decomposition")
+                    st.notes.append(note(Decision.PLANE_PICKED_BY_OFF_POINTS, off=off_plane))
             planar = None
             if R_off is None and st.median_parallax_deg >= cfg.init_min_parallax_deg:
                 verdict, planar, spread = self._plane_by_views(ctx, H, in_h, st)
@@ -294,17 +283,17 @@ class MotionStage:
                 planar = geo.pose_from_homography(H, K, xn_kf, xn_cur, in_h, cfg.max_reprojection_error_px,
                                                   cfg.min_triangulation_angle_deg, prefer_R=R_off)
             if planar is None:
-                st.reasons.append("planar scene: homography decomposition ambiguous, waiting for parallax")
+                st.notes.append(note(Decision.PLANE_AMBIGUOUS))
                 return Motion(TrackingState.INITIALIZING, R_h, zero, covm.block(1e-6, rot_cov), in_h)
             R_p, t_p, _ = planar
             if st.median_parallax_deg < cfg.init_min_parallax_deg:
-                st.reasons.append(f"planar scene, low parallax ({st.median_parallax_deg:.2f} deg < "
-                                  f"{cfg.init_min_parallax_deg}): waiting for baseline, position held")
+                st.notes.append(note(Decision.PLANE_LOW_PARALLAX, parallax=st.median_parallax_deg,
+                                     need=cfg.init_min_parallax_deg))
                 return Motion(TrackingState.INITIALIZING, R_p, zero, covm.block(1e-6, rot_cov), in_h)
             on = in_h if sel.inliers_e is None or e_moves else in_h & sel.inliers_e  # E's, unless they move
-            R_p, t_dir, note = geo.refine_planar_pose(R_p, t_p / float(np.linalg.norm(t_p)), xn_kf, xn_cur, on)
-            st.reasons.append(f"planar scene: {note}")
-            return self._initialize(ctx, R_p, t_dir, in_h, st, "homography (planar scene)", planar=True)
+            R_p, t_dir, what = geo.refine_planar_pose(R_p, t_p / float(np.linalg.norm(t_p)), xn_kf, xn_cur, on)
+            st.notes.append(what)
+            return self._initialize(ctx, R_p, t_dir, in_h, st, Decision.MAP_FROM_HOMOGRAPHY, planar=True)
         if sel.E is not None and sel.inliers_e is not None and st.median_parallax_deg >= cfg.plane_e_min_parallax_deg:
             # RH is ORB-SLAM's test for the uncalibrated 8-point F, which a plane makes degenerate. The
             # calibrated 5-point E is not degenerate on a plane (only two-fold ambiguous), and with a map
@@ -312,10 +301,9 @@ class MotionStage:
             # On a floor-dominated view, chained map-point poses drift in yaw (3.2 deg over the
             # ground-robot bag, against 1.0 from E).
             st.model = Model.ESSENTIAL
-            st.reasons.append(f"plane-dominated view (RH {st.rh:.2f}) with parallax: E's pose, checked against "
-                              "the map")
+            st.notes.append(note(Decision.PLANE_E_WITH_PARALLAX, rh=st.rh))
             return self._from_essential(ctx, sel.E, sel.inliers_e, st, plane=True)
-        st.reasons.append(f"planar or low-parallax view (RH {st.rh:.2f}): pose from map points")
+        st.notes.append(note(Decision.POSE_FROM_MAP_POINTS, rh=st.rh))
         return self._track_with_map(ctx, R_h, None, in_h, st, rot_cov)
 
     def _rotation_under_other_focal(self, ctx: MotionContext, H: F64, in_h: NDArray[np.bool_], st: FrameStats,
@@ -367,21 +355,17 @@ class MotionStage:
             # 0.97: frames at 0.15-0.5 deg of "parallax" otherwise waited as a plane, the orientation held).
             if self.has_map(ctx.kf):
                 return None
-            st.reasons.append(f"pure rotation: homography explains the motion under a focal length {ratio:.3f} x "
-                              f"the calibration's, within its tolerance (parallax {par_f:.2f} deg instead of "
-                              f"{st.median_parallax_deg:.2f}, rotation {angle:.1f} deg); translation not observable, "
-                              "position held")
+            st.notes.append(note(Decision.ROTATION_UNDER_FOCAL_TOLERANCE, ratio=ratio, parallax_focal=par_f,
+                                 parallax=st.median_parallax_deg, angle=angle))
             return rotation
         st.focal_ratio = self._focal_hint = ratio
-        what = (f"pure rotation if the focal length were {ratio:.3f} x the calibration's (parallax {par_f:.2f} deg "
-                f"instead of {st.median_parallax_deg:.2f}, rotation {angle:.1f} deg; or a wall-like plane seen while "
-                "turning about a point off the camera): check the camera calibration")
+        details = {"ratio": ratio, "parallax_focal": par_f, "parallax": st.median_parallax_deg, "angle": angle}
         if self.has_map(ctx.kf):
             # The map's points decide the pose, as without the check (a robot turning in place before a
             # wall 2 m away, the camera 0.3 m off the axis: 1.07 x); the frame says what else it could be.
-            st.reasons.append(f"{what}; pose from the map")
+            st.notes.append(note(Decision.FOCAL_SUSPECT_MAP_DECIDES, **details))
             return None
-        st.reasons.append(f"{what}; no map from it: translation not observable, position held")
+        st.notes.append(note(Decision.FOCAL_SUSPECT_ROTATION, **details))
         return rotation
 
     def _plane_by_views(self, ctx: MotionContext, H: F64, in_h: NDArray[np.bool_], st: FrameStats
@@ -410,8 +394,7 @@ class MotionStage:
         pending = self._plane_views
         if pending is None or pending[0] != kf.stamp_ns:
             self._plane_views = (kf.stamp_ns, [s.normal for s in valid], 1)
-            st.reasons.append(f"planar scene: {len(valid)} decompositions of H fit; waiting for a view that tells "
-                              f"the plane apart (1/{PLANE_MAX_WAIT}), pose held")
+            st.notes.append(note(Decision.PLANE_WAIT_FIRST, n=len(valid), max_wait=PLANE_MAX_WAIT))
             return "wait", None, spread
         _, normals, waited = pending
         with np.errstate(invalid="ignore"):
@@ -421,17 +404,14 @@ class MotionStage:
         best, runner = dist[order[0]], dist[order[1]]
         if best < PLANE_NORMAL_AGREE_DEG and runner >= max(3.0 * best, PLANE_NORMAL_AGREE_DEG):
             s = valid[int(order[0])]
-            st.reasons.append(f"planar scene: the plane kept its normal over {waited + 1} views ({best:.1f} deg; "
-                              f"the other solution moved {runner:.1f} deg)")
+            st.notes.append(note(Decision.PLANE_KEPT_NORMAL, views=waited + 1, best=best, runner=runner))
             return "picked", (s.R, s.t, s.tri.expanded(np.flatnonzero(in_h), ctx.xn_cur.shape[0])), spread
         if waited >= PLANE_MAX_WAIT:
-            st.reasons.append(f"planar scene: no view told H's decompositions apart in {PLANE_MAX_WAIT} frames; "
-                              "taking the one most points pass the gates")
+            st.notes.append(note(Decision.PLANE_WAIT_GAVE_UP, max_wait=PLANE_MAX_WAIT))
             return "fallback", None, spread
         self._plane_views = (pending[0], normals, waited + 1)
-        st.reasons.append(f"planar scene: {len(valid)} decompositions of H fit ({best:.1f} / {runner:.1f} deg from "
-                          f"the first view's planes); waiting for a view that tells the plane apart "
-                          f"({waited + 1}/{PLANE_MAX_WAIT}), pose held")
+        st.notes.append(note(Decision.PLANE_WAIT, n=len(valid), best=best, runner=runner, waited=waited + 1,
+                             max_wait=PLANE_MAX_WAIT))
         return "wait", None, spread
 
     def _inlier_stats(self, st: FrameStats, inl: NDArray[np.bool_], R: F64, xn_kf: F64, xn_cur: F64) -> None:
@@ -443,7 +423,7 @@ class MotionStage:
         return kf.n_map_points >= self.cfg.min_scale_points
 
     def _initialize(self, ctx: MotionContext, R: F64, t_dir: F64, inl: NDArray[np.bool_], st: FrameStats,
-                    how: str, *, planar: bool = False) -> Motion:
+                    how: Decision, *, planar: bool = False) -> Motion:
         """Build the first map from the keyframe and this frame, or explain why not yet."""
         cfg = self.cfg
         K = ctx.kf.camera.K
@@ -452,8 +432,8 @@ class MotionStage:
         rot_cov = covm.rotation_var(cfg.pixel_noise_px, K[0, 0], max(st.n_inliers, 1))
         hold = Motion(TrackingState.INITIALIZING, R, zero, covm.block(1e-6, rot_cov), inl)
         if st.median_parallax_deg < cfg.init_min_parallax_deg:
-            st.reasons.append(f"low parallax ({st.median_parallax_deg:.2f} deg < {cfg.init_min_parallax_deg}): "
-                              "waiting for baseline, position held")
+            st.notes.append(note(Decision.INIT_LOW_PARALLAX, parallax=st.median_parallax_deg,
+                                 need=cfg.init_min_parallax_deg))
             return hold
         kf = ctx.kf
         t = t_dir * ctx.initial_baseline((st.stamp_ns - kf.stamp_ns) * 1e-9)
@@ -465,12 +445,11 @@ class MotionStage:
         st.positive_depth_ratio = tri.positive_depth_ratio
         st.median_reproj_err_px = tri.median_reproj_err_px
         if tri.positive_depth_ratio < cfg.min_positive_depth_ratio:
-            st.reasons.append(f"initialization rejected: only {tri.positive_depth_ratio:.0%} of inliers in front "
-                              f"of both cameras (< {cfg.min_positive_depth_ratio:.0%})")
+            st.notes.append(note(Decision.INIT_REJECTED_DEPTH, ratio=tri.positive_depth_ratio,
+                                 need=cfg.min_positive_depth_ratio))
             return hold
         if n_good < cfg.min_triangulated:
-            st.reasons.append(f"initialization rejected: {n_good} points pass the triangulation gates "
-                              f"(< {cfg.min_triangulated})")
+            st.notes.append(note(Decision.INIT_REJECTED_GATES, n=n_good, need=cfg.min_triangulated))
             return hold
         full = tri.expanded(idx, xn_kf.shape[0])
         # The first baseline is the map's unit (VO units; a scale source rescales it and adds its own
@@ -484,13 +463,13 @@ class MotionStage:
         if not planar:
             undetermined = geo.pose_undetermined(cov, t, cfg.init_max_rotation_sigma_deg,
                                                  cfg.init_max_direction_sigma_deg)
-            if undetermined:
-                st.reasons.append(f"initialization deferred: E's pose is not determined by these points "
-                                  f"({undetermined}); waiting for baseline, position held")
+            if undetermined is not None:
+                st.notes.append(note(Decision.INIT_DEFERRED, rotation_sigma_deg=undetermined[0],
+                                     direction_sigma_deg=undetermined[1]))
                 if cov is not None and np.all(np.isfinite(cov)):
                     hold.cov_rel[3:, 3:] += cov[3:, 3:]  # the held orientation is E's, with E's uncertainty
                 return hold
-        st.reasons.append(f"map initialized from {how}: {n_good} points")
+        st.notes.append(note(how, n=n_good))
         if cov is None or not np.all(np.isfinite(cov)):
             cov = covm.block((cfg.scale_drift_per_keyframe * baseline) ** 2, rot_cov)
             pose = covm.block((cfg.scale_drift_per_keyframe * baseline) ** 2, rot_cov * ctx.noise_sq)
@@ -553,17 +532,16 @@ class MotionStage:
             if np.count_nonzero(all_depth) >= max(cfg.min_scale_points, 6):
                 has_depth, e_inliers = all_depth, inl
                 R0, t0 = ctx.T_cur_kf_prev[:3, :3], ctx.T_cur_kf_prev[:3, 3]
-                st.reasons.append("E's inliers hold almost none of the map's points (a moving object took its "
-                                  "consensus?): pose from the map")
+                st.notes.append(note(Decision.E_HOLDS_NO_MAP_POINTS))
         refined = geo.refine_pose_pnp(X[has_depth], uv_cur[has_depth], K, R0, t0, cfg.max_reprojection_error_px,
                                       robust_start=e_inliers is not None)  # a mover: not LM from the last pose
         if refined is None:
-            st.reasons.append(f"too few map points to carry the scale ({int(np.count_nonzero(has_depth))})")
+            st.notes.append(note(Decision.TOO_FEW_MAP_POINTS, n=int(np.count_nonzero(has_depth))))
             return None
         R_r, t_r, keep, cov_pnp = refined
         if np.count_nonzero(keep) < cfg.min_scale_points:
-            st.reasons.append(f"too few map points agree with the pose ({int(np.count_nonzero(keep))} < "
-                              f"{cfg.min_scale_points})")
+            st.notes.append(note(Decision.TOO_FEW_MAP_POINTS_AGREE, n=int(np.count_nonzero(keep)),
+                                 need=cfg.min_scale_points))
             return None
         if not math.isfinite(st.relative_scale):
             st.relative_scale = float(np.linalg.norm(t_r))
@@ -682,8 +660,7 @@ class MotionStage:
         direction = math.degrees(math.acos(np.clip(float(c_map @ c_e) / norms, -1.0, 1.0))) if norms > 0 else 0.0
         if angle <= cfg.e_map_max_rotation_diff_deg and direction <= E_MAP_MAX_DIRECTION_DIFF_DEG:
             return None
-        st.reasons.append(f"E disagrees with the map's points by {angle:.2f} deg in rotation, {direction:.0f} deg "
-                          f"in direction ({PLANE_SUSPECT if plane else MOVER_SUSPECT}): pose from the map")
+        st.notes.append(note(Decision.E_DISAGREES_WITH_MAP, angle=angle, direction=direction, plane=plane))
         agree = np.zeros(depth.shape[0], bool)
         agree[np.flatnonzero(depth)[refined[2]]] = True
         return agree

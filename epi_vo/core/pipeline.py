@@ -45,6 +45,7 @@ from epi_vo.core import motion as mo
 from epi_vo.core import scale as sc
 from epi_vo.core.camera import CameraModel
 from epi_vo.core.config import VoConfig, validate
+from epi_vo.core.decisions import Decision, Note, note
 from epi_vo.core.frame import (
     MAX_STAMP_NS,
     STAT_FIELDS,
@@ -61,6 +62,7 @@ from epi_vo.core.map_scale import DirectionOffset, MapScaleCovariance
 from epi_vo.core.mapping import keyframe_map
 from epi_vo.core.odometry import rotate_covariance
 from epi_vo.core.patches import patch_templates
+from epi_vo.core.reasons import render
 from epi_vo.core.selection import ModelSelector
 from epi_vo.core.transforms import invert_T, make_T
 from epi_vo.core.window import WindowedMap
@@ -118,7 +120,7 @@ class VoPipeline:
         self._index = 0
         # (keyframe index, sum of the squared image-noise shares of the frames tracked since it, last frame)
         self._tracked_noise: tuple[int, float, int] = (-1, 0.0, -1)
-        self._pending_reason = ""
+        self._pending: Note | None = None  # a restart's note, said in the next processed frame
         self._last_stamp_ns: int | None = None
 
     # ---------------------------------------------------------------------------------------------
@@ -146,9 +148,13 @@ class VoPipeline:
         return self._wheel.add(int(stamp_ns), np.asarray(position_xyz, dtype=np.float64))
 
     def reset(self, reason: str = "reset requested") -> None:
-        """Restart tracking from the current pose: the next frame becomes a new keyframe, no map."""
+        """Restart tracking from the current pose: the next frame becomes a new keyframe, no map; its record
+        says ``reason`` (``Decision.RESET``)."""
+        self._restart(note(Decision.RESET, text=reason))
+
+    def _restart(self, why: Note) -> None:
         self._kf = None
-        self._pending_reason = reason
+        self._pending = why
 
     def _check_stamp(self, stamp_ns: int) -> FrameResult | None:
         """A stamp that is no valid ROS time: the frame is rejected and skipped. Equal stamp: the frame
@@ -160,13 +166,13 @@ class VoPipeline:
         """
         stamp_ns = int(stamp_ns)
         if not 0 <= stamp_ns <= MAX_STAMP_NS:
-            return self.skip(stamp_ns, f"image stamp {stamp_ns} ns is not a valid ROS time (0 to {MAX_STAMP_NS} ns)")
+            problem = f"image stamp {stamp_ns} ns is not a valid ROS time (0 to {MAX_STAMP_NS} ns)"
+            return self._skip(clamp_stamp_ns(stamp_ns), note(Decision.STAMP_INVALID, problem=problem, note=""), problem)
         last = self._last_stamp_ns
         if last is not None and stamp_ns == last:
-            return self._skip(stamp_ns, "duplicate image stamp: frame skipped", "")
+            return self._skip(stamp_ns, note(Decision.DUPLICATE_STAMP), "")
         if last is not None and stamp_ns < last:
-            self.reset(f"time jumped backwards by {(last - stamp_ns) * 1e-9:.3f} s: tracking restarted from the "
-                       "last pose")
+            self._restart(note(Decision.TIME_JUMPED_BACK, seconds=(last - stamp_ns) * 1e-9))
         return None
 
     def skip(self, stamp_ns: int, problem: str, note: str = "") -> FrameResult:
@@ -175,12 +181,12 @@ class VoPipeline:
         next frame is judged against the last good one) and no failure is counted; the record (skipped,
         rejected, with ``problem``; ``note`` is added to the reason) carries ``stamp_ns`` clamped into the
         valid range."""
-        reason = f"frame rejected: {problem}; frame skipped" + (f" ({note})" if note else "")
-        return self._skip(clamp_stamp_ns(stamp_ns), reason, problem)
+        why = Note(Decision.FRAME_SKIPPED, (("problem", problem), ("note", note)))
+        return self._skip(clamp_stamp_ns(stamp_ns), why, problem)
 
-    def _skip(self, stamp_ns: int, reason: str, problem: str) -> FrameResult:
+    def _skip(self, stamp_ns: int, why: Note, problem: str) -> FrameResult:
         st = FrameStats(stamp_ns=stamp_ns)
-        st.reasons.append(reason)
+        st.notes.append(why)
         result = self._result(stamp_ns, TrackingState.LOST, False, False, st, time.perf_counter(), book=False)
         return dataclasses.replace(result, skipped=True, problem=problem)
 
@@ -194,15 +200,15 @@ class VoPipeline:
         skipped = self._check_stamp(stamp_ns)
         if skipped is not None:
             return skipped
-        return self._reject_checked(int(stamp_ns), reason, time.perf_counter())
+        return self._reject_checked(int(stamp_ns), note(Decision.FRAME_REJECTED, problem=reason), time.perf_counter())
 
-    def _reject_checked(self, stamp_ns: int, reason: str, t_start: float) -> FrameResult:
+    def _reject_checked(self, stamp_ns: int, why: Note, t_start: float) -> FrameResult:
         st = FrameStats(stamp_ns=stamp_ns)
-        st.reasons.append(f"frame rejected: {reason}")
+        st.notes.append(why)
         if self._on_failure(st):
             self._kf = None
         return dataclasses.replace(self._result(stamp_ns, TrackingState.LOST, False, False, st, t_start),
-                                   problem=reason)
+                                   problem=why["problem"])
 
     def announce_next(self, gray: NDArray[np.uint8], camera: CameraModel) -> None:
         """The image the next ``process`` call will get (the same object): tracking into it starts on a
@@ -233,7 +239,7 @@ class VoPipeline:
             gray, camera = downscale(gray, camera, self.cfg.max_image_width)
             problem = fe.image_problem(gray.shape[1], gray.shape[0], self.cfg)
             if problem is not None:
-                return self._reject_checked(stamp_ns, problem, t_start)
+                return self._reject_checked(stamp_ns, note(Decision.IMAGE_TOO_SMALL, problem=problem), t_start)
             return self._process(gray, camera, stamp_ns, t_start)
         except cv2.error as exc:
             # OpenCV refused this image or these points: nothing of the frame is trusted. Restore the
@@ -242,19 +248,20 @@ class VoPipeline:
             self._kf = None
             detail = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
             _log.warning("frame at %d ns: OpenCV failed: %s", stamp_ns, detail)
-            return self._reject_checked(stamp_ns, f"OpenCV could not process this frame ({detail}); tracking "
-                                        "restarts from the last pose", t_start)
+            problem = f"OpenCV could not process this frame ({detail}); tracking restarts from the last pose"
+            return self._reject_checked(stamp_ns, note(Decision.OPENCV_FAILED, problem=problem, detail=detail),
+                                        t_start)
 
     def _process(self, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int, t_start: float
                  ) -> FrameResult:
         """One frame, already downscaled and checked usable: features -> model selection -> motion ->
         keyframes / map -> frame record."""
         st = FrameStats(stamp_ns=stamp_ns)
-        if self._pending_reason:
-            st.reasons.append(self._pending_reason)
-            self._pending_reason = ""
+        if self._pending is not None:
+            st.notes.append(self._pending)
+            self._pending = None
         if self._kf is not None and not self._kf.camera.same_as(camera):
-            st.reasons.append("camera_info changed: tracking restarted")
+            st.notes.append(note(Decision.CAMERA_CHANGED))
             self._kf = None
 
         t0 = time.perf_counter()
@@ -274,7 +281,7 @@ class VoPipeline:
                                              self.cfg.twist_noise_floor_px, self.cfg.pixel_noise_px)
         self._book_track_noise(kf, noise_ratio)
         if gain != 1.0:
-            st.reasons.append(f"exposure changed: the image was scaled by {gain:.2f} to track it")
+            st.notes.append(note(Decision.EXPOSURE_CHANGED, gain=gain))
         nxt, self._next = self._next, None
         ahead = nxt is not None and self._orb is None and nxt[1].shape == gray.shape  # track into the next image
         xn_cur = camera.normalize(pts_cur)
@@ -292,8 +299,8 @@ class VoPipeline:
         if n_use < self.cfg.min_inliers:
             if ahead:
                 self._ahead.start(nxt[0], gray, nxt[1], pts_cur, self.cfg)
-            st.reasons.append(f"too few tracked features ({n_use} < {self.cfg.min_inliers}"
-                              + (f", {st.n_tracked - n_use} on moving objects)" if n_use < st.n_tracked else ")"))
+            st.notes.append(note(Decision.TOO_FEW_TRACKED, n=n_use, need=self.cfg.min_inliers,
+                                 movers=st.n_tracked - n_use))
         else:
             # two-view model selection, then motion (pose and scale)
             t0 = time.perf_counter()
@@ -311,7 +318,7 @@ class VoPipeline:
                                    self._noise_since(kf), self.cfg.frontend == "klt")
             motion = self._motion.estimate(ctx, sel, st)
             if motion is not None and not mo.is_finite(motion):
-                st.reasons.append("the motion estimate is not finite (check the calibration): no pose this frame")
+                st.notes.append(note(Decision.MOTION_NOT_FINITE))
                 motion = None
             if motion is not None and n_use < rows.shape[0]:
                 motion = _expanded(motion, use)
@@ -319,8 +326,7 @@ class VoPipeline:
         if motion is not None and motion.state is TrackingState.TRACKING:
             spread = mo.grid_spread(uv_cur, motion.inliers, camera.width, camera.height)
             if spread < self.cfg.static_min_spread:
-                st.reasons.append(f"the pose's inliers are clustered: they cover {spread:.0%} of the image cells "
-                                  "holding features (a moving object may dominate)")
+                st.notes.append(note(Decision.INLIERS_CLUSTERED, spread=spread))
 
         inl = motion.inliers if motion is not None else np.zeros(rows.shape[0], bool)
         st.matches = Matches(kf.pts[rows].astype(np.float64), pts_cur.astype(np.float64), kf.uv[rows], uv_cur, inl,
@@ -463,7 +469,7 @@ class VoPipeline:
         if update is not None or submitted:
             st.timings["window"] = _ms(t0)
         if why := self._window.take_failure():
-            st.reasons.append(why)
+            st.notes.append(note(Decision.WINDOW_WORKER_FAILED, text=why))
 
     def _metric_step(self, motion: mo.Motion, kf: Keyframe, X_cur: F64, stamp_ns: int) -> tuple[F64, F64]:
         """The scale source's correction of this keyframe step: the step from the last keyframe and the
@@ -532,7 +538,7 @@ class VoPipeline:
         self._last_pos_w = self._T_w_c[:3, 3].copy()
         st.timings["frontend"] = _ms(t0)
         self._cov_w_c = cov
-        st.reasons.append("first frame: reference keyframe set" if first else "new reference keyframe, no map yet")
+        st.notes.append(note(Decision.FIRST_FRAME if first else Decision.NEW_REFERENCE))
         return self._result(stamp_ns, TrackingState.INITIALIZING, True, True, st, t_start, unknown=not first)
 
     def _restart_here(self, gray: NDArray[np.uint8], camera: CameraModel,
@@ -568,9 +574,7 @@ class VoPipeline:
         if st.n_moving == 0:
             lo, hi = uv_cur[moving].min(axis=0), uv_cur[moving].max(axis=0)
             st.moving_region = (int(lo[0]), int(lo[1]), int(np.ceil(hi[0])), int(np.ceil(hi[1])))
-            x0, y0, x1, y1 = st.moving_region
-            st.reasons.append(f"{n} tracked features move on their own (x {x0}-{x1}, y {y0}-{y1} px): left out of "
-                              "pose and map")
+            st.notes.append(note(Decision.MOVERS_IN_VIEW, n=n, region=st.moving_region))
         st.n_moving += n
         return moving
 
@@ -593,10 +597,9 @@ class VoPipeline:
         self._fail_count += 1
         restart = self._fail_count >= self.cfg.lost_after_frames or st.n_tracked < self.cfg.min_inliers
         if restart:
-            st.reasons.append(f"tracking lost after {self._fail_count} frame(s) without a pose: re-initializing "
-                              "from the last pose")
+            st.notes.append(note(Decision.TRACKING_LOST, failures=self._fail_count))
         else:
-            st.reasons.append(f"no pose this frame ({self._fail_count}/{self.cfg.lost_after_frames}); pose held")
+            st.notes.append(note(Decision.NO_POSE, failures=self._fail_count, limit=self.cfg.lost_after_frames))
         return restart
 
     def _result(self, stamp_ns: int, state: TrackingState, has_pose: bool, is_kf: bool, st: FrameStats,
@@ -620,7 +623,7 @@ class VoPipeline:
             T_out = T_out.copy()
             T_out[:3, 3] = self._map_scale.origin_w
             cov[:3, :3] += np.eye(3) * self.cfg.lost_position_variance
-            st.reasons.append("metric scale not established yet: position held")
+            st.notes.append(note(Decision.METRIC_SCALE_PENDING))
         elif self._scale.established:
             cov[:3, :3] += self._map_scale.systematic(self._scale, T_out[:3, 3])
         if (kf := self._kf) is not None:
@@ -640,7 +643,8 @@ class VoPipeline:
             relative_scale=st.relative_scale, n_keyframes=self._n_keyframes, T_w_c=frozen(T_out),
             covariance=frozen(cov), points_w=frozen(st.points_w[np.all(np.isfinite(st.points_w), axis=1)]),
             timings_ms=dict(st.timings),
-            reason="; ".join(st.reasons), matches=st.matches, scale=self._scale.status(), n_moving=st.n_moving,
+            reason=render(st.notes), notes=tuple(st.notes), matches=st.matches, scale=self._scale.status(),
+            n_moving=st.n_moving,
             moving_fraction=st.n_moving / st.n_tracked if st.n_tracked else 0.0, moving_region=st.moving_region,
             static_score=st.static_score, focal_ratio=st.focal_ratio, track_noise_px=st.track_noise_px,
             n_refined=st.n_refined,
@@ -653,12 +657,12 @@ class VoPipeline:
         checked before it is taken, so this only fires on a defect; it says so in the record)."""
         if not np.all(np.isfinite(self._T_w_c)):
             _log.error("non-finite pose held: reset to the origin")
-            st.reasons.append("internal: the held pose was not finite; reset to the origin")
+            st.notes.append(note(Decision.POSE_NOT_FINITE))
             self._T_w_c = np.eye(4)
             self._kf = None
         if not np.all(np.isfinite(self._cov_w_c)):
             _log.error("non-finite covariance held: reset to the 'unknown' covariance")
-            st.reasons.append("internal: the held covariance was not finite; reset to the 'unknown' covariance")
+            st.notes.append(note(Decision.COVARIANCE_NOT_FINITE))
             self._cov_w_c = covm.block(self.cfg.lost_position_variance, self.cfg.lost_rotation_variance)
             self._kf = None
 

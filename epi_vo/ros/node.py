@@ -52,6 +52,7 @@ from epi_vo.core import covariance as covm
 from epi_vo.core.camera import CameraModelCache
 from epi_vo.core.config import VoConfig, live_advice
 from epi_vo.core.debug_image import draw_matches
+from epi_vo.core.decisions import Decision
 from epi_vo.core.diagnostics import DiagnosticLevel, DiagnosticStatusRecord
 from epi_vo.core.errors import CameraModelError, EpiVoError
 from epi_vo.core.frame import FrameResult
@@ -457,7 +458,7 @@ class VoNodeBase:
             self.get_logger().warning(f"{result.reason} ({stamp * 1e-9:.6f} s)", throttle_duration_sec=5.0)
             self._publish_status(self._frame_status(result), self._diagnostics_stamp())
             return
-        if "time jumped backwards" in result.reason:
+        if Decision.TIME_JUMPED_BACK in result.decisions:
             self.get_logger().warning(result.reason)
             self._converter.reset_twist()
         self._publish(result, stamp_msg(result.stamp_ns), gray)

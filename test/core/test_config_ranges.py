@@ -21,6 +21,7 @@ from hypothesis import strategies as st
 
 from epi_vo.core.camera import CameraModel
 from epi_vo.core.config import VoConfig, allowed_range, config_fields, validate
+from epi_vo.core.decisions import Decision
 from epi_vo.core.errors import ConfigError
 from epi_vo.core.odometry import OdometryConverter
 from epi_vo.core.pipeline import VoPipeline
@@ -80,7 +81,8 @@ def _run(cfg: VoConfig, seq: Sequence) -> None:
             arrays.append(r.step_covariance)
         assert all(np.all(np.isfinite(a)) for a in arrays), (r.index, r.reason)
         assert math.isfinite(r.scale.scale) and not math.isinf(r.scale.rel_std)
-        assert "OpenCV could not process" not in r.reason and "internal" not in r.reason, r.reason
+        defects = {Decision.OPENCV_FAILED, Decision.POSE_NOT_FINITE, Decision.COVARIANCE_NOT_FINITE}
+        assert not defects & set(r.decisions), r.reason
 
 
 def _ends(name: str) -> list[Any]:

@@ -11,6 +11,7 @@ import pytest
 
 from epi_vo.core import features as fe
 from epi_vo.core.config import VoConfig
+from epi_vo.core.decisions import Decision
 
 CFG = VoConfig()
 SHIFT = np.array([2.3, -1.7], np.float32)
@@ -113,8 +114,10 @@ def test_the_frame_record_says_when_the_exposure_changed(texture: np.ndarray) ->
     first = vo.process(texture, camera, 1_000_000_000)
     same = vo.process(_moved(texture, 1.0), camera, 1_066_000_000)
     dark = vo.process(_moved(_moved(texture, 1.0), 0.6), camera, 1_133_000_000)
-    assert "exposure changed" not in first.reason and "exposure changed" not in same.reason
+    assert Decision.EXPOSURE_CHANGED not in first.decisions + same.decisions
     assert "exposure changed: the image was scaled by 1.6" in dark.reason
+    (gain,) = [n["gain"] for n in dark.notes if n.decision is Decision.EXPOSURE_CHANGED]
+    assert gain == pytest.approx(1 / 0.6, rel=0.02)  # the image was made 0.6 as bright
 
 
 def test_patches_changing_while_the_image_does_not_are_no_exposure_change(texture: np.ndarray,

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from epi_vo.core.decisions import Decision, note
 from epi_vo.core.frame import (
     MAX_STAMP_NS,
     STAT_FIELDS,
@@ -140,5 +141,5 @@ def test_frame_stats_start_unmeasured() -> None:
         assert math.isnan(getattr(st, name)), name
     assert st.points_w.shape == (0, 3) and st.matches.inliers.shape == (0,)
     other = FrameStats()
-    other.reasons.append("x")
+    other.notes.append(note(Decision.NO_MODEL))
     assert st.reasons == []  # no shared mutable default

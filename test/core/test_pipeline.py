@@ -11,6 +11,7 @@ import pytest
 from epi_vo.core import features as fe
 from epi_vo.core.camera import CameraModel
 from epi_vo.core.config import VoConfig
+from epi_vo.core.decisions import Decision, note
 from epi_vo.core.errors import CameraModelError
 from epi_vo.core.frame import FrameResult, Model, TrackingState
 from epi_vo.core.pipeline import VoPipeline
@@ -67,7 +68,7 @@ def test_lost_tracking_reinitialises_from_the_last_pose(frames: list[tuple[int, 
     black = np.zeros_like(frames[0][1])
     lost = [pipe.process(black, frames[0][2], frames[29][0] + (i + 1) * 1_000_000) for i in range(4)]
     assert all(r.state is TrackingState.LOST and not r.has_pose for r in lost)
-    assert all("too few tracked features" in r.reason or "lost" in r.reason for r in lost)
+    assert all({Decision.TOO_FEW_TRACKED, Decision.TRACKING_LOST} & set(r.decisions) for r in lost)
     for r in lost:
         np.testing.assert_array_equal(r.T_w_c, last_pose)  # held, not reset to the origin
         assert np.all(np.diag(r.covariance)[:3] >= VoConfig().lost_position_variance)
@@ -85,6 +86,7 @@ def test_reset_restarts_from_current_pose(frames: list[tuple[int, np.ndarray, Ca
     pipe.reset("operator reset")
     r = pipe.process(frames[25][1], frames[25][2], frames[25][0])
     assert r.state is TrackingState.INITIALIZING and r.is_keyframe and "operator reset" in r.reason
+    assert r.notes[0] == note(Decision.RESET, text="operator reset") and r.decisions[1] is Decision.NEW_REFERENCE
     np.testing.assert_array_equal(r.T_w_c, before[-1].T_w_c)
 
 
@@ -111,7 +113,7 @@ def test_camera_change_restarts_tracking(frames: list[tuple[int, np.ndarray, Cam
     K[0, 0] *= 1.01
     other = CameraModel.create(c.width, c.height, K, c.D.copy(), c.model.value)
     r = pipe.process(g, other, s)
-    assert r.is_keyframe and "camera_info changed" in r.reason
+    assert r.is_keyframe and Decision.CAMERA_CHANGED in r.decisions and "camera_info changed" in r.reason
 
 
 def test_covariance_recovers_after_each_reset(frames: list[tuple[int, np.ndarray, CameraModel]]) -> None:

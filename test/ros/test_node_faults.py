@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from ros_fixtures import RosSession, rclpy_session
 
+from epi_vo.core.decisions import Decision
 from epi_vo.core.frame import FrameResult
 
 
@@ -164,4 +165,4 @@ def test_header_stamp_that_is_no_ros_time_is_a_rejected_frame(ros: RosSession) -
     status, stamp_msg = statuses[0]
     assert "header stamp sec 5 nanosec 1500000000 is not a valid ROS time" in status.message
     assert 0 <= stamp_msg.nanosec < 1_000_000_000
-    assert published[0].stamp_ns == 5_100_000_000 and "backwards" not in published[0].reason
+    assert published[0].stamp_ns == 5_100_000_000 and Decision.TIME_JUMPED_BACK not in published[0].decisions

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from epi_vo.core.decisions import Decision, Note, note
 from epi_vo.core.geometry.common import F64, Mask, homogeneous, nearest_rotation, ray_depths
 from epi_vo.core.geometry.models import essential_from_pose, fundamental_from_essential, sampson_distance_sq
 from epi_vo.core.geometry.triangulation import Triangulation, triangulate
@@ -408,10 +409,10 @@ CHI2_5DOF_999 = 20.515
 
 
 def refine_planar_pose(R_cur_ref: F64, t_dir: F64, xn_ref: F64, xn_cur: F64, inliers: Mask,
-                       max_rotation_deg: float = 0.5, max_direction_deg: float = 10.0) -> tuple[F64, F64, str]:
+                       max_rotation_deg: float = 0.5, max_direction_deg: float = 10.0) -> tuple[F64, F64, Note]:
     """A homography decomposition's pose refined on the epipolar distances of ``inliers``
     (``refine_relative_pose``) when they reject it, else the decomposition's, unchanged. Returns
-    ``(R, t_dir, what was done)`` for the frame's reasons.
+    ``(R, t_dir, what was done)`` for the frame's notes.
 
     The test: the refinement's drop in the squared residuals over their variance after it,
     ``n (rms_before^2 / rms_after^2 - 1)``, above the chi-square 5-dof 99.9 % bound. A floor with a
@@ -423,15 +424,13 @@ def refine_planar_pose(R_cur_ref: F64, t_dir: F64, xn_ref: F64, xn_cur: F64, inl
     idx = np.flatnonzero(inliers)
     out = refine_relative_pose(R_cur_ref, t_dir, xn_ref[idx], xn_cur[idx])
     if out is None:
-        return R_cur_ref, t_dir, "pose from H (too few points to test it)"
+        return R_cur_ref, t_dir, note(Decision.PLANE_POSE_UNTESTED)
     R, t, before, after = out
     stat = idx.size * (before * before / max(after * after, 1e-300) - 1.0)
     if not stat > CHI2_5DOF_999:
-        return R_cur_ref, t_dir, f"H's pose fits its inliers' epipolar geometry (test {stat:.1f})"
+        return R_cur_ref, t_dir, note(Decision.PLANE_POSE_FITS, stat=stat)
     moved = rotation_angle_deg(R @ R_cur_ref.T)
     turned = math.degrees(math.acos(min(1.0, float(t @ t_dir) / float(np.linalg.norm(t_dir)))))
     if moved > max_rotation_deg or turned > max_direction_deg:
-        return R_cur_ref, t_dir, (f"pose from H: the epipolar fit moved {moved:.2f} deg / {turned:.1f} deg, "
-                                  "to another solution")
-    return R, t, (f"H's pose refined on its {idx.size} epipolar inliers (test {stat:.0f}, rotation moved "
-                  f"{moved:.3f} deg)")
+        return R_cur_ref, t_dir, note(Decision.PLANE_POSE_OTHER_SOLUTION, moved=moved, turned=turned)
+    return R, t, note(Decision.PLANE_POSE_REFINED, n=idx.size, stat=stat, moved=moved)
