@@ -7,8 +7,7 @@ float32 pixel coordinates of the raw image (before undistortion), as OpenCV's tr
 from __future__ import annotations
 
 import math
-import time
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -148,7 +147,8 @@ def track_klt(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_pre
     (OpenCV's Python binding does not accept prebuilt pyramids, so each call builds its own.)
 
     The exposure is judged on the leading ``EXPOSURE_MAX_TRACKS`` rows only, so that a call on more
-    rows decides as one on those rows alone did (``KltAhead``); ``gain`` applies that earlier decision
+    rows decides as one on those rows alone did (tracking done ahead: ``epi_vo.runner``); ``gain`` applies
+    that earlier decision
     (1.0: none) without judging again.
 
     Returns the tracked points (N, 2), a mask of tracks that converged both ways, came back within
@@ -286,78 +286,30 @@ def match_orb(desc_ref: NDArray[np.uint8], desc_cur: NDArray[np.uint8], ratio: f
     return np.asarray(i_ref, np.int64), np.asarray(i_cur, np.int64)
 
 
-def _timed_klt(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_prev: F32, cfg: VoConfig
-               ) -> tuple[KltTracks, float]:
-    t0 = time.perf_counter()
-    tracks = track_klt(gray_prev, gray_cur, pts_prev, cfg)
-    return tracks, (time.perf_counter() - t0) * 1e3
+KltTracker = Callable[[NDArray[np.uint8], NDArray[np.uint8], F32, VoConfig], tuple[KltTracks, float]]
 
 
-class KltAhead:
-    """KLT into the next image, started while the current one is still being processed.
-
-    Replay knows the next image before it processes the current one. Tracking the current frame's
-    points into it on a worker thread overlaps OpenCV's KLT (it releases the GIL) with the current
-    frame's model selection and pose. Pyramidal LK tracks each point on its own, and the exposure is
-    judged on the leading rows (``track_klt``), so the result is the one tracking at the next frame
-    would give: it is used only for the points it tracked from the same image, which are the first rows
-    of the points to track then (a keyframe appends its new corners after the tracked ones; those are
-    tracked when the frame comes, with the job's exposure gain). When the job covered fewer rows than
-    the exposure is judged on, and rows were appended, it is dropped: the judgement could differ.
-    Anything else (a restart, another image) drops it too. ``key`` is the caller's next image object:
-    the job is for that image only.
-    """
-
-    def __init__(self, pool: ThreadPoolExecutor | None = None) -> None:
-        self._pool = pool  # one worker (shared: a job queues behind what was submitted before), or its own
-        self._job: tuple[object, NDArray[np.uint8], F32, Future[tuple[KltTracks, float]]] | None = None
-
-    def start(self, key: object, gray_from: NDArray[np.uint8], gray_to: NDArray[np.uint8], pts: F32,
-              cfg: VoConfig) -> None:
-        if self._pool is None:
-            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="epi_vo_klt_ahead")
-        self._job = (key, gray_from, pts, self._pool.submit(_timed_klt, gray_from, gray_to, pts, cfg))
-
-    def take(self, key: object, gray_from: NDArray[np.uint8], gray_to: NDArray[np.uint8], pts_prev: F32,
-             cfg: VoConfig) -> tuple[KltTracks, float] | None:
-        """``track_klt(gray_from, gray_to, pts_prev)`` and the milliseconds the worker spent on it, when
-        the started job covers it (None: track now)."""
-        job, self._job = self._job, None
-        if job is None:
-            return None
-        j_key, j_from, j_pts, future = job
-        n = j_pts.shape[0]
-        if j_key is not key or j_from is not gray_from or pts_prev.shape[0] < n \
-                or not np.array_equal(pts_prev[:n], j_pts) \
-                or (n < EXPOSURE_MAX_TRACKS and pts_prev.shape[0] > n):
-            future.cancel()
-            return None
-        tracks, ms = future.result()  # an OpenCV error is raised here, at the frame it belongs to
-        if pts_prev.shape[0] > n:
-            t0 = time.perf_counter()
-            more = track_klt(gray_from, gray_to, pts_prev[n:], cfg, gain=tracks.gain)
-            tracks = KltTracks(np.vstack([tracks.pts, more.pts]), np.concatenate([tracks.ok, more.ok]), tracks.gain,
-                               np.concatenate([tracks.fb, more.fb]))
-            ms += (time.perf_counter() - t0) * 1e3
-        return tracks, ms
+def track_klt_now(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_prev: F32, cfg: VoConfig
+                  ) -> tuple[KltTracks, float]:
+    """``track_klt`` computed now (no time spent ahead)."""
+    return track_klt(gray_prev, gray_cur, pts_prev, cfg), 0.0
 
 
 def track(gray: NDArray[np.uint8], cfg: VoConfig, orb: cv2.ORB | None, gray_prev: NDArray[np.uint8] | None,
           pts_prev: F32, rows_prev: NDArray[np.int64], kf_descriptors: NDArray[np.uint8] | None,
-          ahead: tuple[KltAhead, object] | None = None
+          klt: KltTracker = track_klt_now
           ) -> tuple[F32, NDArray[np.int64], OrbFeatures | None, float, float, float]:
     """Correspondences keyframe -> current image: (current raw pixels, keyframe rows, ORB features, ms of
-    KLT done ahead on the worker thread, the exposure gain the image was tracked with (1.0: unchanged),
-    the tracking noise the kept tracks' forward-backward errors show (``fb_noise_px``; NaN for ORB)).
+    KLT done ahead of this call, the exposure gain the image was tracked with (1.0: unchanged), the
+    tracking noise the kept tracks' forward-backward errors show (``fb_noise_px``; NaN for ORB)).
 
     KLT (``orb`` None) follows the previous frame's points ``pts_prev`` (keyframe rows ``rows_prev``)
-    into ``gray``, taking what ``ahead`` (the tracker and this image's key) started for it; ORB detects
-    in ``gray`` and matches against the keyframe's descriptors.
+    into ``gray`` through ``klt`` (``track_klt``, possibly computed ahead: ``epi_vo.core.workers``); ORB
+    detects in ``gray`` and matches against the keyframe's descriptors.
     """
     if orb is None:
         assert gray_prev is not None
-        got = ahead[0].take(ahead[1], gray_prev, gray, pts_prev, cfg) if ahead is not None else None
-        tracks, ms = got if got is not None else (track_klt(gray_prev, gray, pts_prev, cfg), 0.0)
+        tracks, ms = klt(gray_prev, gray, pts_prev, cfg)
         ok = tracks.ok
         return tracks.pts[ok], rows_prev[ok], None, ms, tracks.gain, fb_noise_px(tracks.fb[ok])
     feats = detect_orb(orb, gray, cfg)

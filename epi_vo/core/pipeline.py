@@ -33,7 +33,6 @@ import dataclasses
 import logging
 import math
 import time
-from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
@@ -63,9 +62,9 @@ from epi_vo.core.mapping import keyframe_map
 from epi_vo.core.odometry import rotate_covariance
 from epi_vo.core.patches import patch_templates
 from epi_vo.core.reasons import render
-from epi_vo.core.selection import ModelSelector
 from epi_vo.core.transforms import invert_T, make_T
 from epi_vo.core.window import WindowedMap
+from epi_vo.core.workers import Ahead, InLine, Workers
 
 _log = logging.getLogger(__name__)
 
@@ -78,9 +77,12 @@ F32 = NDArray[np.float32]
 class VoPipeline:
     """Monocular VO: feed it frames, get one immutable :class:`FrameResult` per frame."""
 
-    def __init__(self, cfg: VoConfig | None = None) -> None:
+    def __init__(self, cfg: VoConfig | None = None, workers: Workers | None = None) -> None:
+        """``workers``: where the heavy computations run (``epi_vo.core.workers``; the front doors give
+        ``epi_vo.runner``'s); by default all in line. The results are the same either way."""
         self.cfg = cfg or VoConfig()
         validate(self.cfg)
+        self._workers = workers if workers is not None else InLine()
         self._orb = fe.make_orb(self.cfg) if self.cfg.frontend == "orb" else None
         self._patches = patch_templates(self.cfg)  # KLT tracks refined against their first image (None: off)
         self._motion = mo.MotionStage(self.cfg)
@@ -89,7 +91,7 @@ class VoPipeline:
         self._map_scale = MapScaleCovariance(self.cfg.scale_drift_per_keyframe)
         self._offset, self._fx = DirectionOffset(self.cfg.principal_point_sigma_px), 1.0  # fx: CameraInfo's
         self._window = WindowedMap(self.cfg.ba_window_keyframes, self.cfg.ba_every_keyframes, self.cfg.pixel_noise_px,
-                                   self.cfg.ba_solver)
+                                   self._workers.solver)
         self._next_id = 0  # the next feature track id
         self._mover_ids = np.zeros(0, np.int64)  # sorted ids of tracks judged to move on their own
         self._anchor: sc.WindowAnchor | None = None  # the scale source's anchor of the newest keyframe step
@@ -107,13 +109,6 @@ class VoPipeline:
         self._rows = np.zeros(0, np.int64)  # keyframe row of each live track
         self._pts_prev = np.zeros((0, 2), np.float32)
         self._gray_prev: NDArray[np.uint8] | None = None  # previous image, for KLT
-        # One worker thread beside this one: H while E runs here, then tracking into the next image
-        # (queued behind H, so the two never share the second core and H is back when E is done).
-        worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="epi_vo_worker")
-        self._ahead = fe.KltAhead(worker)
-        self._select = ModelSelector(worker)
-        self._key: object = None  # the image ``process`` was given (before downscaling)
-        self._next: tuple[object, NDArray[np.uint8]] | None = None  # see ``announce_next``
         self._T_cur_kf_prev = np.eye(4)
         self._fail_count = 0
         self._n_keyframes = 0
@@ -211,10 +206,10 @@ class VoPipeline:
                                    problem=why["problem"])
 
     def announce_next(self, gray: NDArray[np.uint8], camera: CameraModel) -> None:
-        """The image the next ``process`` call will get (the same object): tracking into it starts on a
-        worker thread during this frame (``fe.KltAhead``; results identical). Replay knows it; live nodes do not."""
+        """The image the next ``process`` call will get: the workers may start tracking into it during
+        this frame (``epi_vo.runner``; results identical). Replay knows it; live nodes do not."""
         if gray.ndim == 2 and gray.dtype == np.uint8:
-            self._next = (gray, downscale(gray, camera, self.cfg.max_image_width)[0])
+            self._workers.announce_next(downscale(gray, camera, self.cfg.max_image_width)[0])
 
     def process(self, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int) -> FrameResult:
         """Process one grayscale frame taken with ``camera`` at ``stamp_ns``.
@@ -232,7 +227,7 @@ class VoPipeline:
         skipped = self._check_stamp(stamp_ns)
         if skipped is not None:
             return skipped
-        stamp_ns, self._key, self._fx = int(stamp_ns), gray, float(camera.K[0, 0])
+        stamp_ns, self._fx = int(stamp_ns), float(camera.K[0, 0])
         t_start = time.perf_counter()
         held = (self._T_w_c.copy(), self._cov_w_c.copy())
         try:
@@ -273,7 +268,7 @@ class VoPipeline:
         # features
         pts_cur, rows, orb_cur, ahead_ms, gain, st.track_noise_px = fe.track(
             gray, self.cfg, self._orb, self._gray_prev, self._pts_prev, self._rows, kf.descriptors,
-            (self._ahead, self._key))
+            self._workers.track_klt)
         if self._patches is not None and kf.ids is not None:
             pts_cur, st.n_refined = self._patches.refine(gray, pts_cur, kf.ids[rows])
         # This frame's image noise as a share of pixel_noise_px: its twist's, and one step of its pose's.
@@ -282,8 +277,8 @@ class VoPipeline:
         self._book_track_noise(kf, noise_ratio)
         if gain != 1.0:
             st.notes.append(note(Decision.EXPOSURE_CHANGED, gain=gain))
-        nxt, self._next = self._next, None
-        ahead = nxt is not None and self._orb is None and nxt[1].shape == gray.shape  # track into the next image
+        # KLT tracks from this image into the next: the workers may start that now
+        ahead = Ahead(gray, pts_cur) if self._orb is None else None
         xn_cur = camera.normalize(pts_cur)
         uv_cur = camera.to_pixels(xn_cur)
         st.timings["frontend"] = _ms(t0)
@@ -297,8 +292,8 @@ class VoPipeline:
         use = ~excluded
         n_use = int(np.count_nonzero(use))
         if n_use < self.cfg.min_inliers:
-            if ahead:
-                self._ahead.start(nxt[0], gray, nxt[1], pts_cur, self.cfg)
+            if ahead is not None:
+                self._workers.track_ahead(ahead, self.cfg)
             st.notes.append(note(Decision.TOO_FEW_TRACKED, n=n_use, need=self.cfg.min_inliers,
                                  movers=st.n_tracked - n_use))
         else:
@@ -306,8 +301,7 @@ class VoPipeline:
             t0 = time.perf_counter()
             rows_u, xn_u, uv_u = (rows, xn_cur, uv_cur) if n_use == rows.shape[0] else \
                 (rows[use], xn_cur[use], uv_cur[use])
-            start_ahead = (lambda: self._ahead.start(nxt[0], gray, nxt[1], pts_cur, self.cfg)) if ahead else None
-            sel = self._select(kf.uv[rows_u], uv_u, kf.camera.K, self.cfg, start_ahead)
+            sel = self._workers.select_model(kf.uv[rows_u], uv_u, kf.camera.K, self.cfg, ahead)
             st.rh = sel.rh
             if sel.F is not None:
                 st.F = sel.F

@@ -10,7 +10,7 @@ window, owns it (``add``: a keyframe whose step the scale stage corrected rescal
 with it; a floor prior inside the window re-decided the scale every few keyframes from too little floor,
 README "The window's scale"). An adjustment is
 submitted at a keyframe and its result collected at the next one, so it can run beside the frame loop
-in a worker process (``ba_solver: process``, ``epi_vo.core.bundle_worker``; ``inline`` solves at the
+in a worker process (``ba_solver: process``, ``epi_vo.runner.bundle_worker``; ``inline`` solves at the
 submission): either way it is applied at the same keyframe, and the poses are the same. With ``ba_wait:
 false`` (a live node) the frame loop never waits for the worker: a result not back at the next keyframe
 is collected at the first keyframe after it is, and every keyframe added meanwhile moves with it; no
@@ -40,11 +40,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from epi_vo.core import covariance as covm
-from epi_vo.core.bundle_worker import InlineSolver, ProcessSolver
 from epi_vo.core.errors import ConfigError
 from epi_vo.core.geometry import nearest_rotation
 from epi_vo.core.scale import WindowAnchor
 from epi_vo.core.transforms import invert_T
+from epi_vo.core.workers import InlineSolver, WindowSolver
 
 if TYPE_CHECKING:
     from epi_vo.core import bundle
@@ -97,9 +97,10 @@ class WindowUpdate:
 class WindowedMap:
     """The last ``size`` keyframes with their track ids. An adjustment is ``submit``-ted at a keyframe and
     its result ``collect``-ed at the next one (``adjust`` does both at once); ``solver`` says where it
-    runs: ``process`` (a worker beside the frame loop, ``epi_vo.core.bundle_worker``) or ``inline``."""
+    runs (``epi_vo.core.workers``: in line by default; a worker process beside the frame loop:
+    ``epi_vo.runner``)."""
 
-    def __init__(self, size: int, every: int, sigma_px: float, solver: str = "inline") -> None:
+    def __init__(self, size: int, every: int, sigma_px: float, solver: WindowSolver | None = None) -> None:
         self.size = size
         self.every = max(every, 1)
         self.sigma_px = sigma_px
@@ -108,25 +109,21 @@ class WindowedMap:
         self._bundle: ModuleType | None = None
         self._pending: _Pending | None = None  # the adjustment submitted and not yet collected
         self._stale = 0  # results of submitted adjustments the window was cleared since (to be dropped)
-        self._solver: InlineSolver | ProcessSolver | None = None
-        self._failure_said = False
+        self._solver: WindowSolver | None = None
         if size > 0:
             try:
                 self._bundle = importlib.import_module("epi_vo.core.bundle")
             except ImportError as exc:
                 raise ConfigError(f"ba_window_keyframes={size} needs the gtsam Python package "
                                   f"(pip install gtsam==4.3.0): {exc}") from None
-            self._solver = ProcessSolver() if solver == "process" else InlineSolver()
+            self._solver = solver if solver is not None else InlineSolver()
 
     def __len__(self) -> int:
         return len(self._entries)
 
     def take_failure(self) -> str:
         """Why the worker process stopped being used, the first time it is asked after it did ("" else)."""
-        if self._solver is None or not self._solver.failure or self._failure_said:
-            return ""
-        self._failure_said = True
-        return self._solver.failure
+        return "" if self._solver is None else self._solver.take_failure()
 
     def clear(self) -> None:
         """Forget the keyframes; an adjustment still under way is dropped when it comes back."""

@@ -57,7 +57,6 @@ from epi_vo.core.diagnostics import DiagnosticLevel, DiagnosticStatusRecord
 from epi_vo.core.errors import CameraModelError, EpiVoError
 from epi_vo.core.frame import FrameResult
 from epi_vo.core.odometry import OdometryConverter, T_base_cam_from_params, status_pose
-from epi_vo.core.pipeline import VoPipeline
 from epi_vo.core.status import frame_status, summary_status
 from epi_vo.core.transforms import invert_T, rotation_angle_deg
 from epi_vo.io import msgconv
@@ -66,6 +65,7 @@ from epi_vo.io.node_options import NodeOptions, changed_names
 from epi_vo.ros.node_params import check_change, declare_all, effective_parameters_text, warn_undeclared_overrides
 from epi_vo.ros.node_run import bgr_image_msg, point_cloud_msg, run_node, stamp_msg, transform_msg
 from epi_vo.ros.node_tf import Extrinsic, ExtrinsicResolver, TransformLookup, make_tf2_lookup, make_tf_broadcaster
+from epi_vo.runner import make_pipeline
 
 __all__ = ["NodeOptions", "VoNode", "main"]
 
@@ -90,7 +90,7 @@ class VoNodeBase:
         self._cfg_wanted = self.cfg  # the latest accepted config; the worker applies it at the next frame
         self._entities_before = self._entities()
         self._status_name = self.get_fully_qualified_name()
-        self._pipeline = VoPipeline(self.cfg)
+        self._pipeline = make_pipeline(self.cfg)
         for advice in live_advice(self.cfg):
             self.get_logger().warning(advice)
         T_params = T_base_cam_from_params(self.opts.camera_xyz, self.opts.camera_rpy)
@@ -386,7 +386,7 @@ class VoNodeBase:
         reset, the next frame starts a new map."""
         changed = changed_names(self.cfg, cfg)
         T_w_a, cov_w_a, index = self._last_pose
-        self._pipeline = VoPipeline(cfg)
+        self._pipeline = make_pipeline(cfg)
         if self._extrinsic is not None:
             self._pipeline.set_mounting(self._extrinsic.T_base_cam)
         for advice in live_advice(cfg):

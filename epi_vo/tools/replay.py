@@ -41,6 +41,7 @@ from epi_vo.core.pipeline import VoPipeline
 from epi_vo.core.status import frame_status
 from epi_vo.io import bagio, outbag, tum
 from epi_vo.io.msgconv import decode_frame, ns_to_ros_time
+from epi_vo.runner import make_pipeline
 from epi_vo.tools.consistency import OdometryLog, consistency_metrics, format_consistency
 
 if TYPE_CHECKING:
@@ -196,7 +197,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     cfg = cfg or VoConfig()
     out = ensure_output_dir(output_dir)
     _remove_stats(out)  # stats.json is written last: without it the directory holds no finished replay
-    pipeline = VoPipeline(cfg)
+    pipeline = make_pipeline(cfg)
     converter = OdometryConverter(continuous=bool(map_frame_id))
     cameras = CameraModelCache()
     results_pose: list[tuple[float, np.ndarray, np.ndarray]] = []

@@ -214,34 +214,6 @@ def test_opencv_failure_mid_frame_is_a_rejected_frame(frames: Frames, monkeypatc
     assert any(x.state is TrackingState.TRACKING for x in after)
 
 
-def test_opencv_failure_in_tracking_done_ahead_rejects_the_frame_it_belongs_to(frames: Frames,
-                                                                               monkeypatch: pytest.MonkeyPatch) -> None:
-    """KLT started ahead (replay's lookahead) that OpenCV refuses: the frame it was for is rejected with the
-    reason, not the frame during which it ran; tracking comes back afterwards."""
-    pipe = VoPipeline()
-    cams = [CameraModel.from_camera_info(i) for _, _, i in frames]
-
-    def run(k: int) -> FrameResult:
-        if k + 1 < len(frames):
-            pipe.announce_next(frames[k + 1][1], cams[k + 1])
-        return pipe.process(frames[k][1], cams[k], frames[k][0])
-
-    before = [run(k) for k in range(19)]
-
-    def broken(*args: object, **kwargs: object) -> None:
-        raise cv2.error("OpenCV(5.0.0) lkpyramid.cpp:1: error: (-215:Assertion failed) test in 'calcOpticalFlowPyrLK'")
-
-    monkeypatch.setattr(fe, "_timed_klt", broken)  # the job started during frame 19, for frame 20
-    r19 = run(19)
-    monkeypatch.undo()
-    assert r19.has_pose and Decision.OPENCV_FAILED not in r19.decisions
-    r20 = run(20)
-    assert not r20.has_pose and "OpenCV could not process this frame" in r20.reason and "Assertion failed" in r20.reason
-    np.testing.assert_array_equal(r20.T_w_c, r19.T_w_c)
-    after = [run(k) for k in range(21, len(frames))]
-    assert before[-1].state is TrackingState.TRACKING and any(x.state is TrackingState.TRACKING for x in after)
-
-
 # -- stamps -----------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("bad_stamp", [-1, -5_000_000_000, MAX_STAMP_NS + 1, 2**63 - 1])
 def test_a_stamp_that_is_no_ros_time_is_a_skipped_frame(frames: Frames, bad_stamp: int) -> None:

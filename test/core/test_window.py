@@ -4,35 +4,19 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 
 import numpy as np
 import pytest
+from window_scenes import entry as _entry
+from window_scenes import rot_y as _rot_y
+from window_scenes import same_update as _same_update
+from window_scenes import scene as _scene
+from window_scenes import window_of as _window_of
 
-from epi_vo.core.bundle_worker import InlineSolver
 from epi_vo.core.decisions import Decision
-from epi_vo.core.transforms import invert_T, make_T
+from epi_vo.core.transforms import make_T
 from epi_vo.core.window import WindowedMap
-
-
-def _rot_y(deg: float) -> np.ndarray:
-    a = math.radians(deg)
-    return np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
-
-
-def _scene(n_kf: int = 5, n_pts: int = 120, seed: int = 0) -> tuple[list[np.ndarray], np.ndarray]:
-    rng = np.random.default_rng(seed)
-    poses = [make_T(_rot_y(2.0 * k), np.array([0.6 * k, 0.0, 0.2 * k])) for k in range(n_kf)]
-    pts = np.column_stack([rng.uniform(-3, 5, n_pts), rng.uniform(-2, 2, n_pts), rng.uniform(3, 8, n_pts)])
-    return poses, pts
-
-
-def _entry(T_w_kf: np.ndarray, pts_w: np.ndarray, ids: np.ndarray, rng: np.random.Generator, noise: float
-           ) -> tuple[np.ndarray, np.ndarray]:
-    T_kf_w = invert_T(T_w_kf)
-    X = pts_w[ids] @ T_kf_w[:3, :3].T + T_kf_w[:3, 3]
-    xn = X[:, :2] / X[:, 2:3] + rng.normal(0, 1.0 / 500.0, (ids.size, 2))
-    return xn, X * (1.0 + rng.normal(0, noise, (ids.size, 1)))
+from epi_vo.core.workers import InlineSolver
 
 
 def test_window_adjusts_the_newest_keyframe_towards_the_truth() -> None:
@@ -351,77 +335,6 @@ def test_window_leaves_out_tracks_judged_to_move() -> None:
     assert float(np.linalg.norm(excluded.T_w_kf[:3, 3] - poses[-1][:3, 3])) < 0.02  # 7 cm before
 
 
-def _window_of(solver: str) -> WindowedMap:
-    poses, pts = _scene()
-    rng = np.random.default_rng(6)
-    win = WindowedMap(size=5, every=1, sigma_px=1.0, solver=solver)
-    ids_all = np.arange(pts.shape[0])
-    for k, T in enumerate(poses):
-        ids = ids_all[(ids_all + k) % 5 != 0]
-        xn, X = _entry(T, pts, ids, rng, noise=0.05)
-        win.add(T @ make_T(_rot_y(0.3 * k), np.array([0.02 * k, 0.0, 0.0])), ids, xn, X)
-    return win
-
-
-def _same_update(a, b) -> None:
-    for name in ("T_w_kf", "X_kf", "cov_w_kf", "points_w", "point_ids"):
-        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
-
-
-def test_the_worker_process_gives_the_inline_result_bit_for_bit() -> None:
-    inline, process = _window_of("inline"), _window_of("process")
-    try:
-        assert process.submit(500.0)  # returns at once; the worker adjusts beside this process
-        assert inline.submit(500.0)
-        a, b = inline.collect(), process.collect()
-        assert a is not None and b is not None and a.n_points >= 80
-        _same_update(a, b)
-        assert process.take_failure() == ""
-        assert process.collect() is None  # nothing pending any more
-    finally:
-        process.close()
-
-
-def test_a_dead_worker_hands_its_window_to_the_frame_loop_and_says_so_once() -> None:
-    inline, process = _window_of("inline"), _window_of("process")
-    try:
-        proc = process._solver._proc
-        assert proc is not None
-        proc.kill()
-        proc.wait()
-        assert process.submit(500.0) and inline.submit(500.0)
-        _same_update(inline.collect(), process.collect())
-        why = process.take_failure()
-        assert "bundle adjustment worker" in why and "adjusting in the frame loop from now on" in why
-        assert process.take_failure() == ""  # said once
-        assert process.submit(500.0) and inline.submit(500.0)  # and the next windows are adjusted here
-        _same_update(inline.collect(), process.collect())
-    finally:
-        process.close()
-
-
-def test_a_cleared_window_drops_the_adjustment_under_way() -> None:
-    win = _window_of("process")
-    try:
-        assert win.submit(500.0)
-        win.clear()  # a restart: the result no longer fits the keyframes
-        assert win.collect() is None
-        fresh = WindowedMap(size=5, every=1, sigma_px=1.0)
-        poses, pts = _scene(seed=1)
-        rng = np.random.default_rng(7)
-        ids = np.arange(pts.shape[0])
-        for T in poses:
-            entry = _entry(T, pts, ids, rng, noise=0.0)
-            win.add(T, ids, *entry)
-            fresh.add(T, ids, *entry)
-        assert win.submit(500.0)
-        update = win.collect()  # the new window's own result, not the dropped one's
-        assert update is not None
-        _same_update(update, fresh.adjust(500.0))
-    finally:
-        win.close()
-
-
 def test_a_keyframe_made_after_the_adjusted_one_moves_with_it() -> None:
     """The result comes back one keyframe later: the keyframe made from the adjusted one's old pose takes
     the adjusted one's correction, the adjusted points and the window's covariance in place of the chain's."""
@@ -502,32 +415,6 @@ def test_without_waiting_a_late_result_stays_pending_then_moves_the_keyframes_ad
     assert win.due() or win._since < win.every  # a new adjustment may start again
 
 
-def test_the_worker_says_when_its_result_is_back_without_waiting_for_it() -> None:
-    import time
-
-    inline, process = _window_of("inline"), _window_of("process")
-    try:
-        assert process.submit(500.0) and inline.submit(500.0)
-        deadline = time.monotonic() + 120.0  # a condition with a generous bound, not a fixed sleep
-        while not process._solver.ready():
-            assert time.monotonic() < deadline, "the worker's result never came back"
-            time.sleep(0.01)
-        update = process.collect(wait=False)
-        assert update is not None
-        _same_update(update, inline.collect())
-        proc = process._solver._proc
-        proc.kill()  # a dead worker is 'ready' too: its window is solved here
-        proc.wait()
-        assert process.submit(500.0) and inline.submit(500.0)
-        while not process._solver.ready():
-            assert time.monotonic() < deadline, "the worker's end was never noticed"
-            time.sleep(0.01)
-        _same_update(inline.collect(), process.collect(wait=False))
-        assert "bundle adjustment worker" in process.take_failure()
-    finally:
-        process.close()
-
-
 def test_a_pipeline_that_never_waits_applies_late_results_and_stays_accurate(monkeypatch) -> None:
     """ground_robot with ``ground_plane``, a window of 8 and every result two keyframes late (a worker
     slower than the keyframes): the frame loop never waits, every adjustment is applied, and the poses
@@ -535,8 +422,8 @@ def test_a_pipeline_that_never_waits_applies_late_results_and_stays_accurate(mon
     (``WindowedMap._rescale``)."""
     from pathlib import Path
 
-    from epi_vo.core import window as window_module
     from epi_vo.core.config import VoConfig
+    from epi_vo.runner import workers as workers_module
     from epi_vo.tools.replay import run_replay
 
     solvers: list[_LateSolver] = []
@@ -545,7 +432,7 @@ def test_a_pipeline_that_never_waits_applies_late_results_and_stays_accurate(mon
         solvers.append(_LateSolver(late=2))
         return solvers[-1]
 
-    monkeypatch.setattr(window_module, "InlineSolver", late_solver)
+    monkeypatch.setattr(workers_module, "InlineSolver", late_solver)
     bag = Path(__file__).resolve().parents[2] / "bags" / "ground_robot" / "bag"
     cfg = dataclasses.replace(VoConfig(), ba_window_keyframes=8, ba_solver="inline", ba_wait=False,
                               scale_source="ground_plane", camera_height_m=0.45)
@@ -588,24 +475,3 @@ def test_the_twist_is_the_motion_not_the_windows_correction(tmp_path) -> None:
     assert 1.0 <= m["nees_twist_angular"] <= 4.0 and m["nees_twist_angular_inside_percent"] >= 90.0
     assert 0.3 <= m["nees_twist_linear"] <= 3.0
     assert m["ate_se3_percent_of_path"] < 1.0
-
-
-@pytest.mark.skipif(not hasattr(os, "getpriority"), reason="POSIX scheduling priorities only")
-def test_the_worker_runs_below_the_frame_loops_priority() -> None:
-    import time
-
-    from epi_vo.core.bundle_worker import WORKER_NICENESS
-
-    process = _window_of("process")
-    try:
-        assert process.submit(500.0)
-        deadline = time.monotonic() + 120.0  # the worker lowers its priority before it serves a window
-        while not process._solver.ready():
-            assert time.monotonic() < deadline, "the worker's result never came back"
-            time.sleep(0.01)
-        assert process.collect(wait=False) is not None
-        mine = os.getpriority(os.PRIO_PROCESS, 0)
-        worker = os.getpriority(os.PRIO_PROCESS, process._solver._proc.pid)
-        assert worker == min(mine + WORKER_NICENESS, 19)
-    finally:
-        process.close()
