@@ -75,14 +75,15 @@ def main(argv: list[str]) -> int:
                                "xn_cur": xn_cur.copy(), "K": kf.camera.K.copy()}
         return X
 
-    def kept_measure(self: sc.GroundPlaneScale, step: sc.KeyframeStep) -> tuple[float, float] | None:
-        out = measure(self, step)
-        if out is not None and self.plane is not None:
-            plane = self.plane  # its inliers: within the source's band of the measured floor
+    def kept_measure(self: sc.GroundPlaneScale, step: sc.KeyframeStep, wheel: Any
+                     ) -> tuple[sc.GroundPlaneScale, tuple[float, float] | None]:
+        src, out = measure(self, step, wheel)
+        if out is not None and src.plane is not None:
+            plane = src.plane  # its inliers: within the source's band of the measured floor
             with np.errstate(invalid="ignore"):
-                rows = np.abs(step.X_cur @ plane.normal_up + plane.height) < self.inlier_ratio * plane.height
+                rows = np.abs(step.X_cur @ plane.normal_up + plane.height) < src.inlier_ratio * plane.height
             floors.append({"step": step, "plane": plane, "rows": rows})
-        return out
+        return src, out
 
     pl.keyframe_map = kept_keyframe_map  # type: ignore[assignment]
     sc.GroundPlaneScale.measure = kept_measure  # type: ignore[method-assign]

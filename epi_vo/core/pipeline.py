@@ -63,6 +63,7 @@ from epi_vo.core.odometry import rotate_covariance
 from epi_vo.core.patches import patch_templates
 from epi_vo.core.reasons import render
 from epi_vo.core.transforms import invert_T, make_T
+from epi_vo.core.wheels import WheelOdometry
 from epi_vo.core.window import WindowedMap
 from epi_vo.core.workers import Ahead, InLine, Workers
 
@@ -86,8 +87,8 @@ class VoPipeline:
         self._orb = fe.make_orb(self.cfg) if self.cfg.frontend == "orb" else None
         self._patches = patch_templates(self.cfg)  # KLT tracks refined against their first image (None: off)
         self._motion = mo.MotionStage(self.cfg)
-        self._wheel = sc.WheelOdometry()
-        self._scale = sc.source_from_config(self.cfg, self._wheel)
+        self._wheel = WheelOdometry()
+        self._scale = sc.source_from_config(self.cfg)
         self._map_scale = MapScaleCovariance(self.cfg.scale_drift_per_keyframe)
         self._offset, self._fx = DirectionOffset(self.cfg.principal_point_sigma_px), 1.0  # fx: CameraInfo's
         self._window = WindowedMap(self.cfg.ba_window_keyframes, self.cfg.ba_every_keyframes, self.cfg.pixel_noise_px,
@@ -134,13 +135,14 @@ class VoPipeline:
         the node's camera_xyz / camera_rpy: the floor (``ground_plane``) is sought along the up it implies
         (a level camera's -y without one). Raises ValueError when it is not finite."""
         up_cam = np.asarray(T_base_cam, dtype=np.float64)[:3, :3].T @ np.array([0.0, 0.0, 1.0])
-        self._scale.set_mounting_up(up_cam)
+        self._scale = self._scale.with_mounting_up(up_cam)
 
     def add_wheel_odometry(self, stamp_ns: int, position_xyz: F64) -> bool:
         """One wheel odometry position (any fixed odom frame, metres) at ``stamp_ns``, for the
         ``wheel_odometry`` scale source; give them in stamp order as they arrive. False when the sample is
         ignored (not finite, or not newer than the last one)."""
-        return self._wheel.add(int(stamp_ns), np.asarray(position_xyz, dtype=np.float64))
+        self._wheel, added = self._wheel.add(int(stamp_ns), np.asarray(position_xyz, dtype=np.float64))
+        return added
 
     def reset(self, reason: str = "reset requested") -> None:
         """Restart tracking from the current pose: the next frame becomes a new keyframe, no map; its record
@@ -423,7 +425,7 @@ class VoPipeline:
         t = motion.t_cur_kf
         if motion.state is TrackingState.TRACKING:
             X_cur, t = self._metric_step(motion, kf, X_cur, stamp_ns)
-            self._scale.on_keyframe(float(np.linalg.norm(t)), (stamp_ns - kf.stamp_ns) * 1e-9)
+            self._scale = self._scale.on_keyframe(float(np.linalg.norm(t)), (stamp_ns - kf.stamp_ns) * 1e-9)
         if motion.state is TrackingState.TRACKING and st.n_triangulated > 0:
             # The keyframe's point cloud: every map point it holds, in the odometry frame.
             st.points_w = _transform(self._T_w_c, X_cur[np.isfinite(X_cur[:, 0])])
@@ -473,11 +475,12 @@ class VoPipeline:
         t = motion.t_cur_kf
         if motion.new_map is not None:
             self._map_scale.set_origin(kf.T_w_kf[:3, 3], kf.cov_w_kf)
-            self._scale.on_new_map()
+            self._scale = self._scale.on_new_map()
         was_metric = self._scale.established
         step = sc.KeyframeStep(X_cur, float(np.linalg.norm(t)), kf.stamp_ns, stamp_ns)
-        factor = self._factor = self._scale.correction(step)
-        self._anchor = self._scale.anchor(step)
+        self._scale, factor = self._scale.correction(step, self._wheel)
+        self._factor = factor
+        self._anchor = self._scale.anchor(step, self._wheel)
         if factor == 1.0:
             return X_cur, t
         t = t * factor

@@ -14,8 +14,8 @@ from epi_vo.core.map_scale import DirectionOffset, MapScaleCovariance
 
 
 def _established_floor(rel_std: float) -> sc.GroundPlaneScale:
-    src = sc.GroundPlaneScale(1.0, 0.01, max_tilt_deg=35.0, inlier_ratio=0.04, min_points=8)
-    src.filter.var = rel_std**2  # established: a finite variance
+    src = sc.GroundPlaneScale(filter=sc.ScaleFilter(0.01, var=rel_std**2), camera_height_m=1.0, max_tilt_deg=35.0,
+                              inlier_ratio=0.04, min_points=8)  # established: a finite variance
     assert src.established
     return src
 

@@ -22,7 +22,7 @@ from epi_vo.core.config import VoConfig
 from epi_vo.core.frame import FrameStats, Model, TrackingState
 from epi_vo.core.keyframe import Keyframe
 from epi_vo.core.motion import PLANE_MAX_WAIT, Motion, MotionContext, MotionStage, is_finite
-from epi_vo.core.scale import VoUnitsScale
+from epi_vo.core.scale import ScaleFilter, VoUnitsScale
 from epi_vo.core.selection import select_model
 from epi_vo.core.transforms import rotation_angle_deg
 
@@ -128,8 +128,7 @@ def test_no_map_with_parallax_initialises_the_map(general_scene, baseline: float
 def test_initialisation_asks_the_scale_stage_for_the_baseline(general_scene) -> None:
     # With VoUnitsScale after a keyframe at 3 units/s, the first baseline 0.1 s later is 0.3 units.
     s = general_scene
-    scale = VoUnitsScale()
-    scale.on_keyframe(1.5, 0.5)
+    scale = VoUnitsScale(filter=ScaleFilter(0.01)).on_keyframe(1.5, 0.5)
     m, _, _ = _estimate(s, _no_map(s), baseline=scale.initial_baseline(DT_NS * 1e-9))
     assert m is not None and m.new_map is not None
     assert np.linalg.norm(m.t_cur_kf) == pytest.approx(0.3)
