@@ -103,7 +103,7 @@ class VoPipeline:
         self._jumped = False  # this frame's position jumped to metres (metric scale just established)
         self._T_w_c = np.eye(4)
         self._cov_w_c = np.zeros((6, 6))
-        self._handover = Handover(self.cfg)  # the last pose with a map behind it; a restart starts from it
+        self._handover = Handover.from_config(self.cfg)  # the last pose with a map behind it; a restart starts from it
         # The last frame's (pose, position) were measured, not held: its step to the next is then measured.
         self._measured = (False, False)
         self._kf: Keyframe | None = None
@@ -352,7 +352,7 @@ class VoPipeline:
             self._last_pos_w = T_w_c[:3, 3].copy()
             self._T_cur_kf_prev = T_cur_kf
             if state is TrackingState.TRACKING:
-                self._handover.book(stamp_ns, self._T_w_c, self._cov_w_c)
+                self._handover = self._handover.booked(stamp_ns, self._T_w_c, self._cov_w_c)
             if state is TrackingState.INITIALIZING:
                 # Unknown scale: the position is not justified by anything yet.
                 self._cov_w_c = self._cov_w_c.copy()
@@ -432,8 +432,9 @@ class VoPipeline:
         cov = self._cov_w_c.copy()
         if motion.state is TrackingState.TRACKING:
             d = self._T_w_c[:3, 3] - kf.T_w_kf[:3, 3]
-            cov[:3, :3] += self._map_scale.keyframe_cov(self._scale, motion.new_map is not None, d)
-            self._offset.add_step(d, kf.T_w_kf[:3, :3], self._fx)
+            self._map_scale, scale_cov = self._map_scale.keyframe_cov(self._scale, motion.new_map is not None, d)
+            cov[:3, :3] += scale_cov
+            self._offset = self._offset.with_step(d, kf.T_w_kf[:3, :3], self._fx)
         ids_tracked = kf.ids[rows] if kf.ids is not None else None
         self._set_keyframe(gray, camera, stamp_ns, cov, pts_cur, X_cur, orb_cur, ids_tracked)
         if motion.state is TrackingState.TRACKING:
@@ -474,7 +475,7 @@ class VoPipeline:
         the step translation ``t_cur_kf`` as corrected."""
         t = motion.t_cur_kf
         if motion.new_map is not None:
-            self._map_scale.set_origin(kf.T_w_kf[:3, 3], kf.cov_w_kf)
+            self._map_scale = self._map_scale.with_origin(kf.T_w_kf[:3, 3], kf.cov_w_kf)
             self._scale = self._scale.on_new_map()
         was_metric = self._scale.established
         step = sc.KeyframeStep(X_cur, float(np.linalg.norm(t)), kf.stamp_ns, stamp_ns)
@@ -494,7 +495,7 @@ class VoPipeline:
             d = factor * (self._T_w_c[:3, 3] - origin)
             self._T_w_c[:3, 3] = origin + d
             self._cov_w_c = self._map_scale.metric_covariance(self._scale, self._cov_w_c, factor, d)
-            self._offset.rescale(factor)
+            self._offset = self._offset.rescaled(factor)
         return X_cur * factor, t
 
     def _set_keyframe(self, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int, cov_w: F64,
@@ -531,7 +532,7 @@ class VoPipeline:
         cov = self._handover_cov(stamp_ns)
         self._set_keyframe(gray, camera, stamp_ns, cov, np.zeros((0, 2), np.float32), np.zeros((0, 3)),
                            None)
-        self._map_scale.set_origin(self._T_w_c[:3, 3], cov)
+        self._map_scale = self._map_scale.with_origin(self._T_w_c[:3, 3], cov)
         self._last_pos_w = self._T_w_c[:3, 3].copy()
         st.timings["frontend"] = _ms(t0)
         self._cov_w_c = cov
@@ -545,7 +546,7 @@ class VoPipeline:
         self._cov_w_c = cov
         self._set_keyframe(gray, camera, stamp_ns, cov, np.zeros((0, 2), np.float32), np.zeros((0, 3)),
                            orb_cur)
-        self._map_scale.set_origin(self._T_w_c[:3, 3], cov)
+        self._map_scale = self._map_scale.with_origin(self._T_w_c[:3, 3], cov)
         self._last_pos_w = self._T_w_c[:3, 3].copy()
         self._fail_count = 0
 
