@@ -272,7 +272,7 @@ class VoPipeline:
             gray, self.cfg, self._orb, self._gray_prev, self._pts_prev, self._rows, kf.descriptors,
             self._workers.track_klt)
         if self._patches is not None and kf.ids is not None:
-            pts_cur, st.n_refined = self._patches.refine(gray, pts_cur, kf.ids[rows])
+            self._patches, pts_cur, st.n_refined = self._patches.refined(gray, pts_cur, kf.ids[rows])
         # This frame's image noise as a share of pixel_noise_px: its twist's, and one step of its pose's.
         noise_ratio = covm.twist_noise_ratio(st.track_noise_px, self.cfg.twist_noise_fb_factor,
                                              self.cfg.twist_noise_floor_px, self.cfg.pixel_noise_px)
@@ -510,7 +510,7 @@ class VoPipeline:
         if self._kf.ids is not None and self._kf.ids.size:
             self._next_id = max(self._next_id, int(self._kf.ids.max()) + 1)
             if self._patches is not None:
-                self._patches.anchor(gray, self._kf.pts, self._kf.ids)
+                self._patches = self._patches.anchored(gray, self._kf.pts, self._kf.ids)
         # Movers stay flagged while they are tracked; tracks that ended are forgotten. Fewer than
         # MIN_MOVERS left is no group any more (the object left the view; a straggler may as well be a
         # static track caught at the group's edge): those are forgotten too.
