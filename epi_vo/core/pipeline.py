@@ -64,7 +64,7 @@ from epi_vo.core.patches import patch_templates
 from epi_vo.core.reasons import render
 from epi_vo.core.transforms import invert_T, make_T
 from epi_vo.core.wheels import WheelOdometry
-from epi_vo.core.window import WindowedMap
+from epi_vo.core.window import WindowedMap, correct
 from epi_vo.core.workers import Ahead, InLine, Workers
 
 _log = logging.getLogger(__name__)
@@ -91,8 +91,8 @@ class VoPipeline:
         self._scale = sc.source_from_config(self.cfg)
         self._map_scale = MapScaleCovariance(self.cfg.scale_drift_per_keyframe)
         self._offset, self._fx = DirectionOffset(self.cfg.principal_point_sigma_px), 1.0  # fx: CameraInfo's
-        self._window = WindowedMap(self.cfg.ba_window_keyframes, self.cfg.ba_every_keyframes, self.cfg.pixel_noise_px,
-                                   self._workers.solver)
+        self._window = WindowedMap.create(self.cfg.ba_window_keyframes, self.cfg.ba_every_keyframes,
+                                          self.cfg.pixel_noise_px)
         self._next_id = 0  # the next feature track id
         self._mover_ids = np.zeros(0, np.int64)  # sorted ids of tracks judged to move on their own
         self._anchor: sc.WindowAnchor | None = None  # the scale source's anchor of the newest keyframe step
@@ -440,7 +440,7 @@ class VoPipeline:
         if motion.state is TrackingState.TRACKING:
             self._adjust_window(st)
         else:
-            self._window.clear()
+            self._window = self._window.cleared()
         return True
 
     def _adjust_window(self, st: FrameStats) -> None:
@@ -451,21 +451,23 @@ class VoPipeline:
         kf = self._kf
         assert kf is not None
         t0 = time.perf_counter()
-        update = self._window.collect(self.cfg.ba_wait)  # ba_wait: wait for the worker if it is not done
+        solver = self._workers.solver
+        self._window, update = self._window.collected(solver, self.cfg.ba_wait)  # ba_wait: wait if not done
         if update is not None:
             st.timings["window_wait"], st.timings["window_solve"] = _ms(t0), update.ms  # solve: in the worker
             # The window's uncertainty (when it has one; covering the chain's) replaces the keyframe's.
-            T, X, cov = self._window.correct(update, kf.T_w_kf, kf.ids, kf.X_kf, kf.cov_w_kf, self._factor)
+            T, X, cov = correct(update, kf.T_w_kf, kf.ids, kf.X_kf, kf.cov_w_kf, self._factor)
             st.correction = update.correction  # the poses before move with it (the twist's reference)
             kf = self._kf = dataclasses.replace(kf, T_w_kf=T, X_kf=X, cov_w_kf=cov)
             self._T_w_c = T.copy()
             if update.cov_w_kf is not None:
                 self._cov_w_c = cov.copy()
-        self._window.add(kf.T_w_kf, kf.ids, kf.xn, kf.X_kf, self._anchor, kf.cov_w_kf, self._factor)
-        submitted = self._window.due() and self._window.submit(float(kf.camera.K[0, 0]), self._mover_ids)
+        self._window = self._window.added(kf.T_w_kf, kf.ids, kf.xn, kf.X_kf, self._anchor, kf.cov_w_kf, self._factor)
+        self._window, submitted = self._window.submitted(solver, float(kf.camera.K[0, 0]), self._mover_ids) \
+            if self._window.due() else (self._window, False)
         if update is not None or submitted:
             st.timings["window"] = _ms(t0)
-        if why := self._window.take_failure():
+        if why := solver.take_failure():
             st.notes.append(note(Decision.WINDOW_WORKER_FAILED, text=why))
 
     def _metric_step(self, motion: mo.Motion, kf: Keyframe, X_cur: F64, stamp_ns: int) -> tuple[F64, F64]:
@@ -489,7 +491,7 @@ class VoPipeline:
             self._T_w_c = kf.T_w_kf @ invert_T(make_T(motion.R_cur_kf, t))
         else:  # metric from now on: the whole map so far was in VO units
             self._jumped = True
-            self._window.clear()
+            self._window = self._window.cleared()
             self._T_w_c = self._T_w_c.copy()
             origin = self._map_scale.origin_w
             d = factor * (self._T_w_c[:3, 3] - origin)
@@ -504,7 +506,7 @@ class VoPipeline:
         """Make the current frame the reference: keep tracked features (with depth and track id), top up
         the grid. Without ``ids_tracked`` (a new map) the window of adjusted keyframes is dropped."""
         if ids_tracked is None:
-            self._window.clear()
+            self._window = self._window.cleared()
         self._kf = make_keyframe(self._index, stamp_ns, self._T_w_c, cov_w, gray, camera, pts_tracked, X_tracked,
                                  self.cfg, self._orb, orb_cur, ids_tracked, self._next_id)
         if self._kf.ids is not None and self._kf.ids.size:

@@ -56,6 +56,10 @@ class WindowSolver(Protocol):
         """The result of the oldest window sent and not received (waiting for it)."""
         ...
 
+    def in_flight(self) -> int:
+        """Windows sent and not yet received."""
+        ...
+
     def take_failure(self) -> str:
         """Why the solver's worker stopped being used, the first time it is asked after it did ("" else)."""
         ...
@@ -81,6 +85,9 @@ class InlineSolver:
 
     def receive(self) -> bundle.Adjusted | None:
         return self._results.popleft()
+
+    def in_flight(self) -> int:
+        return len(self._results)
 
     def take_failure(self) -> str:
         return ""

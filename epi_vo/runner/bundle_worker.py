@@ -122,6 +122,10 @@ class ProcessSolver:
         self._inline.send(window)
         return self._inline.receive()
 
+    def in_flight(self) -> int:
+        """Windows sent and not yet received."""
+        return len(self._sent)
+
     def take_failure(self) -> str:
         """``failure``, the first time it is asked after the worker stopped being used ("" else)."""
         if not self.failure or self._failure_said:

@@ -7,12 +7,11 @@ import os
 
 import numpy as np
 import pytest
+from window_scenes import Win
 from window_scenes import entry as _entry
 from window_scenes import same_update as _same_update
 from window_scenes import scene as _scene
 from window_scenes import window_of as _window_of
-
-from epi_vo.core.window import WindowedMap
 
 
 def test_the_worker_process_gives_the_inline_result_bit_for_bit() -> None:
@@ -32,7 +31,7 @@ def test_the_worker_process_gives_the_inline_result_bit_for_bit() -> None:
 def test_a_dead_worker_hands_its_window_to_the_frame_loop_and_says_so_once() -> None:
     inline, process = _window_of("inline"), _window_of("process")
     try:
-        proc = process._solver._proc
+        proc = process.solver._proc
         assert proc is not None
         proc.kill()
         proc.wait()
@@ -53,7 +52,7 @@ def test_a_cleared_window_drops_the_adjustment_under_way() -> None:
         assert win.submit(500.0)
         win.clear()  # a restart: the result no longer fits the keyframes
         assert win.collect() is None
-        fresh = WindowedMap(size=5, every=1, sigma_px=1.0)
+        fresh = Win(size=5, every=1, sigma_px=1.0)
         poses, pts = _scene(seed=1)
         rng = np.random.default_rng(7)
         ids = np.arange(pts.shape[0])
@@ -76,17 +75,17 @@ def test_the_worker_says_when_its_result_is_back_without_waiting_for_it() -> Non
     try:
         assert process.submit(500.0) and inline.submit(500.0)
         deadline = time.monotonic() + 120.0  # a condition with a generous bound, not a fixed sleep
-        while not process._solver.ready():
+        while not process.solver.ready():
             assert time.monotonic() < deadline, "the worker's result never came back"
             time.sleep(0.01)
         update = process.collect(wait=False)
         assert update is not None
         _same_update(update, inline.collect())
-        proc = process._solver._proc
+        proc = process.solver._proc
         proc.kill()  # a dead worker is 'ready' too: its window is solved here
         proc.wait()
         assert process.submit(500.0) and inline.submit(500.0)
-        while not process._solver.ready():
+        while not process.solver.ready():
             assert time.monotonic() < deadline, "the worker's end was never noticed"
             time.sleep(0.01)
         _same_update(inline.collect(), process.collect(wait=False))
@@ -105,12 +104,12 @@ def test_the_worker_runs_below_the_frame_loops_priority() -> None:
     try:
         assert process.submit(500.0)
         deadline = time.monotonic() + 120.0  # the worker lowers its priority before it serves a window
-        while not process._solver.ready():
+        while not process.solver.ready():
             assert time.monotonic() < deadline, "the worker's result never came back"
             time.sleep(0.01)
         assert process.collect(wait=False) is not None
         mine = os.getpriority(os.PRIO_PROCESS, 0)
-        worker = os.getpriority(os.PRIO_PROCESS, process._solver._proc.pid)
+        worker = os.getpriority(os.PRIO_PROCESS, process.solver._proc.pid)
         assert worker == min(mine + WORKER_NICENESS, 19)
     finally:
         process.close()
