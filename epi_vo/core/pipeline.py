@@ -86,7 +86,7 @@ class VoPipeline:
         self._workers = workers if workers is not None else InLine()
         self._orb = fe.make_orb(self.cfg) if self.cfg.frontend == "orb" else None
         self._patches = patch_templates(self.cfg)  # KLT tracks refined against their first image (None: off)
-        self._motion = mo.MotionStage(self.cfg)
+        self._motion_memory = mo.MotionMemory()  # what the motion stage carries from frame to frame
         self._wheel = WheelOdometry()
         self._scale = sc.source_from_config(self.cfg)
         self._map_scale = MapScaleCovariance(self.cfg.scale_drift_per_keyframe)
@@ -311,13 +311,19 @@ class VoPipeline:
                 st.H = sel.H
             st.timings["models"] = _ms(t0)
             ctx = mo.MotionContext(kf, rows_u, xn_u, uv_u, self._T_cur_kf_prev, self._scale.initial_baseline,
-                                   self._noise_since(kf), self.cfg.frontend == "klt")
-            motion = self._motion.estimate(ctx, sel, st)
+                                   self._noise_since(kf), self.cfg.frontend == "klt", stamp_ns)
+            m = mo.estimate(self.cfg, ctx, sel, self._motion_memory)
+            self._motion_memory, motion = m.memory, m.motion
+            for name in ("model", "n_inliers", "median_parallax_deg", "relative_scale", "static_score", "focal_ratio",
+                         "n_moving", "moving_region", "n_triangulated", "positive_depth_ratio", "median_reproj_err_px"):
+                setattr(st, name, getattr(m, name))
+            st.notes.extend(m.notes)
+            st.timings["pose"] = m.ms
             if motion is not None and not mo.is_finite(motion):
                 st.notes.append(note(Decision.MOTION_NOT_FINITE))
                 motion = None
             if motion is not None and n_use < rows.shape[0]:
-                motion = _expanded(motion, use)
+                motion = mo.expanded(motion, use)
         moving = self._book_movers(kf, rows, uv_cur, excluded, motion, st)
         if motion is not None and motion.state is TrackingState.TRACKING:
             spread = mo.grid_spread(uv_cur, motion.inliers, camera.width, camera.height)
@@ -676,20 +682,6 @@ def downscale(gray: NDArray[np.uint8], camera: CameraModel, max_width: int
     factor = max_width / gray.shape[1]
     small = cv2.resize(gray, (max_width, round(gray.shape[0] * factor)), interpolation=cv2.INTER_AREA)
     return small, camera.scaled(factor)
-
-
-def _expanded(motion: mo.Motion, use: NDArray[np.bool_]) -> mo.Motion:
-    """A motion estimated on the rows ``use`` spread back over all tracked rows (the others: no
-    inlier, no point, not newly moving)."""
-    n = use.shape[0]
-    inl = np.zeros(n, bool)
-    inl[use] = motion.inliers
-    moving = None
-    if motion.moving is not None:
-        moving = np.zeros(n, bool)
-        moving[use] = motion.moving
-    new_map = motion.new_map.expanded(np.flatnonzero(use), n) if motion.new_map is not None else None
-    return dataclasses.replace(motion, inliers=inl, moving=moving, new_map=new_map)
 
 
 def _ms(t0: float) -> float:
