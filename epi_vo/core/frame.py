@@ -1,15 +1,14 @@
-"""The frame record: what one input frame yields, and the per-frame scratch the stages fill in.
+"""The frame record: what one input frame yields.
 
-``FrameResult`` is the immutable record every front door (replay, node) turns into outputs;
-``FrameStats`` is the mutable scratch the stages write their measurements and reasons into while a
-frame is processed.
+``FrameResult`` is the immutable record every front door (replay, node) turns into outputs; the step
+(``epi_vo.core.step``) builds it once per frame from the stages' own frozen results (``publish``).
 """
 
 from __future__ import annotations
 
 import enum
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from fractions import Fraction
 from typing import Any
 
@@ -17,7 +16,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from epi_vo.core.decisions import Decision, Note
-from epi_vo.core.reasons import sentence
 from epi_vo.core.scale import ScaleStatus
 from epi_vo.core.transforms import quat_xyzw_from_rotation, rotation_angle_deg
 
@@ -246,37 +244,3 @@ class FrameResult:
 
 STAT_FIELDS = ("rh", "inlier_ratio", "median_parallax_deg", "positive_depth_ratio", "median_reproj_err_px",
                 "relative_scale", "focal_ratio", "track_noise_px")
-
-
-@dataclass
-class FrameStats:
-    """Mutable scratch of one frame: every stage fills in what it measured; ``FrameResult`` freezes it."""
-
-    stamp_ns: int = 0
-    model: Model = Model.NONE
-    rh: float = math.nan
-    n_tracked: int = 0
-    n_inliers: int = 0
-    median_parallax_deg: float = math.nan
-    n_triangulated: int = 0
-    positive_depth_ratio: float = math.nan
-    median_reproj_err_px: float = math.nan
-    relative_scale: float = math.nan
-    static_score: float = math.nan
-    focal_ratio: float = math.nan
-    track_noise_px: float = math.nan
-    n_refined: int | None = None
-    n_moving: int = 0
-    moving_region: tuple[int, int, int, int] | None = None
-    points_w: F64 = field(default_factory=lambda: np.zeros((0, 3)))
-    correction: F64 | None = None  # FrameResult.correction
-    matches: Matches = field(default_factory=Matches.empty)
-    F: F64 = field(default_factory=lambda: np.zeros((3, 3)))
-    H: F64 = field(default_factory=lambda: np.zeros((3, 3)))
-    notes: list[Note] = field(default_factory=list)
-    timings: dict[str, float] = field(default_factory=dict)
-
-    @property
-    def reasons(self) -> list[str]:
-        """The notes' sentences (``epi_vo.core.reasons``)."""
-        return [sentence(n) for n in self.notes]

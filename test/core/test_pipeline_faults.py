@@ -17,6 +17,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from epi_vo.core import features as fe
+from epi_vo.core import step as step_module
 from epi_vo.core.camera import CameraModel
 from epi_vo.core.config import VoConfig
 from epi_vo.core.decisions import Decision, note
@@ -240,7 +241,7 @@ def test_failed_frame_then_reject_is_not_called_a_duplicate(frames: Frames, monk
     for s, g, i in frames[:5]:
         pipe.process(g, CameraModel.from_camera_info(i), s)
     s, g, i = frames[5]
-    monkeypatch.setattr(pipe, "_process", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("boom")))
+    monkeypatch.setattr(step_module, "_tracked", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("boom")))
     with pytest.raises(RuntimeError):
         pipe.process(g, CameraModel.from_camera_info(i), s)
     r = pipe.reject(s, "internal error: RuntimeError('boom')")
