@@ -69,7 +69,7 @@ def _package_xml_depends() -> dict[str, list[str]]:
 def _third_party_imports(folder: Path) -> dict[str, set[str]]:
     """Top-level module -> files under ``folder`` that import it (every import, also inside functions), for
     modules that are neither the standard library, nor epi_vo, nor a module of this repository."""
-    local = {p.stem for p in REPO.rglob("*.py") if ".venv" not in p.parts}
+    local = {p.stem for p in REPO.rglob("*.py") if not any(part.startswith(".venv") for part in p.parts)}
     out: dict[str, set[str]] = {}
     for path in sorted(folder.rglob("*.py")):
         for node in ast.walk(ast.parse(path.read_text(), str(path))):
@@ -179,3 +179,25 @@ def test_colcon_build_installs_scripts_into_lib(tmp_path: Path) -> None:
     printed = tmp_path / "printed.yaml"  # the node's own parameters are in it too: load_config accepts them
     printed.write_text(run.stdout)
     assert load_config(printed) == VoConfig()
+
+
+def _pins(path: Path) -> dict[str, str]:
+    pins = {}
+    for line in path.read_text().splitlines():
+        line = line.split("#")[0].strip()
+        if "==" in line:
+            name, version = line.split("==")
+            pins[name.strip().lower()] = version.strip()
+    return pins
+
+
+def test_the_jazzy_requirements_differ_from_the_pinned_ones_in_the_system_libraries_only() -> None:
+    """requirements-jazzy.txt (scripts/test_system_libs.sh) is requirements.txt with the OpenCV, numpy and
+    scipy of a ROS 2 Jazzy robot on Ubuntu 24.04: a package pinned in one and not the other, or another
+    version, would make its replay figures compare something else than those libraries."""
+    pinned, jazzy = _pins(REPO / "requirements.txt"), _pins(REPO / "requirements-jazzy.txt")
+    assert set(pinned) == set(jazzy)
+    differ = {k: (pinned[k], jazzy[k]) for k in pinned if pinned[k] != jazzy[k]}
+    assert differ == {"opencv-python-headless": (pinned["opencv-python-headless"], "4.6.0.66"),
+                      "numpy": (pinned["numpy"], "1.26.4"), "scipy": (pinned["scipy"], "1.11.4")}
+    assert "bash scripts/test_system_libs.sh" in (REPO / ".ci" / "run").read_text()

@@ -1,6 +1,8 @@
 """Two-view geometry, split by concept.
 
-* ``models``: E and H estimation and their chi-square scoring (model selection's inputs);
+* ``models``: E and H estimation and their chi-square scoring (model selection's inputs), and the refit of
+  a model an OpenCV release left unpolished;
+* ``epipolar_refine``: a relative pose refined on its Sampson distances;
 * ``pose``: pose recovery with cheirality, homography rotation / planar pose, parallax, refinement
   of a pose on map points;
 * ``triangulation``: triangulation through its gates, scale of a direction from map points;
@@ -24,11 +26,15 @@ from epi_vo.core.geometry.models import (
     CHI2_1DOF,
     CHI2_2DOF,
     ROBUST_METHOD_FLAGS,
+    USAC_POLISHES,
     epipolar_distances_sq,
     essential_from_pose,
     estimate_essential,
     estimate_homography,
     fundamental_from_essential,
+    polish_essential,
+    polish_homography,
+    polished_by_opencv,
     rh_ratio,
     sampson_distance_sq,
     score_fundamental,
@@ -71,6 +77,7 @@ __all__ = [
     "F64",
     "PNP_MIN_SIGMA_PX",
     "ROBUST_METHOD_FLAGS",
+    "USAC_POLISHES",
     "Mask",
     "PlanarSolution",
     "ScaleEstimate",
@@ -93,6 +100,9 @@ __all__ = [
     "nearest_plane_motion",
     "nearest_rotation",
     "parallax_deg",
+    "polish_essential",
+    "polish_homography",
+    "polished_by_opencv",
     "pose_from_homography",
     "pose_undetermined",
     "ray_depths",

@@ -13,6 +13,7 @@ import numpy as np
 
 from epi_vo.core.decisions import Decision, Note, note
 from epi_vo.core.geometry.common import F64, Mask, homogeneous, nearest_rotation, ray_depths
+from epi_vo.core.geometry.epipolar_refine import refine_relative_pose
 from epi_vo.core.geometry.models import essential_from_pose, fundamental_from_essential, sampson_distance_sq
 from epi_vo.core.geometry.triangulation import Triangulation, triangulate
 from epi_vo.core.transforms import rotation_angle_deg
@@ -337,70 +338,6 @@ def _pnp_gated_lm(obj: F64, img: F64, uv_cur: F64, K: F64, rvec: F64, tvec: F64,
         return None
     R, _ = cv2.Rodrigues(rvec)
     return np.asarray(R, dtype=np.float64), tvec.reshape(3), keep, cov
-
-
-def _signed_sampson(R: F64, t: F64, h_ref: F64, h_cur: F64) -> F64:
-    """Signed Sampson distances (normalised units) of homogeneous correspondences under (R, t)."""
-    E = essential_from_pose(R, t)
-    Ex = h_ref @ E.T
-    Etx = h_cur @ E
-    num = np.einsum("ij,ij->i", h_cur, Ex)
-    return num / np.sqrt(np.maximum(Ex[:, 0] ** 2 + Ex[:, 1] ** 2 + Etx[:, 0] ** 2 + Etx[:, 1] ** 2, 1e-300))
-
-
-def refine_relative_pose(R_cur_ref: F64, t_dir: F64, xn_ref: F64, xn_cur: F64, iterations: int = 15
-                         ) -> tuple[F64, F64, float, float] | None:
-    """The relative pose (R, unit t) nearest to (``R_cur_ref``, ``t_dir``) that minimises the Sampson
-    distances of the normalised correspondences ``xn_ref`` -> ``xn_cur``: Levenberg-Marquardt over the
-    five degrees of freedom (a rotation vector applied on the left, t moved in its tangent plane), from
-    the given pose, so it stays with the solution it starts at (on a plane, E's other solution is a
-    separate minimum). Returns ``(R, t_dir, rms_before, rms_after)`` (normalised units), or None for
-    fewer than six correspondences or a non-finite start.
-
-    Why: a homography's decomposition takes the plane's own fit, which the near-plane points H's
-    threshold lets in bias. ground_robot's first map, from H at frame 1: 0.023 deg off in pitch; its
-    pose refined on the same tracks' epipolar distances: 0.006 deg (2026-11-27, ``refine_planar_pose``)."""
-    n = xn_ref.shape[0]
-    if n < 6 or not (np.all(np.isfinite(R_cur_ref)) and np.all(np.isfinite(t_dir))) or np.linalg.norm(t_dir) == 0:
-        return None
-    h_ref, h_cur = homogeneous(xn_ref), homogeneous(xn_cur)
-    R = np.asarray(R_cur_ref, dtype=np.float64)
-    t = np.asarray(t_dir, dtype=np.float64) / np.linalg.norm(t_dir)
-
-    def moved(v: F64, R0: F64, t0: F64, B: F64) -> tuple[F64, F64]:
-        d = t0 + B @ v[3:]
-        return cv2.Rodrigues(v[:3])[0] @ R0, d / np.linalg.norm(d)
-
-    r = _signed_sampson(R, t, h_ref, h_cur)
-    cost0 = cost = float(r @ r)
-    lam, h = 1e-3, 1e-7
-    for _ in range(iterations):
-        B = np.linalg.svd(np.eye(3) - np.outer(t, t))[0][:, :2]  # t's tangent plane
-        J = np.empty((n, 5))
-        for k in range(5):
-            e = np.zeros(5)
-            e[k] = h
-            J[:, k] = (_signed_sampson(*moved(e, R, t, B), h_ref, h_cur)
-                       - _signed_sampson(*moved(-e, R, t, B), h_ref, h_cur)) / (2 * h)
-        A, g = J.T @ J, J.T @ r
-        while lam < 1e8:
-            step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-18), -g)
-            R1, t1 = moved(step, R, t, B)
-            r1 = _signed_sampson(R1, t1, h_ref, h_cur)
-            c1 = float(r1 @ r1)
-            if math.isfinite(c1) and c1 < cost:
-                R, t, r, lam = R1, t1, r1, max(lam / 10.0, 1e-9)
-                done = cost - c1 < 1e-10 * cost
-                cost = c1
-                break
-            lam *= 10.0
-        else:
-            break
-        if done:
-            break
-    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
-        return None
-    return nearest_rotation(R), t, math.sqrt(cost0 / n), math.sqrt(cost / n)
 
 
 # chi-square, 5 dof, 99.9 %: the drop in the epipolar residuals that says a homography's pose is not the
