@@ -38,10 +38,10 @@ from epi_vo.core.errors import BagError, EpiVoError, Interrupted, OutputError
 from epi_vo.core.frame import FrameResult
 from epi_vo.core.odometry import OdometryConverter, OdometrySample, sample_status_pose, status_pose
 from epi_vo.core.pipeline import VoPipeline
-from epi_vo.core.scale import WheelInputCounts
 from epi_vo.core.status import frame_status
 from epi_vo.io import bagio, outbag, tum
 from epi_vo.io.msgconv import decode_frame, ns_to_ros_time
+from epi_vo.io.wheel_feed import WheelFeed
 from epi_vo.tools.consistency import OdometryLog, consistency_metrics, format_consistency
 
 if TYPE_CHECKING:
@@ -231,7 +231,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
             if gt is not None:  # kept beside the estimate so that reports can be made from DIR alone
                 tum.write_tum(out / "groundtruth.tum", *gt[1])
                 odo_log = OdometryLog()  # what /vo/odometry carried, for the covariance's consistency
-            wheel = _WheelFeed(bag.read_wheel_odometry(), pipeline, cfg.wheel_odometry_timeout_s)
+            wheel = WheelFeed(bag.read_wheel_odometry(), pipeline, cfg.wheel_odometry_timeout_s)
             decoded = _Decoded()
             pace = Pace(rate) if rate is not None else None
             for frame, next_frame in with_next(bag.iter_frames()):
@@ -356,37 +356,6 @@ def _remove_stats(out: Path) -> None:
 
 def _wheel_topic(cfg: VoConfig) -> str | None:
     return cfg.wheel_odometry_topic if cfg.scale_source == "wheel_odometry" else None
-
-
-class _WheelFeed:
-    """Gives the pipeline the wheel odometry recorded up to each image (plus the stale timeout, as a live
-    subscriber would have received it by the time it is needed), in the bag's order: the order the messages
-    arrived in, which is how the node takes them (``WheelOdometry.add``'s rule decides which are used)."""
-
-    def __init__(self, samples: bagio.WheelOdometrySamples | None, pipeline: VoPipeline, timeout_s: float) -> None:
-        self._samples = samples
-        self._pipeline = pipeline
-        self._lookahead_ns = int(timeout_s * 1e9)
-        self._next = 0
-
-    def up_to(self, stamp_ns: int | None) -> None:
-        """Hand over the messages up to the first stamped after ``stamp_ns`` + the timeout (None: all)."""
-        s = self._samples
-        if s is None:
-            return
-        while self._next < len(s.stamps_ns):
-            stamp = int(s.stamps_ns[self._next])
-            if stamp_ns is not None and stamp > stamp_ns + self._lookahead_ns:
-                break
-            self._pipeline.add_wheel_odometry(None if stamp == bagio.NO_STAMP else stamp, s.positions[self._next])
-            self._next += 1
-
-    def counts(self) -> WheelInputCounts | None:
-        """Every message of the topic handed over (the rest too) and what became of them; None: no topic."""
-        if self._samples is None:
-            return None
-        self.up_to(None)
-        return self._pipeline.scale_status.wheel
 
 
 def _os_reason(exc: OSError) -> str:
