@@ -76,7 +76,8 @@ NODE_DOCS: dict[str, str] = {
     "publish_debug_image": "publish vo/debug_image with tracks, inliers and epipolar lines",
     "path_max_length": "poses kept in vo/path",
     "watchdog_timeout_s": "no image for this long: diagnostics WARN (3x: STALE)",
-    "camera_info_wait_s": "how long an image waits for its camera_info before the latest one is used",
+    "camera_info_wait_s": "how long an image waits for its camera_info (s, in image stamps or on the node's "
+                          "clock) before the nearest earlier one is used",
     "hardware_id": "hardware_id of the diagnostics statuses ('': the image's header.frame_id)",
 }
 NODE_CHOICES: dict[str, tuple[str, ...]] = {"image_transport": IMAGE_TRANSPORTS,
