@@ -26,7 +26,6 @@ held where the map started, with a covariance that says the scale is unknown.
 
 from __future__ import annotations
 
-import bisect
 import dataclasses
 import math
 from collections import deque
@@ -36,6 +35,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from epi_vo.core.config import VoConfig
+
+# re-exported: callers name the wheel buffer through the scale stage
+from epi_vo.core.wheel_odometry import WheelInputCounts as WheelInputCounts
+from epi_vo.core.wheel_odometry import WheelOdometry as WheelOdometry
+from epi_vo.core.wheel_odometry import WheelSample as WheelSample
 
 F64 = NDArray[np.float64]
 
@@ -82,6 +86,7 @@ class ScaleStatus:
     floor_pitch_deg: float = math.nan
     floor_roll_deg: float = math.nan
     reason: str = ""
+    wheel: WheelInputCounts | None = None  # wheel_odometry: the messages received and what became of them
 
     @property
     def units(self) -> str:
@@ -503,54 +508,6 @@ class GroundPlaneScale(ScaleSource):
         return math.log(self.camera_height_m / plane.height), r
 
 
-class WheelOdometry:
-    """Wheel odometry positions by stamp (the last ``horizon_s`` seconds), interpolated at image stamps."""
-
-    def __init__(self, horizon_s: float = 60.0) -> None:
-        self.horizon_ns = int(horizon_s * 1e9)
-        self._stamps: deque[int] = deque()
-        self._xyz: deque[F64] = deque()
-        self.ignored = 0  # samples refused (not finite, or older than the newest)
-
-    def __len__(self) -> int:
-        return len(self._stamps)
-
-    def add(self, stamp_ns: int, xyz: F64) -> bool:
-        """Keep one sample; False (ignored, counted) when it is not finite or not newer than the last."""
-        xyz = np.asarray(xyz, dtype=np.float64).reshape(3)
-        if not np.all(np.isfinite(xyz)) or (self._stamps and stamp_ns <= self._stamps[-1]):
-            self.ignored += 1
-            return False
-        self._stamps.append(int(stamp_ns))
-        self._xyz.append(xyz)
-        while self._stamps and self._stamps[-1] - self._stamps[0] > self.horizon_ns:
-            self._stamps.popleft()
-            self._xyz.popleft()
-        return True
-
-    def position_at(self, stamp_ns: int, timeout_ns: int) -> tuple[F64 | None, str]:
-        """The position at ``stamp_ns``: interpolated between the samples around it, extrapolated from the
-        last two when the newest is at most ``timeout_ns`` older; (None, reason) otherwise."""
-        stamps = self._stamps
-        if len(stamps) < 2:
-            return None, f"wheel odometry: {len(stamps)} message(s) received, need 2"
-        i = bisect.bisect_left(stamps, stamp_ns)
-        if i == 0:
-            if stamps[0] - stamp_ns > timeout_ns:
-                return None, f"wheel odometry starts {(stamps[0] - stamp_ns) * 1e-9:.2f} s after the image"
-            i = 1
-        elif i == len(stamps):
-            late = stamp_ns - stamps[-1]
-            if late > timeout_ns:
-                return None, f"wheel odometry stale: last message {late * 1e-9:.2f} s before the image"
-            i = len(stamps) - 1
-        elif stamps[i] - stamps[i - 1] > 2 * timeout_ns:
-            return None, f"wheel odometry gap of {(stamps[i] - stamps[i - 1]) * 1e-9:.2f} s around the image"
-        t0, t1 = stamps[i - 1], stamps[i]
-        a = (stamp_ns - t0) / (t1 - t0)
-        return self._xyz[i - 1] + a * (self._xyz[i] - self._xyz[i - 1]), ""
-
-
 class WheelOdometryScale(ScaleSource):
     """Metric scale from the distance the wheels travelled over the last keyframe steps.
 
@@ -577,6 +534,9 @@ class WheelOdometryScale(ScaleSource):
     def on_corrected(self, factor: float) -> None:
         for step in self._steps:
             step[2] *= factor
+
+    def status(self) -> ScaleStatus:
+        return dataclasses.replace(super().status(), wheel=self.wheel.counts)
 
     def anchor(self, step: KeyframeStep) -> WindowAnchor | None:
         if not self.established:

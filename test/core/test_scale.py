@@ -272,9 +272,9 @@ def test_scale_filter_shrugs_off_an_outlier() -> None:
 def test_wheel_odometry_interpolates_and_says_when_it_is_stale() -> None:
     w = sc.WheelOdometry()
     for i in range(11):  # 10 Hz, 1 m/s along x
-        assert w.add(i * 100_000_000, np.array([i * 0.1, 0.0, 0.0]))
-    assert not w.add(500_000_000, np.zeros(3))  # not newer: ignored
-    assert not w.add(2_000_000_000, np.array([np.nan, 0, 0]))
+        assert w.add(i * 100_000_000, np.array([i * 0.1, 0.0, 0.0])) is sc.WheelSample.USED
+    assert w.add(500_000_000, np.zeros(3)) is sc.WheelSample.OUT_OF_ORDER  # not newer: ignored
+    assert w.add(2_000_000_000, np.array([np.nan, 0, 0])) is sc.WheelSample.NON_FINITE
     assert w.ignored == 2
     p, why = w.position_at(250_000_000, 500_000_000)
     assert why == "" and p is not None and p[0] == pytest.approx(0.25)
@@ -282,6 +282,39 @@ def test_wheel_odometry_interpolates_and_says_when_it_is_stale() -> None:
     assert p is not None and p[0] == pytest.approx(1.2)
     p, why = w.position_at(2_000_000_000, 500_000_000)
     assert p is None and "stale" in why and "1.00 s" in why
+
+
+def test_wheel_messages_are_taken_in_arrival_order_and_every_dropped_one_is_counted() -> None:
+    """The one rule of both doors: a message stamped before one received earlier is dropped, whatever
+    its stamp would say if sorted; duplicates, non-finite positions and stamps that are no ROS time too."""
+    w = sc.WheelOdometry()
+    arrivals = [(0, 0.0), (100, 0.1), (200, 0.2), (50, 9.9), (300, 0.3), (300, 7.7), (None, 0.4),
+                (400, math.nan), (400, 0.4), (250, 9.9), (500, 0.5)]  # stamps in ms, x in m
+    verdicts = [w.add(None if t is None else t * 1_000_000, np.array([x, 0.0, 0.0])) for t, x in arrivals]
+    W = sc.WheelSample
+    assert verdicts == [W.USED, W.USED, W.USED, W.OUT_OF_ORDER, W.USED, W.DUPLICATE_STAMP, W.INVALID_STAMP,
+                        W.NON_FINITE, W.USED, W.OUT_OF_ORDER, W.USED]
+    assert w.counts == sc.WheelInputCounts(received=11, used=6, out_of_order=2, duplicate_stamp=1, non_finite=1,
+                                           invalid_stamp=1)
+    # The positions are those of the messages used only: 0.25 s lies between 0.2 m and 0.3 m.
+    p, why = w.position_at(250_000_000, 500_000_000)
+    assert why == "" and p is not None and p[0] == pytest.approx(0.25)
+    assert w.counts.text() == ("11 message(s) received, 6 used: 2 out of order (stamped before a message received "
+                               "earlier), 1 with a duplicate stamp, 1 with non-finite positions, 1 with a stamp "
+                               "that is no ROS time")
+
+
+def test_unusable_wheel_messages_are_reported_as_received_and_why() -> None:
+    w = sc.WheelOdometry()
+    for i in range(1027):
+        w.add(i * 20_000_000, np.full(3, np.nan))
+    p, why = w.position_at(1_000_000_000, 500_000_000)
+    assert p is None
+    assert why == "wheel odometry: 1027 message(s) received, 0 used: 1027 with non-finite positions; need 2 usable"
+    src = sc.WheelOdometryScale(w, 0.02, rel_sigma=0.03, timeout_s=0.5)
+    assert src.measure(sc.KeyframeStep(np.zeros((0, 3)), 0.1, 0, 1_000_000_000)) is None
+    assert src.reason.startswith("wheel odometry: 1027 message(s) received, 0 used: 1027 with non-finite")
+    assert src.status().wheel == sc.WheelInputCounts(received=1027, non_finite=1027)
 
 
 def test_wheel_scale_measures_distance_over_vo_step() -> None:
