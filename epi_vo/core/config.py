@@ -27,8 +27,8 @@ BA_SOLVERS = ("process", "inline")
 # keeps this tuple equal to NodeOptions' fields.
 NODE_PARAMETER_NAMES: tuple[str, ...] = (
     "frame_id", "child_frame_id", "map_frame_id", "camera_xyz", "camera_rpy", "image_transport", "qos_reliability",
-    "qos_depth", "queue_size", "process_every_frame", "publish_tf", "publish_debug_image", "path_max_length",
-    "watchdog_timeout_s", "camera_info_wait_s", "hardware_id", "tf_timeout_s",
+    "qos_depth", "queue_size", "process_every_frame", "queue_max_mb", "publish_tf", "publish_debug_image",
+    "path_max_length", "watchdog_timeout_s", "camera_info_wait_s", "hardware_id", "tf_timeout_s",
 )
 # Parameters every rclpy node declares or reads, also valid in a parameter file; ``qos_overrides`` (a
 # mapping, or dotted ``qos_overrides./topic...`` names) configures a node's QoS.

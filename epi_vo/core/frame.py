@@ -229,6 +229,8 @@ class FrameResult:
             "floor_pitch_deg": num(self.scale.floor_pitch_deg),
             "floor_roll_deg": num(self.scale.floor_roll_deg),
             "scale_reason": self.scale.reason,
+            # wheel_odometry: the messages received so far and why those not used were dropped
+            "wheel_messages": None if self.scale.wheel is None else self.scale.wheel.record(),
             "static_score": num(self.static_score),
             "n_moving": self.n_moving,
             "moving_fraction": num(self.moving_fraction),

@@ -75,7 +75,7 @@ class VoPipeline:
     @property
     def scale_status(self) -> sc.ScaleStatus:
         """The scale source's state now: source, metric or VO units, scale and its uncertainty."""
-        return self._state.scale.status()
+        return self._state.scale.status(self._state.wheel)
 
     def set_mounting(self, T_base_cam: F64) -> None:
         """The declared camera mounting, camera optical frame -> robot base (REP-103: base z up), from TF or
@@ -84,13 +84,13 @@ class VoPipeline:
         up_cam = np.asarray(T_base_cam, dtype=np.float64)[:3, :3].T @ np.array([0.0, 0.0, 1.0])
         self._state = dataclasses.replace(self._state, scale=self._state.scale.with_mounting_up(up_cam))
 
-    def add_wheel_odometry(self, stamp_ns: int, position_xyz: F64) -> bool:
-        """One wheel odometry position (any fixed odom frame, metres) at ``stamp_ns``, for the
-        ``wheel_odometry`` scale source; give them in stamp order as they arrive. False when the sample is
-        ignored (not finite, or not newer than the last one)."""
-        wheel, added = self._state.wheel.add(int(stamp_ns), np.asarray(position_xyz, dtype=np.float64))
+    def add_wheel_odometry(self, stamp_ns: int | None, position_xyz: F64) -> sc.WheelSample:
+        """One wheel odometry message (position in any fixed odom frame, metres; ``stamp_ns`` None: no ROS
+        time) for the ``wheel_odometry`` scale source, in the order messages arrived: which are used is
+        ``WheelOdometry.add``'s rule, the same for the node and the replay; the rest are counted."""
+        wheel, verdict = self._state.wheel.add(None if stamp_ns is None else int(stamp_ns), position_xyz)
         self._state = dataclasses.replace(self._state, wheel=wheel)
-        return added
+        return verdict
 
     def reset(self, reason: str = "reset requested") -> None:
         """Restart tracking from the current pose: the next frame becomes a new keyframe, no map; its record

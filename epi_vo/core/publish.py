@@ -123,7 +123,7 @@ def publish(state: TrackState, cfg: VoConfig, stamp_ns: int, tracking: TrackingS
         median_reproj_err_px=_finite_or_nan(o.median_reproj_err_px), relative_scale=_finite_or_nan(o.relative_scale),
         n_keyframes=state.n_keyframes, T_w_c=frozen(T_out), covariance=frozen(cov),
         points_w=frozen(points[np.all(np.isfinite(points), axis=1)]), timings_ms=timings, reason=render(notes),
-        notes=notes, matches=o.matches, scale=state.scale.status(), n_moving=o.n_moving,
+        notes=notes, matches=o.matches, scale=state.scale.status(state.wheel), n_moving=o.n_moving,
         moving_fraction=o.n_moving / n_tracked if n_tracked else 0.0, moving_region=o.moving_region,
         static_score=o.static_score, focal_ratio=_finite_or_nan(o.focal_ratio),
         track_noise_px=_finite_or_nan(o.track_noise_px), n_refined=o.n_refined,

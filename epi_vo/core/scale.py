@@ -40,7 +40,11 @@ from numpy.typing import NDArray
 
 from epi_vo.core.config import VoConfig
 from epi_vo.core.floor import LEVEL_UP, GroundPlane, find_floor
-from epi_vo.core.wheels import WheelOdometry
+
+# re-exported: callers name the wheel buffer through the scale stage
+from epi_vo.core.wheel_odometry import WheelInputCounts as WheelInputCounts
+from epi_vo.core.wheel_odometry import WheelOdometry as WheelOdometry
+from epi_vo.core.wheel_odometry import WheelSample as WheelSample
 
 F64 = NDArray[np.float64]
 
@@ -87,6 +91,7 @@ class ScaleStatus:
     floor_pitch_deg: float = math.nan
     floor_roll_deg: float = math.nan
     reason: str = ""
+    wheel: WheelInputCounts | None = None  # wheel_odometry: the messages received and what became of them
 
     @property
     def units(self) -> str:
@@ -235,7 +240,9 @@ class ScaleSource:
         """What happens to the scale while the source gives no measurement (for the reason)."""
         return "last scale held" if self.filter.established else "scale unknown (VO units)"
 
-    def status(self) -> ScaleStatus:
+    def status(self, wheel: WheelOdometry | None = None) -> ScaleStatus:
+        """What the records say about scale; ``wheel``: the wheel odometry buffer (``wheel_odometry`` reports
+        what became of its messages)."""
         plane = self.plane
         return ScaleStatus(self.name, self.established, self.filter.total, self.rel_std,
                            plane.pitch_deg if plane is not None else math.nan,
@@ -402,6 +409,10 @@ class WheelOdometryScale(ScaleSource):
 
     def on_corrected(self, factor: float) -> Self:
         return dataclasses.replace(self, steps=tuple((a, b, length * factor) for a, b, length in self.steps))
+
+    def status(self, wheel: WheelOdometry | None = None) -> ScaleStatus:
+        status = super().status(wheel)
+        return status if wheel is None else dataclasses.replace(status, wheel=wheel.counts)
 
     def anchor(self, step: KeyframeStep, wheel: WheelOdometry) -> WindowAnchor | None:
         if not self.established:

@@ -23,7 +23,7 @@ from epi_vo.core.keyframe import Keyframe
 from epi_vo.core.map_scale import DirectionOffset, MapScaleCovariance
 from epi_vo.core.motion import MotionMemory
 from epi_vo.core.patches import PatchTemplates, patch_templates
-from epi_vo.core.wheels import WheelOdometry
+from epi_vo.core.wheel_odometry import WheelOdometry
 from epi_vo.core.window import WindowedMap
 
 F64 = NDArray[np.float64]

@@ -12,7 +12,11 @@ an image stamp; the VO must still run on those images. :class:`CameraInfoAssocia
 - before any camera_info was received, holds up to ``startup_pending`` images whatever their stamps:
   a subscriber that matched the image publisher a few milliseconds before the camera_info one loses
   the first camera_info messages, not the calibration (a node started with a bag played as fast as
-  possible lost four; those frames were rejected and the run differed from the offline replay).
+  possible lost four; those frames were rejected and the run differed from the offline replay);
+- on the receiver's clock too (:meth:`CameraInfoAssociator.expire`, with the arrival time given to
+  :meth:`add_image`): an image held ``max_wait_s`` (``no_info_wait_s`` while no camera_info has been
+  received at all) is released as above. Stamps alone never release the last images of a stream, nor
+  any image when camera_info never comes: those would wait for ever and never get a status.
 
 Every image added comes out exactly once (nothing silently vanishes), always in arrival order: an
 image whose camera_info is already there still waits behind older images that are waiting for theirs.
@@ -21,7 +25,8 @@ the node warns once; images released with ``info=None`` (no camera_info received
 it, the node reports them on their own.
 
 Stamps are integer nanoseconds (``sec * 10**9 + nanosec``); waiting is measured in image stamps,
-not wall time, so the same inputs give the same outputs in a replay and live.
+not wall time, so the same inputs give the same outputs in a replay and live; the clock bound only
+releases what stamps would hold for ever (or longer than the bound).
 """
 
 from __future__ import annotations
@@ -47,6 +52,8 @@ class Ready:
     info: Any | None
     exact: bool
     first_mismatch: bool
+    arrived_s: float | None = None  # the receiver's clock when the image arrived (``add_image``'s now_s)
+    nbytes: int = 0  # the image's size as given to ``add_image``
 
 
 @dataclass
@@ -55,6 +62,8 @@ class _Waiting:
 
     stamp_ns: int
     image: Any
+    arrived_s: float | None = None
+    nbytes: int = 0
     resolved: bool = False
     info: Any | None = None
     exact: bool = False
@@ -66,12 +75,18 @@ class CameraInfoAssociator:
     ``max_pending``: images held waiting for their camera_info (0: never wait). ``max_wait_ns``: an
     image is given up on once a newer image is stamped more than this after it. ``cache_size``:
     camera_info messages kept, by arrival (the oldest received is dropped first). ``startup_pending``:
-    images held, whatever their stamps, while no camera_info has been received at all.
+    images held, whatever their stamps, while no camera_info has been received at all. ``max_wait_s`` /
+    ``no_info_wait_s``: how long :meth:`expire` lets an image wait on the receiver's clock once a
+    camera_info has been received / before any (None: no bound).
     """
 
     def __init__(self, max_pending: int = 2, max_wait_ns: int = 200_000_000, cache_size: int = 50,
-                 startup_pending: int = 0) -> None:
+                 startup_pending: int = 0, max_wait_s: float | None = None,
+                 no_info_wait_s: float | None = None) -> None:
         problems = []
+        for name, wait in (("max_wait_s", max_wait_s), ("no_info_wait_s", no_info_wait_s)):
+            if wait is not None and not wait >= 0:
+                problems.append(f"{name} must be >= 0, got {wait}")
         if max_pending < 0:
             problems.append(f"max_pending must be >= 0, got {max_pending}")
         if startup_pending < 0:
@@ -86,6 +101,8 @@ class CameraInfoAssociator:
         self.startup_pending = startup_pending
         self.max_wait_ns = max_wait_ns
         self.cache_size = cache_size
+        self.max_wait_s = max_wait_s
+        self.no_info_wait_s = no_info_wait_s
         self._infos: OrderedDict[int, Any] = OrderedDict()  # stamp -> info, oldest received first
         self._queue: deque[_Waiting] = deque()  # images in arrival order, not yet released
         self._newest_image_stamp_ns: int | None = None
@@ -108,10 +125,11 @@ class CameraInfoAssociator:
                 self._resolve(waiting, info, exact=True)
         return self._give_up()  # images held before any camera_info now wait as usual
 
-    def add_image(self, stamp_ns: int, image: Any) -> list[Ready]:
-        """Queue ``image``; return every image released now (this one included if it is), in arrival order."""
+    def add_image(self, stamp_ns: int, image: Any, now_s: float | None = None, nbytes: int = 0) -> list[Ready]:
+        """Queue ``image`` (arrived at ``now_s`` on the receiver's clock, ``nbytes`` large); return every
+        image released now (this one included if it is), in arrival order."""
         stamp_ns = int(stamp_ns)
-        waiting = _Waiting(stamp_ns, image)
+        waiting = _Waiting(stamp_ns, image, now_s, nbytes)
         if stamp_ns in self._infos:
             self._resolve(waiting, self._infos[stamp_ns], exact=True)
         self._queue.append(waiting)
@@ -132,6 +150,21 @@ class CameraInfoAssociator:
             self._resolve_inexact(self._queue[0])
             released += self._drain()
         return released
+
+    def expire(self, now_s: float) -> list[Ready]:
+        """Release, in arrival order, what can go once every image that arrived ``max_wait_s`` (before any
+        camera_info: ``no_info_wait_s``) or longer before ``now_s`` is given up on (best inexact info)."""
+        wait = self.max_wait_s if self._infos else self.no_info_wait_s
+        if wait is not None:
+            for waiting in self._queue:
+                if not waiting.resolved and waiting.arrived_s is not None and now_s - waiting.arrived_s >= wait:
+                    self._resolve_inexact(waiting)
+        return self._drain()
+
+    @property
+    def pending_bytes(self) -> int:
+        """The sizes (``add_image``'s nbytes) of the images held."""
+        return sum(w.nbytes for w in self._queue)
 
     def flush(self) -> list[Ready]:
         """Release every held image (end of stream, shutdown), inexact ones with the best camera_info."""
@@ -163,5 +196,5 @@ class CameraInfoAssociator:
             # Flagged on release, not on resolution, so that it is the first such image in arrival order.
             first_mismatch = not w.exact and w.info is not None and not self._mismatch_reported
             self._mismatch_reported |= first_mismatch
-            released.append(Ready(w.stamp_ns, w.image, w.info, w.exact, first_mismatch))
+            released.append(Ready(w.stamp_ns, w.image, w.info, w.exact, first_mismatch, w.arrived_s, w.nbytes))
         return released

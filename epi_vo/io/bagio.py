@@ -30,6 +30,7 @@ from epi_vo.core.errors import BagError, EpiVoError
 from epi_vo.core.frame import clamp_stamp_ns
 from epi_vo.io.msgconv import (
     decode_frame,
+    odometry_position,
     stamp_problem,
     stamp_to_ns,
 )
@@ -397,28 +398,23 @@ class CameraBag:
             )
 
     def read_wheel_odometry(self) -> WheelOdometrySamples | None:
-        """Positions of the wheel odometry topic (base in its odom frame) sorted by header stamp, or None
+        """Positions of the wheel odometry topic (base in its odom frame) in the bag's order, which is the
+        order they arrived in (the pipeline takes them so: ``epi_vo.core.scale.WheelOdometry``), or None
         when no wheel topic was chosen. Undecodable messages are skipped and listed in ``problems``."""
         if self.wheel_topic is None:
             return None
         stamps_ns: list[int] = []
-        positions: list[tuple[float, float, float]] = []
+        positions: list[np.ndarray] = []
         for log_time_ns, msg, problem in self._read(self.wheel_topic):
             if msg is None:
                 self._skipped(f"wheel odometry message on {self.wheel_topic} at log time {log_time_ns} ns skipped: "
                               f"it {problem}")
                 continue
-            try:
-                stamps_ns.append(stamp_to_ns(msg.header.stamp))
-            except EpiVoError as err:
-                self._skipped(f"wheel odometry message on {self.wheel_topic} at log time {log_time_ns} ns "
-                              f"skipped: {err}")
-                continue
-            p = msg.pose.pose.position
-            positions.append((p.x, p.y, p.z))
-        order = np.argsort(np.asarray(stamps_ns, dtype=np.int64), kind="stable")
-        return WheelOdometrySamples(self.wheel_topic, np.asarray(stamps_ns, dtype=np.int64)[order],
-                                    np.asarray(positions, dtype=np.float64).reshape(-1, 3)[order])
+            stamp_ns, xyz = odometry_position(msg)
+            stamps_ns.append(NO_STAMP if stamp_ns is None else stamp_ns)
+            positions.append(xyz)
+        return WheelOdometrySamples(self.wheel_topic, np.asarray(stamps_ns, dtype=np.int64),
+                                    np.asarray(positions, dtype=np.float64).reshape(-1, 3))
 
     def read_ground_truth(self) -> GroundTruth | None:
         """Poses of the ground-truth topic sorted by header stamp, or None when the bag has none."""
@@ -538,8 +534,11 @@ def open_camera_bag(
     return bag
 
 
+NO_STAMP = -1  # a wheel message's header stamp that is no ROS time (WheelOdometrySamples.stamps_ns)
+
+
 class WheelOdometrySamples(NamedTuple):
-    """Wheel odometry positions by header stamp (sorted)."""
+    """Wheel odometry positions and header stamps (``NO_STAMP``: no ROS time), in the bag's order."""
 
     topic: str
     stamps_ns: NDArray[np.int64]

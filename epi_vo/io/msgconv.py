@@ -238,6 +238,20 @@ def stamp_problem(stamp: Any) -> str | None:
     return None
 
 
+def odometry_position(msg: Any) -> tuple[int | None, NDArray[np.float64]]:
+    """A nav_msgs/Odometry message as the wheel odometry buffer takes it (``epi_vo.core.scale.WheelOdometry``,
+    the same for the node and the replay): its header stamp in ns, None when that is no valid ROS time, and
+    its pose's position (NaN where a field is not a number). Never raises on a message's values."""
+    stamp = msg.header.stamp
+    stamp_ns = None if stamp_problem(stamp) is not None else stamp_to_ns(stamp)
+    p = msg.pose.pose.position
+    try:
+        xyz = np.array([float(p.x), float(p.y), float(p.z)], dtype=np.float64)
+    except (TypeError, ValueError):
+        xyz = np.full(3, np.nan)
+    return stamp_ns, xyz
+
+
 def ns_to_ros_time(stamp_ns: int) -> tuple[int, int]:
     """(sec, nanosec) of a stamp in integer nanoseconds; ValueError unless 0 <= stamp_ns <= ROS_TIME_MAX_NS."""
     stamp_ns = int(stamp_ns)

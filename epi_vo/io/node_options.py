@@ -40,6 +40,7 @@ class NodeOptions:
     qos_depth: int = 5
     queue_size: int = 2
     process_every_frame: bool = False
+    queue_max_mb: float = 256.0
     publish_tf: bool = True
     publish_debug_image: bool = False
     path_max_length: int = 1000
@@ -67,12 +68,16 @@ NODE_DOCS: dict[str, str] = {
     "qos_reliability": "input QoS reliability: 'best_effort' (sensor data) or 'reliable'",
     "qos_depth": "input QoS history depth",
     "queue_size": "frames waiting for processing in live mode; older ones are dropped and counted",
-    "process_every_frame": "never drop frames (bag playback); the queue grows instead",
+    "process_every_frame": "keep every frame (bag playback): the queue grows instead of dropping, up to "
+                           "queue_max_mb",
+    "queue_max_mb": "memory the frames waiting for processing may take, in either mode (MB of received images); "
+                    "beyond it the oldest waiting frame is dropped, counted and reported (diagnostics WARN)",
     "publish_tf": "broadcast frame_id -> child_frame_id on /tf (needs tf2_ros)",
     "publish_debug_image": "publish vo/debug_image with tracks, inliers and epipolar lines",
     "path_max_length": "poses kept in vo/path",
     "watchdog_timeout_s": "no image for this long: diagnostics WARN (3x: STALE)",
-    "camera_info_wait_s": "how long an image waits for its camera_info before the latest one is used",
+    "camera_info_wait_s": "how long an image waits for its camera_info (s, in image stamps or on the node's "
+                          "clock) before the nearest earlier one is used",
     "hardware_id": "hardware_id of the diagnostics statuses ('': the image's header.frame_id)",
 }
 NODE_CHOICES: dict[str, tuple[str, ...]] = {"image_transport": IMAGE_TRANSPORTS,
@@ -80,7 +85,7 @@ NODE_CHOICES: dict[str, tuple[str, ...]] = {"image_transport": IMAGE_TRANSPORTS,
 NODE_OPTION_NAMES: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(NodeOptions))
 
 # Node options that may change while the node runs (applied at once); every other one is read-only.
-RUNTIME_OPTIONS: tuple[str, ...] = ("queue_size", "process_every_frame", "watchdog_timeout_s")
+RUNTIME_OPTIONS: tuple[str, ...] = ("queue_size", "process_every_frame", "queue_max_mb", "watchdog_timeout_s")
 # Pipeline knobs that decide a subscription (wheel odometry): read-only too. The other knobs may change
 # while the node runs; they are applied at the next frame.
 RESTART_PIPELINE_KNOBS: tuple[str, ...] = ("scale_source", "wheel_odometry_topic")
@@ -92,6 +97,19 @@ def is_read_only(name: str) -> bool:
     if name in NODE_OPTION_NAMES:
         return name not in RUNTIME_OPTIONS
     return name in RESTART_PIPELINE_KNOBS
+
+
+def frame_name_problem(name: object) -> str | None:
+    """Why ``name`` cannot be a TF frame id, or None. tf2's own rules (not empty, no leading '/': tf2 refuses
+    such ids in every lookup), and no whitespace or control character, which no frame id has and which
+    RViz and the tf2 tools cannot name."""
+    if not isinstance(name, str) or not name:
+        return "empty" if name == "" else "not a string"
+    if name.startswith("/"):
+        return "tf2 frame ids must not start with '/'"
+    if any(c.isspace() or not c.isprintable() for c in name):
+        return "whitespace or a control character"
+    return None
 
 
 def node_option_problems(values: dict[str, Any]) -> list[str]:
@@ -118,7 +136,7 @@ def node_option_problems(values: dict[str, Any]) -> list[str]:
         v = values.get(name)
         if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
             problems.append(f"{name}={v!r} (an integer, minimum 1)")
-    for name in ("watchdog_timeout_s", "camera_info_wait_s"):
+    for name in ("watchdog_timeout_s", "camera_info_wait_s", "queue_max_mb"):
         v = values.get(name)
         if v is not None and (isinstance(v, bool) or not isinstance(v, int | float) or not (math.isfinite(v)
                                                                                            and v > 0)):
@@ -129,12 +147,12 @@ def node_option_problems(values: dict[str, Any]) -> list[str]:
         problems.append(f"tf_timeout_s={v!r} (0 to 3600 s)")
     for name in ("frame_id", "child_frame_id"):
         v = values.get(name)
-        if v is not None and (not isinstance(v, str) or not v.strip()):
-            problems.append(f"{name}={v!r} (a frame name)")
+        if v is not None and (why := frame_name_problem(v)) is not None:
+            problems.append(f"{name}={v!r} (not a frame name: {why})")
     v = values.get("map_frame_id")
     if v is not None and v != "":
-        if not isinstance(v, str) or not v.strip() or v != v.strip():
-            problems.append(f"map_frame_id={v!r} ('' or a frame name)")
+        if (why := frame_name_problem(v)) is not None:
+            problems.append(f"map_frame_id={v!r} ('' or a frame name: {why})")
         elif v in (values.get("frame_id", NodeOptions.frame_id),
                    values.get("child_frame_id", NodeOptions.child_frame_id)):
             problems.append(f"map_frame_id={v!r} (must differ from frame_id and child_frame_id)")

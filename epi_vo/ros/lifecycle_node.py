@@ -13,6 +13,8 @@ cleanup ends it. What each state means here:
   ``success: false``), the state stays unconfigured, and the reason, naming every bad parameter, is
   logged at ERROR and put in the summary. A parameter that is not read-only can be fixed with
   ``set_parameters`` while unconfigured (nothing is checked until configure) and configure tried again.
+  A configure that fails after the checks (rcl refuses something the session makes) undoes what it made:
+  failed configures leave no subscription, publisher or timer behind, and say why in the same way.
   Then the session is made: pipeline, subscriptions, *lifecycle* publishers (silent until activate),
   ``vo/reset``, watchdog: the node is **inactive**.
 * **inactive**: images that arrive are counted and ignored (the summary says how many); nothing is
@@ -103,20 +105,29 @@ class VoLifecycleNode(VoNodeBase, LifecycleNode):
         try:
             cfg, opts = declare_all(self)
         except ConfigError as exc:
-            self._configure_error = str(exc)
-            self.get_logger().error(f"configure failed, the node stays unconfigured: {exc}")
-            return TransitionCallbackReturn.FAILURE
+            return self._configure_failed(str(exc))
         if not self._configurations:
             warn_undeclared_overrides(self)
         self.get_logger().info(effective_parameters_text(cfg, opts))
         announce = NEW_MAP_AFTER_CLEANUP if self._configurations else ""
-        self._start_session(cfg, opts, self._tf_lookup, active=False, announce=announce)
+        try:
+            self._start_session(cfg, opts, self._tf_lookup, active=False, announce=announce)
+        except Exception as exc:  # rcl refused something the session makes (or a defect): undo what it made
+            self._stop_session(timeout_s=2.0)
+            return self._configure_failed(f"the session could not be started: {type(exc).__name__}: {exc}")
         self._session = True
         self._configurations += 1
         self._configure_error = ""
         self._state = "inactive"
         self.get_logger().info("configured (inactive): activate to track")
         return super().on_configure(state)
+
+    def _configure_failed(self, reason: str) -> TransitionCallbackReturn:
+        """The node stays unconfigured, as before the attempt; the reason (one line) is logged and in the
+        summary (ERROR) until a configure succeeds."""
+        self._configure_error = " ".join(reason.split())
+        self.get_logger().error(f"configure failed, the node stays unconfigured: {self._configure_error}")
+        return TransitionCallbackReturn.FAILURE
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         result = super().on_activate(state)  # the publishers first, then the frames

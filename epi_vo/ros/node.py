@@ -36,8 +36,7 @@ import time
 from typing import Any
 
 import numpy as np
-from builtin_interfaces.msg import Time
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry, Path
 from rcl_interfaces.msg import SetParametersResult
@@ -53,15 +52,17 @@ from epi_vo.core.camera import CameraModelCache
 from epi_vo.core.config import VoConfig, live_advice
 from epi_vo.core.debug_image import draw_matches
 from epi_vo.core.decisions import Decision
-from epi_vo.core.diagnostics import DiagnosticLevel, DiagnosticStatusRecord
+from epi_vo.core.diagnostics import DiagnosticStatusRecord
 from epi_vo.core.errors import CameraModelError, EpiVoError
 from epi_vo.core.frame import FrameResult
 from epi_vo.core.odometry import OdometryConverter, T_base_cam_from_params, status_pose
-from epi_vo.core.status import frame_status, summary_status
-from epi_vo.core.transforms import invert_T, rotation_angle_deg
+from epi_vo.core.status import frame_status
+from epi_vo.core.transforms import invert_T
 from epi_vo.io import msgconv
-from epi_vo.io.association import CameraInfoAssociator, Ready
+from epi_vo.io.association import Ready
+from epi_vo.io.frame_queue import NO_CAMERA_INFO_WAIT_S, FrameQueue
 from epi_vo.io.node_options import NodeOptions, changed_names
+from epi_vo.ros.node_diagnostics import NodeDiagnostics
 from epi_vo.ros.node_params import check_change, declare_all, effective_parameters_text, warn_undeclared_overrides
 from epi_vo.ros.node_run import bgr_image_msg, point_cloud_msg, run_node, stamp_msg, transform_msg
 from epi_vo.ros.node_tf import Extrinsic, ExtrinsicResolver, TransformLookup, make_tf2_lookup, make_tf_broadcaster
@@ -70,9 +71,12 @@ from epi_vo.runner import make_pipeline
 __all__ = ["NodeOptions", "VoNode", "main"]
 
 RAW_TOPIC, COMPRESSED_TOPIC = "camera/image_raw", "camera/image_raw/compressed"
+# Wheel messages waiting for the worker, which takes them at every frame and whenever woken: reached only
+# when it is stuck in one frame (100 s at 100 Hz); the oldest half is then dropped and counted.
+WHEEL_PENDING_MAX = 10000
 
 
-class VoNodeBase:
+class VoNodeBase(NodeDiagnostics):
     """The VO wiring shared by ``vo_node`` (:class:`VoNode`) and ``vo_lifecycle_node``
     (``epi_vo.ros.lifecycle_node``): mixed into an rclpy Node (it calls the node's own methods).
 
@@ -89,6 +93,7 @@ class VoNodeBase:
         self.cfg, self.opts = cfg, opts
         self._cfg_wanted = self.cfg  # the latest accepted config; the worker applies it at the next frame
         self._entities_before = self._entities()
+        self._worker: threading.Thread | None = None
         self._status_name = self.get_fully_qualified_name()
         self._pipeline = make_pipeline(self.cfg)
         for advice in live_advice(self.cfg):
@@ -101,24 +106,25 @@ class VoNodeBase:
             f"camera_xyz={list(self.opts.camera_xyz)} camera_rpy={list(self.opts.camera_rpy)} parameters")
         self._extrinsic: Extrinsic | None = None
         self._waiting = ""  # what the worker waits for before the first frame ('' when nothing)
-        self._assoc = self._new_associator()
-        self._lock = threading.Lock()  # guards the association, the queue and the counters
+        self._frames = FrameQueue(max_frames=self._max_frames(opts), max_bytes=self._max_bytes(opts),
+                                  camera_info_wait_s=opts.camera_info_wait_s, no_info_wait_s=NO_CAMERA_INFO_WAIT_S)
+        self._overflow_reported = 0  # the frame queue's overflow count at the last summary
+        self._lock = threading.Lock()  # guards the frame queue, the wheel messages and the counters
         self._cv = threading.Condition(self._lock)
-        self._queue: collections.deque[Ready] = collections.deque()
         self._reset_reason = ""  # a restart asked for (vo/reset, a re-activation), done by the worker
         self._running = True
         self._active = active  # images are processed only while active (always, in vo_node)
         self._busy = False  # the worker is processing a frame
         self._ahead: tuple[Ready, Any] | None = None  # the next queued frame and its image, decoded ahead
-        self._n_received = self._n_dropped = self._n_processed = self._n_ignored = 0
-        self._arrivals: collections.deque[float] = collections.deque(maxlen=30)
-        self._last_image_wall: float | None = None  # steady clock (time.monotonic) of the last image
+        self._n_processed = self._n_ignored = 0
         self._path: collections.deque[PoseStamped] = collections.deque(maxlen=self.opts.path_max_length)
         self._path_published = 0.0
-        self._arrival: dict[int, float] = {}  # image stamp -> monotonic arrival time, for the latency figure
+        self._arrived_s: float | None = None  # steady clock arrival of the frame in flight (latency figure)
         self._last_latency_ms = math.nan
         self._cameras = CameraModelCache()
-        self._wheel_pending: list[tuple[int, np.ndarray]] = []  # handed to the pipeline by the worker
+        # Wheel messages (stamp or None, position) in arrival order, handed to the pipeline by the worker
+        self._wheel_pending: list[tuple[int | None, np.ndarray]] = []
+        self._wheel_received = self._wheel_lost = 0  # wheel messages, and those the worker never took (stalled)
         self._camera_frame = ""  # header.frame_id of the first image
         self._last_frame_status: DiagnosticStatusRecord | None = None
         # After a runtime change the pipeline is a new one, anchored at the pose the old one had reached.
@@ -170,9 +176,13 @@ class VoNodeBase:
         self._worker = threading.Thread(target=self._work, name="vo_worker", daemon=True)
         self._worker.start()
 
-    def _new_associator(self) -> CameraInfoAssociator:
-        return CameraInfoAssociator(max_pending=5, max_wait_ns=int(self.opts.camera_info_wait_s * 1e9),
-                                    startup_pending=30)
+    @staticmethod
+    def _max_frames(opts: NodeOptions) -> int | None:
+        return None if opts.process_every_frame else opts.queue_size
+
+    @staticmethod
+    def _max_bytes(opts: NodeOptions) -> int:
+        return int(opts.queue_max_mb * 1e6)
 
     def _create_output_publisher(self, msg_type: Any, topic: str, depth: int) -> Any:
         """A publisher of the VO outputs (odometry, points, path, debug image): a plain one here, a lifecycle
@@ -190,12 +200,15 @@ class VoNodeBase:
         with self._cv:
             self._running = False
             self._cv.notify_all()
-        self._worker.join(timeout=timeout_s)
+        if self._worker is not None:
+            self._worker.join(timeout=timeout_s)
 
     def _stop_session(self, timeout_s: float = 10.0) -> None:
         """Stop the worker (bounded wait for a frame in flight) and destroy what the session made (its
-        subscriptions, publishers, service, timers, the TF listener's): the node is as before the session."""
-        self._stop_worker(timeout_s)
+        subscriptions, publishers, service, timers, the TF listener's): the node is as before the session.
+        Also undoes a session whose start failed half-way (nothing it made is left behind)."""
+        if self._worker is not None:
+            self._stop_worker(timeout_s)
         now, before = self._entities(), self._entities_before
         for sub in now["subscriptions"] - before["subscriptions"]:
             self.destroy_subscription(sub)
@@ -211,10 +224,8 @@ class VoNodeBase:
         is finished (bounded wait), so nothing is published after this returns. The frames dropped."""
         with self._cv:
             self._active = False
-            dropped = len(self._queue)
-            self._queue.clear()
-            self._n_ignored += dropped + self._assoc.pending
-            self._assoc = self._new_associator()  # images waiting for their camera_info are dropped too
+            dropped = len(self._frames)
+            self._n_ignored += self._frames.clear()  # images waiting for their camera_info are dropped too
             deadline = time.monotonic() + timeout_s
             while self._busy and time.monotonic() < deadline:
                 self._cv.wait(timeout=0.05)
@@ -234,6 +245,7 @@ class VoNodeBase:
             result, cfg, opts = check_change(self._cfg_wanted, self.opts, parameters)
             if result.successful:
                 self._cfg_wanted, self.opts = cfg, opts
+                self._frames.set_limits(self._max_frames(opts), self._max_bytes(opts))
         if result.successful:
             names = ", ".join(f"{p.name}={p.value!r}" for p in parameters)
             self.get_logger().info(f"parameters accepted: {names} (pipeline knobs apply at the next frame)")
@@ -254,14 +266,8 @@ class VoNodeBase:
         with self._cv:
             if not self._camera_frame:
                 self._camera_frame = msg.header.frame_id
-            self._n_received += 1
-            now = time.monotonic()
-            self._arrivals.append(now)
-            self._last_image_wall = now
-            if len(self._arrival) > 1000:  # frames dropped or never paired must not grow this
-                self._arrival.clear()
-            self._arrival[stamp] = now
-            self._enqueue(self._assoc.add_image(stamp, msg))
+            if self._frames.add_image(stamp, msg, len(msg.data), time.monotonic()):
+                self._cv.notify()
 
     def _choose_transport(self, transport: str) -> bool:
         """image_transport auto: the first transport to deliver is kept, the other subscription dropped."""
@@ -280,30 +286,21 @@ class VoNodeBase:
         if not self._active:  # not listening (managed node): the association starts afresh at activation
             return
         with self._cv:
-            self._enqueue(self._assoc.add_info(msgconv.stamp_to_ns(msg.header.stamp), msg))
+            if self._frames.add_info(msgconv.stamp_to_ns(msg.header.stamp), msg):
+                self._cv.notify()
 
     def _on_wheel_odometry(self, msg: Odometry) -> None:
+        """Queued in arrival order for the worker, which hands them to the pipeline: which are used, and
+        why the others are not, is the pipeline's rule (``WheelOdometry.add``), the same as the replay's."""
         if not self._active:
             return
-        problem = msgconv.stamp_problem(msg.header.stamp)
-        if problem is not None:
-            self.get_logger().warning(f"wheel odometry message ignored: {problem}", throttle_duration_sec=5.0)
-            return
-        p = msg.pose.pose.position
+        sample = msgconv.odometry_position(msg)
         with self._cv:
-            self._wheel_pending.append((msgconv.stamp_to_ns(msg.header.stamp), np.array([p.x, p.y, p.z])))
-            if len(self._wheel_pending) > 10000:  # the worker is stalled: keep the newest
-                del self._wheel_pending[:5000]
-
-    def _enqueue(self, ready: list[Ready]) -> None:
-        """Called with the lock held. Live mode keeps only the newest ``queue_size`` frames."""
-        for r in ready:
-            self._queue.append(r)
-            if not self.opts.process_every_frame:
-                while len(self._queue) > self.opts.queue_size:
-                    self._queue.popleft()
-                    self._n_dropped += 1
-        if ready:
+            self._wheel_received += 1
+            self._wheel_pending.append(sample)
+            if len(self._wheel_pending) > WHEEL_PENDING_MAX:  # the worker is stalled: keep the newest
+                self._wheel_lost += len(self._wheel_pending) - WHEEL_PENDING_MAX // 2
+                del self._wheel_pending[:-(WHEEL_PENDING_MAX // 2)]
             self._cv.notify()
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -317,27 +314,28 @@ class VoNodeBase:
     def _work(self) -> None:
         while True:
             with self._cv:
-                while self._running and not self._queue:
+                while self._running and not len(self._frames) and not self._wheel_pending:
                     self._cv.wait(timeout=0.2)
                 if not self._running:
                     return
-                if self._extrinsic is None:
-                    # Before the first frame: the camera extrinsic (TF or parameters); the frame waits.
-                    first_frame_id = self._queue[0].image.header.frame_id
-                    item = None
-                else:
-                    item = self._queue.popleft()
+                wheel, self._wheel_pending = self._wheel_pending, []
+                head, item = self._frames.peek(), None
+                # Before the first frame: the camera extrinsic (TF or parameters); the frame waits.
+                if head is not None and self._extrinsic is not None:
+                    item = self._frames.pop()
                     self._busy = True
                     reset, self._reset_reason = self._reset_reason, ""
-                    wheel, self._wheel_pending = self._wheel_pending, []
                     wanted = self._cfg_wanted
-            if item is None:
-                self._resolve_extrinsic(first_frame_id)
-                continue
-            if wanted is not self.cfg:
+            if item is not None and wanted is not self.cfg:
                 self._apply_config(wanted)
             for stamp_ns, xyz in wheel:  # the pipeline is only touched by this thread
                 self._pipeline.add_wheel_odometry(stamp_ns, xyz)
+            if head is None:
+                continue
+            if item is None:
+                self._resolve_extrinsic(head.image.header.frame_id)
+                continue
+            self._arrived_s = item.arrived_s
             if reset:
                 self._pipeline.reset(reset)
             try:
@@ -423,7 +421,7 @@ class VoNodeBase:
         if not self.opts.process_every_frame:
             return
         with self._lock:
-            nxt = self._queue[0] if self._queue else None
+            nxt = self._frames.peek()
         if nxt is None or nxt.info is None or msgconv.stamp_problem(nxt.image.header.stamp) is not None:
             return
         try:
@@ -491,10 +489,8 @@ class VoNodeBase:
         ang.x, ang.y, ang.z = (float(v) for v in s.angular_velocity)
         odom.twist.covariance = [float(v) for v in s.twist_covariance.ravel()]
         self._pub_odom.publish(odom)
-        with self._lock:
-            arrived = self._arrival.pop(r.stamp_ns, None)
-        if arrived is not None:
-            self._last_latency_ms = (time.monotonic() - arrived) * 1e3
+        if self._arrived_s is not None:
+            self._last_latency_ms = (time.monotonic() - self._arrived_s) * 1e3
         if r.has_pose:
             ps = PoseStamped()
             ps.header = odom.header
@@ -520,105 +516,6 @@ class VoNodeBase:
         self._publish_status(self._frame_status(r), self._diagnostics_stamp())
         if self._pub_debug is not None and gray is not None:
             self._pub_debug.publish(bgr_image_msg(odom.header, draw_matches(r, gray)))
-
-    def _input_values(self) -> tuple[tuple[str, str], ...]:
-        with self._lock:
-            arrivals = list(self._arrivals)
-            dropped, received, queued = self._n_dropped, self._n_received, len(self._queue)
-            last = self._last_image_wall
-        now = time.monotonic()
-        rate = (len(arrivals) - 1) / (arrivals[-1] - arrivals[0]) if len(arrivals) > 1 and \
-            arrivals[-1] > arrivals[0] else 0.0
-        since = now - last if last is not None else math.inf
-        if since > 0.0:
-            rate = min(rate, 1.0 / since)  # a stalled camera's rate decays instead of freezing
-        return (("input_rate_hz", f"{rate:.2f}"), ("latency_ms", f"{self._last_latency_ms:.2f}"),
-                ("frames_received", str(received)),
-                ("dropped_frames", str(dropped)), ("queue_depth", str(queued)),
-                ("time_since_last_image_s", f"{since:.3f}" if math.isfinite(since) else "never"))
-
-    def _diagnostics_stamp(self) -> Time:
-        """The node's clock now: the one time base of all of vo_node's diagnostics (a frame's image stamp
-        is in its values), as diagnostic_updater stamps them."""
-        return self.get_clock().now().to_msg()
-
-    def _publish_status(self, status: DiagnosticStatusRecord, stamp_msg: Time) -> None:
-        """One status with the input figures, in a DiagnosticArray stamped ``stamp_msg``."""
-        arr = DiagnosticArray()
-        arr.header.stamp = stamp_msg
-        msg = DiagnosticStatus(level=bytes([int(status.level)]), name=status.name, message=status.message,
-                               hardware_id=status.hardware_id)
-        msg.values = [KeyValue(key=k, value=v) for k, v in status.values + self._input_values()]
-        arr.status = [msg]
-        self._pub_diag.publish(arr)
-
-    def _waiting_for_images(self) -> str:
-        """'camera/image_raw or .../compressed': the image topics still subscribed, for the stall message."""
-        return " or ".join(self._image_topics[k] for k in ("raw", "compressed") if k in self._image_subs)
-
-    def _stall(self) -> tuple[DiagnosticLevel, str] | None:
-        """The watchdog's verdict on the steady clock: None while images come in time."""
-        with self._lock:
-            last = self._last_image_wall
-        silent = math.inf if last is None else time.monotonic() - last
-        timeout = self.opts.watchdog_timeout_s
-        if silent < timeout:
-            return None
-        level = DiagnosticLevel.STALE if silent >= 3 * timeout else DiagnosticLevel.WARN
-        what = f"no image received yet on {self._waiting_for_images()}" if last is None \
-            else f"no image for {silent:.1f} s on {self._waiting_for_images()}"
-        return level, f"stalled: {what}"
-
-    def _watchdog(self) -> None:
-        if not self._active:  # not taking images on purpose: the summary says so
-            return
-        stall = self._stall()
-        if stall is not None:
-            self._publish_status(DiagnosticStatusRecord(stall[0], f"{self._status_name}: tracking", stall[1],
-                                                        self._hardware_id()), self._diagnostics_stamp())
-
-    def _publish_summary(self) -> None:
-        """Once a second, as diagnostic_updater would: the worst of waiting / stalled / the last frame."""
-        stall, frame = self._stall(), self._last_frame_status
-        waiting = self._waiting
-        if not self._active:
-            level, message = DiagnosticLevel.OK, f"inactive: {self._n_ignored} images ignored (activate to track)"
-        elif waiting:
-            level, message = DiagnosticLevel.WARN, waiting
-        elif stall is not None:
-            level, message = stall
-        elif frame is not None:
-            level, message = frame.level, frame.message
-        else:
-            level, message = DiagnosticLevel.WARN, "starting"
-        extrinsic = self._extrinsic
-        T = self._converter.T_base_cam
-        values = (
-            ("image_transport", self._transport or "auto (none received yet)"),
-            ("image_topic", self._waiting_for_images()),
-            ("camera_frame", self._camera_frame),
-            ("extrinsic_source", extrinsic.source if extrinsic is not None else "pending"),
-            ("camera_xyz", " ".join(f"{v:.4g}" for v in T[:3, 3])),
-            ("frames_processed", str(self._n_processed)),
-            ("parameter_changes", "; ".join(self._changes[-3:]) or "none"),  # the latest applied
-            *self._map_odom_values(),
-            *self._summary_extra_values(),
-        )
-        self._publish_status(summary_status(self._status_name, self._hardware_id(), level, message, values),
-                             self._diagnostics_stamp())
-
-    def _map_odom_values(self) -> tuple[tuple[str, str], ...]:
-        """With map_frame_id: how far the corrections have taken map from odom (vo/odometry's units)."""
-        if not self.opts.map_frame_id:
-            return ()
-        M = self._converter.T_map_odom
-        return ((f"{self.opts.map_frame_id}_to_{self.opts.frame_id}",
-                 f"{float(np.linalg.norm(M[:3, 3])):.4g} (units of vo/odometry), "
-                 f"{rotation_angle_deg(M[:3, :3]):.3g} deg"),)
-
-    def _summary_extra_values(self) -> tuple[tuple[str, str], ...]:
-        """Further key/values of the summary (the managed node's state)."""
-        return ()
 
 
 class VoNode(VoNodeBase, Node):

@@ -2,9 +2,10 @@
 descriptors (doc, range, choices, read-only), the check of a runtime change, and what is logged about them.
 
 Start-up and runtime changes go through the same validation (``epi_vo.core.config.from_dict`` and
-``epi_vo.io.node_options``). Parameters that need a restart are declared read-only, so ROS itself
-refuses a change of them; a runtime change of a pipeline knob is accepted here and applied by the node
-at its next frame.
+``epi_vo.io.node_options``); a topic parameter is also checked by rclpy's own name validation, so a bad
+one is refused with its name before anything is created. Parameters that need a restart are declared
+read-only, so ROS itself refuses a change of them; a runtime change of a pipeline knob is accepted here
+and applied by the node at its next frame.
 """
 
 from __future__ import annotations
@@ -12,6 +13,10 @@ from __future__ import annotations
 from typing import Any
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.exceptions import NameValidationException
+from rclpy.impl.implementation_singleton import rclpy_implementation
+from rclpy.validate_full_topic_name import validate_full_topic_name
+from rclpy.validate_topic_name import validate_topic_name
 
 from epi_vo.core.config import VoConfig, allowed_range, config_fields, field_doc, from_dict, unknown_names_text
 from epi_vo.core.errors import ConfigError
@@ -27,6 +32,8 @@ from epi_vo.io.node_options import (
 )
 
 READ_ONLY_NOTE = " (read-only: restart the node to change it)"
+TOPIC_PARAMETERS = ("wheel_odometry_topic",)  # parameters that name a topic the node subscribes to
+RCLError = rclpy_implementation.RCLError
 
 
 def descriptor(name: str, doc: str, lo: float | None, hi: float | None, choices: tuple[str, ...] | None,
@@ -72,9 +79,33 @@ def declare_all(node: Any) -> tuple[VoConfig, NodeOptions]:
         problems.append(str(exc).removeprefix("invalid epi_vo parameters: "))
     declared = {k: v for k, v in node_values.items() if v is not None}
     problems += node_option_problems(declared)
+    problems += topic_problems(node, values)
     if problems:
         raise ConfigError("invalid vo_node parameters: " + "; ".join(problems))
     return cfg, make_node_options(declared)
+
+
+def topic_name_problem(node: Any, name: str) -> str | None:
+    """Why rcl would refuse ``name`` as a topic of ``node`` (its syntax, or once expanded with the node's
+    name and namespace and remapped), or None: rclpy's own validation, before anything is created."""
+    try:
+        validate_topic_name(name)
+        validate_full_topic_name(node.resolve_topic_name(name))
+    except NameValidationException as exc:
+        return str(exc).splitlines()[0].removeprefix("Invalid topic name: ").rstrip(":")
+    except RCLError as exc:  # resolving: an unknown substitution, a repeated '/'
+        return str(exc).removeprefix("failed to resolve name: ").split(", at /")[0]
+    return None
+
+
+def topic_problems(node: Any, values: dict[str, Any]) -> list[str]:
+    """Every topic parameter among ``values`` that rcl would refuse, naming it and its value."""
+    problems = []
+    for name in TOPIC_PARAMETERS:
+        v = values.get(name)
+        if isinstance(v, str) and (why := topic_name_problem(node, v)) is not None:
+            problems.append(f"{name}={v!r} (not a valid ROS topic name: {why})")
+    return problems
 
 
 def _declare(node: Any, name: str, default: Any, desc: ParameterDescriptor, problems: list[str]) -> Any:

@@ -1,18 +1,23 @@
 """What ``vo_node`` and ``vo_lifecycle_node`` share outside the node itself: the ROS messages built from
 a frame result (stamp, point cloud, debug image) and the entry point that runs a node (``--help``
-without DDS, bad parameters as exit 2, spin until Ctrl-C)."""
+without DDS, bad parameters and ROS arguments rcl cannot parse as exit 2 with one line, spin until Ctrl-C)."""
 
 from __future__ import annotations
 
+import contextlib
+import os
+import re
 import sys
-from collections.abc import Callable
-from typing import Any
+import tempfile
+from collections.abc import Callable, Iterator
+from typing import IO, Any
 
 import numpy as np
 import rclpy
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import TransformStamped
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from sensor_msgs.msg import Image, PointCloud2, PointField
 
@@ -20,6 +25,8 @@ from epi_vo.core.config import VoConfig
 from epi_vo.core.errors import ConfigError
 from epi_vo.io import msgconv
 from epi_vo.io.node_options import NodeOptions
+
+RCLError, UnknownROSArgsError = rclpy_implementation.RCLError, rclpy_implementation.UnknownROSArgsError
 
 
 def stamp_msg(stamp_ns: int) -> Time:
@@ -68,6 +75,44 @@ def help_requested(argv: list[str]) -> bool:
     return "--help" in user_args or "-h" in user_args
 
 
+class _HeldOutput:
+    def __init__(self, file: IO[bytes]) -> None:
+        self.file, self.keep = file, True
+
+    def discard(self) -> None:
+        self.keep = False
+
+
+@contextlib.contextmanager
+def _c_stderr_held() -> Iterator[_HeldOutput]:
+    """What the C libraries write to stderr (file descriptor 2) in the block is held, and written out after
+    it unless discarded: rcl logs its own line when it refuses the arguments, before rclpy raises."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as tmp:
+        held = _HeldOutput(tmp)
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield held
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            if held.keep:
+                tmp.seek(0)
+                sys.stderr.flush()
+                os.write(2, tmp.read())
+
+
+def ros_arguments_problem(exc: Exception) -> str:
+    """One line from rcl's refusal of the ``--ros-args``: the rule it could not parse, without the parser's
+    source locations."""
+    if isinstance(exc, UnknownROSArgsError):
+        return f"unknown ROS arguments {exc} (a value with spaces needs quotes: -p 'name:=a b')"
+    text = str(exc).removeprefix("failed to initialize rcl: ")
+    text = re.split(r"\. Error: |, at /", text)[0]
+    return f"the ROS arguments cannot be used: {text}"
+
+
 def run_node(make_node: Callable[[], Node], program: str, help_text: str, args: list[str] | None) -> None:
     """The entry point of vo_node and vo_lifecycle_node: ``--help`` prints ``help_text`` and the parameters
     and exits 0 before rclpy starts (no DDS touched); bad parameters exit 2 naming every one; else spin
@@ -78,7 +123,16 @@ def run_node(make_node: Callable[[], Node], program: str, help_text: str, args: 
 
         sys.stdout.write(help_text + to_params_yaml(VoConfig(), node=NodeOptions()))
         sys.exit(0)
-    rclpy.init(args=args)
+    refused = ""
+    with _c_stderr_held() as held:
+        try:
+            rclpy.init(args=args)
+        except (RCLError, UnknownROSArgsError) as exc:  # rcl refused the arguments themselves
+            held.discard()  # rcl's own log line ("Failed to parse global arguments"): this one says more
+            refused = ros_arguments_problem(exc)
+    if refused:
+        print(f"{program}: error: {refused}", file=sys.stderr)
+        sys.exit(2)
     try:
         node = make_node()
     except ConfigError as exc:

@@ -41,6 +41,7 @@ from epi_vo.core.pipeline import VoPipeline
 from epi_vo.core.status import frame_status
 from epi_vo.io import bagio, outbag, tum
 from epi_vo.io.msgconv import decode_frame, ns_to_ros_time
+from epi_vo.io.wheel_feed import WheelFeed
 from epi_vo.runner import make_pipeline
 from epi_vo.tools.consistency import OdometryLog, consistency_metrics, format_consistency
 
@@ -90,6 +91,8 @@ class ReplaySummary:
     # and imports excluded)
     map_frame_id: str = ""  # vo_node's map_frame_id: '' the odometry carries the window's corrections; else
     # it stays continuous and /tf carries them as map_frame_id -> odom
+    # scale_source wheel_odometry: the messages of its topic and what became of them (WheelInputCounts)
+    wheel_odometry: dict[str, int] | None = None
 
     @property
     def has_problems(self) -> bool:
@@ -229,7 +232,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
             if gt is not None:  # kept beside the estimate so that reports can be made from DIR alone
                 tum.write_tum(out / "groundtruth.tum", *gt[1])
                 odo_log = OdometryLog()  # what /vo/odometry carried, for the covariance's consistency
-            wheel = _WheelFeed(bag.read_wheel_odometry(), pipeline, cfg.wheel_odometry_timeout_s)
+            wheel = WheelFeed(bag.read_wheel_odometry(), pipeline, cfg.wheel_odometry_timeout_s)
             decoded = _Decoded()
             pace = Pace(rate) if rate is not None else None
             for frame, next_frame in with_next(bag.iter_frames()):
@@ -279,6 +282,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                 bar.update()
                 if on_result is not None:
                     on_result(result)
+            wheel_counts = wheel.counts()
     except OSError as exc:  # reading is wrapped in BagError by bagio: this is an output file
         raise OutputError(f"cannot write the outputs in {out}: {_os_reason(exc)}") from exc
 
@@ -293,6 +297,8 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     elif n_frames > bag.frame_count:
         notes.append(f"the bag announces {bag.frame_count} images on {bag.image_topic}, {n_frames} were read "
                      "(its metadata understates the count)")
+    if wheel_counts is not None and (wheel_counts.dropped or wheel_counts.used < 2):
+        notes.append(f"wheel odometry on {bag.wheel_topic}: {wheel_counts.text()}")
     if focal_ratios:
         notes.append(f"{CALIBRATION_NOTE}: {len(focal_ratios)} frames fit a pure rotation under a "
                      f"focal length {np.median(focal_ratios):.3f} x camera_info's (median; per frame: focal_ratio)")
@@ -320,7 +326,8 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
         rejected=[f"{n} frame(s) from frame {first_rejected[r]}: {r}" for r, n in rejected.items()],
         rejected_frames=sum(rejected.values()), skipped_messages=skipped, scale_source=cfg.scale_source,
         units=units, metric_from_frame=metric_from, poses_before_metric=held, wall_s=wall_s,
-        end_to_end_fps=n_frames / max(wall_s, 1e-9), map_frame_id=map_frame_id)
+        end_to_end_fps=n_frames / max(wall_s, 1e-9), map_frame_id=map_frame_id,
+        wheel_odometry=None if wheel_counts is None else wheel_counts.record())
     write_stats(out, summary)
     return summary
 
@@ -350,25 +357,6 @@ def _remove_stats(out: Path) -> None:
 
 def _wheel_topic(cfg: VoConfig) -> str | None:
     return cfg.wheel_odometry_topic if cfg.scale_source == "wheel_odometry" else None
-
-
-class _WheelFeed:
-    """Gives the pipeline the wheel odometry recorded up to each image (plus the stale timeout, as a live
-    subscriber would have received it by the time it is needed), in stamp order."""
-
-    def __init__(self, samples: bagio.WheelOdometrySamples | None, pipeline: VoPipeline, timeout_s: float) -> None:
-        self._samples = samples
-        self._pipeline = pipeline
-        self._lookahead_ns = int(timeout_s * 1e9)
-        self._next = 0
-
-    def up_to(self, stamp_ns: int) -> None:
-        s = self._samples
-        if s is None:
-            return
-        while self._next < len(s.stamps_ns) and s.stamps_ns[self._next] <= stamp_ns + self._lookahead_ns:
-            self._pipeline.add_wheel_odometry(int(s.stamps_ns[self._next]), s.positions[self._next])
-            self._next += 1
 
 
 def _os_reason(exc: OSError) -> str:

@@ -287,12 +287,13 @@ def test_node_and_ros_parameters_are_valid_names_in_a_params_file(tmp_path: Path
         ("frame_id", "odom"), ("child_frame_id", "base_link"), ("map_frame_id", "map"),
         ("camera_xyz", "[0.2, 0.0, 0.5]"),
         ("camera_rpy", "[0.0, 0.0, 0.0]"), ("image_transport", "compressed"), ("qos_reliability", "reliable"),
-        ("qos_depth", 5), ("queue_size", 2), ("process_every_frame", "true"), ("publish_tf", "false"),
+        ("qos_depth", 5), ("queue_size", 2), ("process_every_frame", "true"), ("queue_max_mb", 64.0),
+        ("publish_tf", "false"),
         ("publish_debug_image", "false"), ("path_max_length", 100), ("watchdog_timeout_s", 1.0),
         ("camera_info_wait_s", 0.2), ("hardware_id", "cam"), ("tf_timeout_s", 2.0), ("use_sim_time", "true"),
         ("start_type_description_service", "false"),
         ("qos_overrides./camera/image_raw.subscription.depth", 3)])
-    assert len(NODE_PARAMETER_NAMES) == 17 and all(f"    {n}:" in node_params for n in NODE_PARAMETER_NAMES)
+    assert len(NODE_PARAMETER_NAMES) == 18 and all(f"    {n}:" in node_params for n in NODE_PARAMETER_NAMES)
     path = _write(tmp_path, "vo_node:\n  ros__parameters:\n    max_features: 300\n" + node_params
                   + "    qos_overrides:\n      /camera/camera_info:\n        subscription:\n          depth: 4\n")
     assert load_config(path) == dataclasses.replace(VoConfig(), max_features=300)

@@ -15,7 +15,7 @@ from epi_vo.core import scale as sc
 from epi_vo.core.config import VoConfig, validate
 from epi_vo.core.errors import ConfigError
 from epi_vo.core.scale import ScaleFilter, VoUnitsScale
-from epi_vo.core.wheels import WheelOdometry
+from epi_vo.core.wheel_odometry import WheelOdometry
 
 
 def _vo() -> VoUnitsScale:

@@ -210,3 +210,43 @@ def test_startup_holding_is_bounded() -> None:
         out += assoc.add_image(10**9 + i * PERIOD, f"img{i}")
         assert assoc.pending <= 4
     assert [r.image for r in out] == [f"img{i}" for i in range(6)] and all(r.info is None for r in out)
+
+
+def test_expire_releases_what_stamps_alone_would_hold_for_ever() -> None:
+    # camera_info 0.5 ms off the image stamps: stamps release an image only once a newer one is 200 ms later,
+    # so the last images of a stream would wait for ever. On the receiver's clock they go after max_wait_s.
+    assoc = CameraInfoAssociator(max_pending=5, max_wait_ns=200 * MS, max_wait_s=0.2, no_info_wait_s=2.0)
+    out: list[Ready] = []
+    for i in range(10):
+        stamp = 10**9 + i * PERIOD
+        out += assoc.add_info(stamp + MS // 2, f"info{i}")
+        out += assoc.add_image(stamp, f"img{i}", now_s=10.0 + 0.066 * i, nbytes=100)
+    held = assoc.pending
+    assert held == 4 and assoc.pending_bytes == 400
+    # 0.1 s after the last arrival: the two that waited 0.2 s or more go, the two newer ones wait on.
+    first = assoc.expire(10.0 + 0.066 * 9 + 0.1)
+    assert [r.image for r in first] == ["img6", "img7"] and assoc.pending == 2
+    released = first + assoc.expire(10.0 + 0.066 * 9 + 0.21)
+    assert [r.image for r in out + released] == [f"img{i}" for i in range(10)] and assoc.pending == 0
+    assert all(not r.exact and r.info is not None for r in released)
+    assert released[0].arrived_s == pytest.approx(10.0 + 0.066 * 6) and released[0].nbytes == 100
+
+
+def test_expire_without_any_camera_info_waits_no_info_wait_s_then_releases_without_one() -> None:
+    assoc = CameraInfoAssociator(max_pending=5, startup_pending=30, max_wait_s=0.2, no_info_wait_s=2.0)
+    for i in range(3):
+        assert assoc.add_image(10**9 + i * PERIOD, f"img{i}", now_s=float(i)) == []
+    assert assoc.expire(2.5) == [Ready(10**9, "img0", None, False, False, 0.0, 0)]
+    assert [r.image for r in assoc.expire(4.0)] == ["img1", "img2"]
+    assert assoc.pending == 0
+
+
+def test_expire_without_a_clock_bound_or_arrival_time_changes_nothing() -> None:
+    assoc = CameraInfoAssociator(max_pending=5, startup_pending=30)
+    assoc.add_image(10**9, "a", now_s=0.0)
+    assert assoc.expire(1e9) == [] and assoc.pending == 1
+    timed = CameraInfoAssociator(max_pending=5, max_wait_s=0.1, no_info_wait_s=0.1)
+    timed.add_image(10**9, "b")  # no arrival time: only stamps release it
+    assert timed.expire(1e9) == [] and timed.pending == 1
+    with pytest.raises(ConfigError, match="max_wait_s must be >= 0, got nan"):
+        CameraInfoAssociator(max_wait_s=float("nan"))

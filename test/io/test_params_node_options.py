@@ -63,7 +63,8 @@ def test_make_node_options_names_every_bad_value() -> None:
     for part in ("image_transport='theora' (choose one of auto, raw, compressed)",
                  "camera_xyz=[1.0, nan, 0.0] (expected 3 finite numbers)", "camera_rpy='up' (expected 3 finite",
                  "qos_depth=0 (an integer, minimum 1)", "tf_timeout_s=-1.0 (0 to 3600 s)",
-                 "watchdog_timeout_s=0.0 (must be > 0)", "frame_id=' ' (a frame name)"):
+                 "watchdog_timeout_s=0.0 (must be > 0)",
+                 "frame_id=' ' (not a frame name: whitespace or a control character)"):
         assert part in text, (part, text)
 
 

@@ -160,3 +160,96 @@ def test_node_seeks_the_floor_along_the_mounting_it_declares(ros: RosSession, de
         assert 1.0 < float(np.linalg.norm(published[-1].position)) < 1.9
     else:
         assert not metric and all(r.scale.units == "vo" for r in published)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# One wheel rule for both doors, live over DDS: a stream whose every third message is stamped 0.3 s early
+# gives the node and the replay the same messages used, the same counts, the same odometry.
+WHEEL_TOPIC = "/wheel/odom"
+WHEEL_CHUNK = 50  # below the node's wheel subscription depth (100): a chunk never overwrites what it holds
+LIVE_FRAMES = 150
+WAIT_S = 120.0  # bound on a wait for another process or DDS; it matters only when the condition never comes
+
+
+def _wheel_messages(bag: Path) -> list[Any]:
+    """The bag's wheel odometry messages as rclpy messages, in the bag's order."""
+    from nav_msgs.msg import Odometry
+    from rclpy.serialization import deserialize_message
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    with AnyReader([bag], default_typestore=ts) as reader:
+        conns = [c for c in reader.connections if c.topic == WHEEL_TOPIC]
+        return [deserialize_message(bytes(raw), Odometry) for _, _, raw in reader.messages(conns)]
+
+
+def _summary_values(probe: Any) -> dict[str, str]:
+    summaries = [s for a in probe.diag for s in a.status if s.name.endswith(": summary")]
+    return {kv.key: kv.value for kv in summaries[-1].values} if summaries else {}
+
+
+def test_node_and_replay_take_the_same_wheel_messages_from_a_disordered_stream(ros: RosSession,
+                                                                                 tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from ros_fixtures import NodeProcess, ProbeBase, odom_pose
+    from wheel_streams import every_third_early, write_wheel_variant
+
+    from epi_vo.io.msgconv import stamp_to_ns
+    from epi_vo.io.odometry_bag import read_odometry
+
+    bag = write_wheel_variant(BAG, tmp_path / "bag", every_third_early, n_images=LIVE_FRAMES)
+    cfg = dataclasses.replace(VoConfig(), scale_source="wheel_odometry", wheel_odometry_topic=WHEEL_TOPIC)
+    summary = run_replay(bag, tmp_path / "replay", cfg)
+    replayed = read_odometry(tmp_path / "replay" / "output.mcap")
+    offline = {int(t): np.concatenate([p, q]) for t, p, q in zip(replayed.stamps_ns, replayed.positions,
+                                                                   replayed.quats_xyzw, strict=True)}
+    wheel = _wheel_messages(bag)
+    assert summary.wheel_odometry is not None
+    assert summary.wheel_odometry["received"] == len(wheel) > 300
+    assert summary.wheel_odometry["out_of_order"] == len(wheel) // 3  # every third, as written
+    assert summary.units == "m"
+
+    from nav_msgs.msg import Odometry
+
+    probe = ProbeBase(ros, "probe_wheel_rule")
+    pub = probe.node.create_publisher(Odometry, WHEEL_TOPIC, QoSProfile(depth=1000,
+                                                                         reliability=ReliabilityPolicy.RELIABLE))
+    try:
+        with NodeProcess(ros.env, "-p", "scale_source:=wheel_odometry", "-p", f"wheel_odometry_topic:={WHEEL_TOPIC}",
+                         "-p", "image_transport:=compressed", "-p", "process_every_frame:=true",
+                         "-p", "qos_reliability:=reliable", "-p", "qos_depth:=100") as node:
+            assert probe.spin_until(lambda: pub.get_subscription_count() > 0, WAIT_S), node.proc.stderr
+            # The whole wheel stream first, in its order, a chunk at a time (each taken before the next).
+            for k in range(0, len(wheel), WHEEL_CHUNK):
+                for msg in wheel[k: k + WHEEL_CHUNK]:
+                    pub.publish(msg)
+                sent = min(k + WHEEL_CHUNK, len(wheel))
+                assert probe.spin_until(
+                    lambda s=sent: int(_summary_values(probe).get("wheel_messages_received", -1)) >= s, WAIT_S), \
+                    (sent, _summary_values(probe))
+            played = subprocess.run([sys.executable, "-m", "epi_vo.cli", "play", str(bag), "--rate", "0"],
+                                    env=ros.env, capture_output=True, text=True, timeout=4 * WAIT_S)
+            assert played.returncode == 0, played.stderr
+
+            def statuses() -> list[dict[str, str]]:
+                return [{kv.key: kv.value for kv in s.values} for a in probe.diag for s in a.status
+                        if s.name.endswith(": tracking") and not s.message.startswith("stalled")]
+
+            assert probe.spin_until(lambda: len(probe.odom) >= LIVE_FRAMES and len(statuses()) >= LIVE_FRAMES,
+                                    WAIT_S), len(probe.odom)
+        assert "Traceback" not in node.stderr
+        assert int(_summary_values(probe)["wheel_messages_lost"]) == 0
+    finally:
+        probe.close()
+    # The same messages used and dropped, and said so in every frame's status ...
+    last = statuses()[-1]["wheel_messages"]
+    assert last == " ".join(f"{k}={v}" for k, v in summary.wheel_odometry.items()), last
+    # ... and the same odometry, in metres, frame by frame.
+    assert len(probe.odom) == LIVE_FRAMES == len(offline)
+    for m in probe.odom:
+        np.testing.assert_allclose(odom_pose(m), offline[stamp_to_ns(m.header.stamp)], atol=1e-6)
+    assert float(np.linalg.norm(odom_pose(probe.odom[-1])[:3])) > 2.0

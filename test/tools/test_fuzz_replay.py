@@ -12,7 +12,10 @@ to 8x8, or small, up to 47 px a side, cropped) with their camera_info, randomly 
 * header stamps (negative, duplicated, backwards, zero, sec at int32 max, nanosec >= 1e9) and the
   stamps of camera_info;
 * message order (shuffled, camera_info before / after the images, only the first / last / some
-  camera_info, an empty camera_info topic, no camera_info topic at all).
+  camera_info, an empty camera_info topic, no camera_info topic at all);
+* a wheel odometry stream (nav_msgs/Odometry on /wheel/odom at 50 Hz, the bag then replayed with
+  ``scale_source: wheel_odometry``): messages stamped early or late, shuffled, with the stamp of the one
+  before, NaN / infinite positions, stamps that are no ROS time, gaps.
 
 The bag is replayed in-process with ``epi_vo.cli.main(["replay", BAG, "--output", OUT])`` and every
 example must satisfy:
@@ -33,7 +36,11 @@ example must satisfy:
    different from camera_info's after binning / roi, smaller than the KLT frontend can use, K[0] == 0,
    non-finite K or D, unknown distortion model, non-zero D of the wrong length, implausible intrinsics,
    no camera_info message) has no pose, and the replay exits 3;
-7. a record saying "frame rejected" means the replay exits 3 (the README: rejected frames -> exit 3).
+7. a record saying "frame rejected" means the replay exits 3 (the README: rejected frames -> exit 3);
+8. with a wheel stream, exit code 0 or 3: ``stats.json``'s ``wheel_odometry`` counts every message written
+   and what became of it as the one rule says (messages in the bag's order, used only when stamped after
+   every message used before; ``_wheel_expected`` is a model of it), every record's ``wheel_messages`` is
+   such a count, and a note names the wheel topic whenever a message was dropped.
 
 Every example of the run is replayed and checked (a failure does not stop the run); failures are grouped
 in classes (the invariant and a normalised key, e.g. ``exit-2-on-readable-bag: epi-vo: error: cannot
@@ -90,6 +97,9 @@ CameraInfo = TYPESTORE.types["sensor_msgs/msg/CameraInfo"]
 RegionOfInterest = TYPESTORE.types["sensor_msgs/msg/RegionOfInterest"]
 Header = TYPESTORE.types["std_msgs/msg/Header"]
 Time = TYPESTORE.types["builtin_interfaces/msg/Time"]
+Odometry = TYPESTORE.types["nav_msgs/msg/Odometry"]
+WHEEL_TOPIC = "/wheel/odom"
+WHEEL_PERIOD_NS = 20_000_000  # 50 Hz
 
 DEFAULT_EXAMPLES = 40
 REPLAY_TIMEOUT_S = 120  # one replay of <= 8 small frames taking longer than this is a hang
@@ -172,6 +182,7 @@ class BagPlan:
     presence: str = "all"  # which camera_info messages are written
     order: str = "info_first"
     seed: int = 0  # for shuffles, subsets, byte flips
+    wheel: tuple[tuple[Any, ...], ...] | None = None  # None: no wheel topic; else its stream's modifications
 
     def __repr__(self) -> str:  # only what differs from a clean default bag: readable falsifying examples
         default = BagPlan.__new__(BagPlan)
@@ -205,6 +216,7 @@ class BuiltBag:
     frame_why: list[str]
     clean: bool  # every frame good, valid stamps, nothing corrupted: must exit 0 with nothing rejected
     why_not_clean: str
+    wheel_expected: dict[str, int] | None = None  # what the replay must count of the wheel stream
 
 
 def _in_scope(scope: Any, i: int) -> bool:
@@ -547,6 +559,13 @@ def build_bag(plan: BagPlan, directory: Path) -> BuiltBag:
         cc = w.add_connection(INFO_TOPIC, CameraInfo.__msgtype__, typestore=TYPESTORE) if has_info_topic else None
         for k, (kind, i) in enumerate(entries):
             w.write(ci if kind == "image" else cc, 1_000_000_000 + k * 1_000_000, payload[kind, i])
+        wheel_expected = None
+        if plan.wheel is not None:
+            wheel = _wheel_stream(plan)
+            cw = w.add_connection(WHEEL_TOPIC, Odometry.__msgtype__, typestore=TYPESTORE)
+            for j, msg in enumerate(wheel):  # the topic's own order is its log times' (its arrival order)
+                w.write(cw, 1_000_000_500 + j * 1_000, bytes(TYPESTORE.serialize_cdr(msg, Odometry.__msgtype__)))
+            wheel_expected = _wheel_expected(wheel)
 
     # --- what the README says about each frame --------------------------------------------------
     contents = [_info_content(infos[i]) for i in written_infos]
@@ -601,7 +620,82 @@ def build_bag(plan: BagPlan, directory: Path) -> BuiltBag:
         reasons.append("no camera_info")
     image_order = [i for kind, i in entries if kind == "image"]
     return BuiltBag(path, plan.n, image_order, has_info_topic, frame_class, frame_why, not reasons,
-                    "; ".join(reasons))
+                    "; ".join(reasons), wheel_expected)
+
+
+def _wheel_stream(plan: BagPlan) -> list[Any]:
+    """The plan's wheel messages in arrival order: 50 Hz from 0.2 s before the first image to 0.2 s after the
+    last, 0.5 m/s along x, then modified."""
+    t0 = T0_NS - 200_000_000
+    n = (plan.n * PERIOD_NS + 400_000_000) // WHEEL_PERIOD_NS
+    stamps: list[tuple[int, int]] = [divmod(t0 + j * WHEEL_PERIOD_NS, NS) for j in range(n)]
+    xs = [0.5 * j * WHEEL_PERIOD_NS / NS for j in range(n)]
+    keep = [True] * n
+    order = list(range(n))
+    for kind, a, b in plan.wheel or ():
+        j = a % n
+        if kind == "every":  # every a-th message (a >= 2) stamped b ns early (b < 0: late)
+            for k in range(a - 1, n, max(a, 2)):
+                stamps[k] = divmod(max(stamps[k][0] * NS + stamps[k][1] - b, 0), NS)
+        elif kind == "dup":
+            stamps[j] = stamps[j - 1] if j else stamps[j]
+        elif kind == "nan":  # b messages from j
+            for k in range(j, min(n, j + b)):
+                xs[k] = [math.nan, math.inf, -math.inf][k % 3]
+        elif kind == "gap":
+            for k in range(j, min(n, j + b)):
+                keep[k] = False
+        elif kind == "invalid":
+            stamps[j] = (-1 - b % INT32_MAX, 0) if b % 2 else (stamps[j][0], NS + b % (UINT32_MAX - NS))
+        elif kind == "shuffle":
+            order = [order[k] for k in np.random.default_rng(b).permutation(n)]
+        else:
+            raise AssertionError(kind)
+    msgs = []
+    for k in order:
+        if not keep[k]:
+            continue
+        msg = Odometry(header=_header(stamps[k]), child_frame_id="base_link", pose=_odometry_pose(xs[k]),
+                       twist=_ZERO_TWIST)
+        msgs.append(msg)
+    return msgs
+
+
+def _geometry(name: str, **fields: Any) -> Any:
+    return TYPESTORE.types[f"geometry_msgs/msg/{name}"](**fields)
+
+
+def _odometry_pose(x: float) -> Any:
+    pose = _geometry("Pose", position=_geometry("Point", x=x, y=0.0, z=0.0),
+                     orientation=_geometry("Quaternion", x=0.0, y=0.0, z=0.0, w=1.0))
+    return _geometry("PoseWithCovariance", pose=pose, covariance=np.zeros(36))
+
+
+_ZERO = _geometry("Vector3", x=0.0, y=0.0, z=0.0)
+_ZERO_TWIST = _geometry("TwistWithCovariance", twist=_geometry("Twist", linear=_ZERO, angular=_ZERO),
+                        covariance=np.zeros(36))
+
+
+def _wheel_expected(msgs: list[Any]) -> dict[str, int]:
+    """The counts the README's wheel rule gives (a model of it, written from the rule, not from the code)."""
+    counts = dict.fromkeys(("received", "used", "out_of_order", "duplicate_stamp", "non_finite", "invalid_stamp"), 0)
+    newest = None
+    for msg in msgs:
+        counts["received"] += 1
+        sec, nanosec = int(msg.header.stamp.sec), int(msg.header.stamp.nanosec)
+        p = msg.pose.pose.position
+        if not _valid_ros_time(sec, nanosec):
+            counts["invalid_stamp"] += 1
+        elif not all(math.isfinite(v) for v in (p.x, p.y, p.z)):
+            counts["non_finite"] += 1
+        elif newest is not None and sec * NS + nanosec < newest:
+            counts["out_of_order"] += 1
+        elif sec * NS + nanosec == newest:
+            counts["duplicate_stamp"] += 1
+        else:
+            counts["used"] += 1
+            newest = sec * NS + nanosec
+    return counts
 
 
 def _compressed(gray: np.ndarray, fmt: str) -> bytes:
@@ -679,6 +773,18 @@ def _stamp_mod(n: int) -> st.SearchStrategy[tuple[Any, ...]]:
     )
 
 
+def _wheel_mod() -> st.SearchStrategy[tuple[Any, ...]]:
+    return st.one_of(
+        st.tuples(st.just("every"), st.integers(2, 5), st.sampled_from([300_000_000, 1, WHEEL_PERIOD_NS, -NS])
+                  | st.integers(-10 * NS, 10 * NS)),
+        st.tuples(st.just("dup"), st.integers(0, 60), st.just(0)),
+        st.tuples(st.just("nan"), st.integers(0, 60), st.integers(1, 60)),
+        st.tuples(st.just("gap"), st.integers(0, 60), st.integers(1, 60)),
+        st.tuples(st.just("invalid"), st.integers(0, 60), st.integers(0, UINT32_MAX)),
+        st.tuples(st.just("shuffle"), st.just(0), st.integers(0, 2**32 - 1)),
+    )
+
+
 @st.composite
 def bag_plans(draw: st.DrawFn) -> BagPlan:
     n = draw(st.integers(4, 8))
@@ -716,6 +822,8 @@ def bag_plans(draw: st.DrawFn) -> BagPlan:
         presence=draw(st.sampled_from(["all", "all", "first", "last", "subset", "empty_topic", "no_topic"])),
         order=draw(st.sampled_from(["info_first", "image_first", "infos_first", "infos_last", "shuffle"])),
         seed=draw(st.integers(0, 2**32 - 1)),
+        # One bag in three has a wheel stream, clean or modified (shrinks towards none).
+        wheel=tuple(draw(st.lists(_wheel_mod(), max_size=3))) if draw(st.integers(0, 2)) == 2 else None,
     )
 
 
@@ -794,8 +902,9 @@ def _alarm(seconds: float) -> Iterator[None]:
         signal.signal(signal.SIGALRM, old)
 
 
-def run_replay_cli(bag: Path, out: Path) -> tuple[int, str, list[logging.LogRecord]]:
-    """``epi-vo replay BAG --output OUT`` in this process: (exit code, stdout + stderr, log records).
+def run_replay_cli(bag: Path, out: Path, params: Path | None = None) -> tuple[int, str, list[logging.LogRecord]]:
+    """``epi-vo replay BAG --output OUT [--params PARAMS]`` in this process: (exit code, stdout + stderr, log
+    records).
 
     An exception other than SystemExit propagates: it is an uncaught exception of the CLI."""
     stdout, stderr = io.StringIO(), io.StringIO()
@@ -805,7 +914,8 @@ def run_replay_cli(bag: Path, out: Path) -> tuple[int, str, list[logging.LogReco
     try:
         with _alarm(REPLAY_TIMEOUT_S), contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
             try:
-                rc = main(["replay", str(bag), "--output", str(out), "--no-progress"])
+                rc = main(["replay", str(bag), "--output", str(out), "--no-progress",
+                           *(["--params", str(params)] if params is not None else [])])
             except SystemExit as exc:
                 rc = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
     finally:
@@ -992,7 +1102,12 @@ def check_replay(plan: BagPlan, directory: Path) -> None:
     out = directory / "out"
     _note(f"frames: {list(zip(built.frame_class, built.frame_why, strict=True))}; image order {built.image_order}; "
           f"clean: {built.clean} ({built.why_not_clean})")
-    rc, text, logs = run_replay_cli(built.path, out)
+    params = None
+    if built.wheel_expected is not None:
+        params = directory / "wheels.yaml"
+        params.write_text(f"/**:\n  ros__parameters:\n    scale_source: wheel_odometry\n"
+                          f"    wheel_odometry_topic: {WHEEL_TOPIC}\n")
+    rc, text, logs = run_replay_cli(built.path, out, params)
     _note(f"exit code {rc}; output:\n{text[-2000:]}")
     last_line = text.strip().splitlines()[-1] if text.strip() else ""
 
@@ -1018,6 +1133,8 @@ def check_replay(plan: BagPlan, directory: Path) -> None:
         _note(f"output.mcap messages: {check_output_mcap(out)}")
         if rc != 2:
             _check_frames(built, rc, recs, last_line)
+        if rc != 2 and built.wheel_expected is not None:
+            _check_wheel(built.wheel_expected, out, recs)
     finally:
         _COLLECTED = None
     if collected:
@@ -1047,6 +1164,23 @@ def _check_frames(built: BuiltBag, rc: int, recs: list[dict[str, Any]], last_lin
     if said:
         _check(rc == 3, "rejected-record-but-exit-0", said[0][1].split(";")[0],
                f"record {said[0][0]} says {said[0][1]!r} but exit code {rc}")
+
+
+def _check_wheel(expected: dict[str, int], out: Path, recs: list[dict[str, Any]]) -> None:
+    """Invariant 8: the wheel stream's messages counted as the rule says, and said."""
+    stats = json.loads((out / "stats.json").read_text())
+    got = stats.get("wheel_odometry")
+    _check(got == expected, "wheel-counts", "stats.json wheel_odometry",
+           f"stats.json wheel_odometry {got} != {expected} (the arrival-order rule)")
+    dropped = expected["received"] - expected["used"]
+    said = [n for n in stats.get("notes", []) if n.startswith(f"wheel odometry on {WHEEL_TOPIC}: ")]
+    _check(bool(said) == bool(dropped or expected["used"] < 2), "wheel-note", "",
+           f"{dropped} wheel message(s) dropped, notes {stats.get('notes')}")
+    for j, rec in enumerate(recs):
+        counts = rec.get("wheel_messages")
+        ok = isinstance(counts, dict) and set(counts) == set(expected) and counts["received"] == sum(
+            v for k, v in counts.items() if k != "received") and counts["received"] <= expected["received"]
+        _check(ok, "wheel-record", "wheel_messages", f"frames.jsonl line {j}: wheel_messages {counts}")
 
 
 # ==================================================================================================

@@ -96,8 +96,9 @@ def test_map_frame_id_values() -> None:
     from epi_vo.io.node_options import node_option_problems
 
     assert node_option_problems({"map_frame_id": ""}) == [] and node_option_problems({"map_frame_id": "map"}) == []
-    assert node_option_problems({"map_frame_id": " map"}) == ["map_frame_id=' map' ('' or a frame name)"]
-    assert node_option_problems({"map_frame_id": 3}) == ["map_frame_id=3 ('' or a frame name)"]
+    assert node_option_problems({"map_frame_id": " map"}) == [
+        "map_frame_id=' map' ('' or a frame name: whitespace or a control character)"]
+    assert node_option_problems({"map_frame_id": 3}) == ["map_frame_id=3 ('' or a frame name: not a string)"]
     assert node_option_problems({"map_frame_id": "odom"}) == [
         "map_frame_id='odom' (must differ from frame_id and child_frame_id)"]
     assert node_option_problems({"map_frame_id": "world", "frame_id": "world"}) != []
