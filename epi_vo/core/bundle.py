@@ -31,9 +31,8 @@ The model
       other fixed keyframes relative to it), so its height, roll and pitch above the floor are the
       plane's three unknowns, and the result is moved back so that keyframe 0 is where it was given.
       The same optimum as a plane variable with a factor per floor point (tested), in native GTSAM
-      factors: until 2026-11-27 the plane was an ``OrientedPlane3`` with Python ``CustomFactor``
-      objects, 190 ms per ground-robot floor window against 106 now (same poses to 2e-6 of the
-      window's extent).
+      factors: an ``OrientedPlane3`` with Python ``CustomFactor`` objects takes 190 ms per floor window
+      of the ground-robot render against 106 (same poses to 2e-6 of the window's extent).
 
 The procedure
     1. Observations with non-finite coordinates, of a non-finite point, or of a point at or behind

@@ -5,7 +5,7 @@ camera moves, a patch scales and shears; LK then locks onto a slightly different
 the errors add up along the track. Measured on ground_robot against the renderer's depth (corners of
 four keyframes, followed 12 frames): the chained position drifts 0.12, 0.28, 0.41, 0.55, 0.64, 0.72 px
 (median) after 1, 3, 5, 7, 10, 12 frames, with a lag-1 autocorrelation of 0.8 along a track, so the
-windowed adjustment's observations do not average out (README, "Why it does not pay").
+windowed adjustment's observations do not average out.
 
 ``PatchTemplates`` (a frozen value the tracking state holds) keeps every track's template from its first
 image and, each frame, moves the KLT

@@ -55,19 +55,12 @@ SCALE_WINDOW = 15
 # Fewer measurements than this: their MAD is no estimate of their spread, their sample variance bounds the
 # noise from below (``ScaleFilter.updated``).
 SMALL_WINDOW = 7
-# The least noise one floor measurement is given (relative, 1 sigma): the window's spread of the fits says
-# how noisy they are; below this it is not trusted (the floor's own unevenness under the fit's points).
-GROUND_FIT_MIN_REL_STD = 0.005
 # A floor seen from one mounting keeps its normal between keyframes within this (deg), a wrong plane's does
 # not: two fits establish metric scale only when their normals agree within it, and once FLOOR_STEADY_FITS
 # fits are in, a new fit is sought within it of their median normal.
 FLOOR_STEADY_DEG = 10.0
 FLOOR_STEADY_FITS = 3
 FLOOR_HISTORY = 7  # floor normals remembered (their median is the floor seen so far)
-# The wheels' random error over one scale measurement (m, 1 sigma): the noise that averages out over
-# keyframes. Their calibration error (tyre radius), which does not, is ``wheel_odometry_rel_sigma`` and is
-# carried once, as the source's systematic error (``ScaleSource.systematic_rel``).
-WHEEL_NOISE_M = 0.01
 WHEEL_STEPS = 500  # keyframe steps remembered for the wheel measurement (it needs the last few)
 # A map rebuilt after a loss takes its baseline from the last keyframe speed over the time since its
 # keyframe: its scale is that uncertain (relative, 1 sigma) until a scale source measures it.
@@ -307,6 +300,9 @@ class GroundPlaneScale(ScaleSource):
     max_tilt_deg: float
     inlier_ratio: float
     min_points: int
+    # The least noise one floor measurement is given (relative, 1 sigma, ``ground_fit_min_rel_sigma``): the
+    # window's spread of the fits says how noisy they are; below this it is not trusted.
+    fit_min_rel_std: float = 0.005
     reason: str = "ground plane not seen yet: scale unknown (VO units)"
     normals: tuple[F64, ...] = ()  # the floor normals of the last FLOOR_HISTORY fits
     waiting: tuple[tuple[F64, float, float], ...] = ()  # fits before metric scale: (normal, z, r)
@@ -382,9 +378,9 @@ class GroundPlaneScale(ScaleSource):
             plane = GroundPlane(up, float(np.median(-(X[on_plane] @ up))), plane.n_inliers, plane.rel_std)
             if not plane.height > 0:
                 return dataclasses.replace(src, reason="floor plane above the camera: ignored"), None
-        # The fit's own standard error, at least GROUND_FIT_MIN_REL_STD; the filter's window raises it to
-        # the fits' spread.
-        r = plane.rel_std**2 + GROUND_FIT_MIN_REL_STD**2
+        # The fit's own standard error, at least fit_min_rel_std; the filter's window raises it to the fits'
+        # spread.
+        r = plane.rel_std**2 + self.fit_min_rel_std**2
         return dataclasses.replace(src, plane=plane, reason=""), (math.log(self.camera_height_m / plane.height), r)
 
 
@@ -403,7 +399,11 @@ class WheelOdometryScale(ScaleSource):
 
     rel_sigma: float
     timeout_ns: int
-    window_m: float = 0.5
+    window_m: float = 0.5  # ``wheel_odometry_window_m``
+    # The wheels' random error over one scale measurement (m, 1 sigma, ``wheel_odometry_noise_m``): the noise
+    # that averages out over keyframes. Their calibration error (tyre radius), which does not, is
+    # ``rel_sigma``, carried once as the source's systematic error (``ScaleSource.systematic_rel``).
+    noise_m: float = 0.01
     reason: str = "no keyframe step measured by the wheels yet: scale unknown (VO units)"
     steps: tuple[tuple[int, int, float], ...] = ()  # the last WHEEL_STEPS: (kf stamp, stamp, VO step length)
 
@@ -443,7 +443,7 @@ class WheelOdometryScale(ScaleSource):
                 f"{self.held}")), None
         # Only the wheels' random part: their calibration error is common to every measurement, the
         # source's systematic error (``systematic_rel``).
-        r = (WHEEL_NOISE_M / d_wheel) ** 2
+        r = (self.noise_m / d_wheel) ** 2
         return dataclasses.replace(src, reason=""), (math.log(d_wheel / d_vo), r)
 
 
@@ -453,9 +453,11 @@ def source_from_config(cfg: VoConfig) -> ScaleSource:
     if cfg.scale_source == "ground_plane":
         return GroundPlaneScale(filter=f, camera_height_m=cfg.camera_height_m, max_tilt_deg=cfg.ground_max_tilt_deg,
                                 inlier_ratio=cfg.ground_inlier_ratio, min_points=cfg.ground_min_points,
-                                systematic_rel=cfg.camera_height_rel_sigma)
+                                systematic_rel=cfg.camera_height_rel_sigma,
+                                fit_min_rel_std=cfg.ground_fit_min_rel_sigma)
     if cfg.scale_source == "wheel_odometry":
         return WheelOdometryScale(filter=f, rel_sigma=cfg.wheel_odometry_rel_sigma,
                                   systematic_rel=cfg.wheel_odometry_rel_sigma,
-                                  timeout_ns=int(cfg.wheel_odometry_timeout_s * 1e9))
+                                  timeout_ns=int(cfg.wheel_odometry_timeout_s * 1e9),
+                                  window_m=cfg.wheel_odometry_window_m, noise_m=cfg.wheel_odometry_noise_m)
     return VoUnitsScale(filter=f)

@@ -33,7 +33,9 @@ FIELDS = {f.name: f for f in config_fields()}
 # Where the value of a knob is used: the scale source it needs to be exercised.
 SOURCE_OF = {"camera_height_rel_sigma": "ground_plane", "ground_max_tilt_deg": "ground_plane",
              "ground_inlier_ratio": "ground_plane", "ground_min_points": "ground_plane",
-             "wheel_odometry_rel_sigma": "wheel_odometry", "wheel_odometry_timeout_s": "wheel_odometry"}
+             "wheel_odometry_rel_sigma": "wheel_odometry", "wheel_odometry_timeout_s": "wheel_odometry",
+             "wheel_odometry_noise_m": "wheel_odometry", "wheel_odometry_window_m": "wheel_odometry",
+             "ground_fit_min_rel_sigma": "ground_plane"}
 METRIC = {"ground_plane": {"scale_source": "ground_plane", "camera_height_m": 0.45},
           "wheel_odometry": {"scale_source": "wheel_odometry", "wheel_odometry_topic": "/wheel/odom"},
           "none": {"scale_source": "none"}}

@@ -200,7 +200,8 @@ def test_wheel_scale_measures_distance_over_vo_step() -> None:
     assert math.exp(z) == pytest.approx(2.0)  # wheels 0.5 m over VO 0.25 units
     # Its noise is the wheels' random part only; their calibration (3 %) is the systematic error, carried
     # once.
-    assert r == pytest.approx((sc.WHEEL_NOISE_M / 0.5) ** 2) and src.systematic_rel == 0.03
+    assert r == pytest.approx((src.noise_m / 0.5) ** 2) and src.noise_m == VoConfig().wheel_odometry_noise_m
+    assert src.systematic_rel == 0.03
     src = src.on_corrected(2.0)  # the map is metres now: the same steps measure 1.0
     src, measured = src.measure(sc.KeyframeStep(np.zeros((0, 3)), 0.05, 500_000_000, 550_000_000), w)
     assert measured is not None and math.exp(measured[0]) == pytest.approx(1.0)

@@ -53,8 +53,8 @@ def refine_relative_pose(R_cur_ref: F64, t_dir: F64, xn_ref: F64, xn_cur: F64, i
     (normalised units), or None for fewer than six correspondences or a non-finite start.
 
     Why: a homography's decomposition takes the plane's own fit, which the near-plane points H's
-    threshold lets in bias. ground_robot's first map, from H at frame 1: 0.023 deg off in pitch; its
-    pose refined on the same tracks' epipolar distances: 0.006 deg (2026-11-27, ``refine_planar_pose``).
+    threshold lets in bias. A floor's first map from H came out 0.023 deg off in pitch; its pose refined
+    on the same tracks' epipolar distances, 0.006 deg (``refine_planar_pose``).
     An essential matrix an estimator left unpolished is refitted with it too (``models.polish_essential``)."""
     n = xn_ref.shape[0]
     if n < 6 or not (np.all(np.isfinite(R_cur_ref)) and np.all(np.isfinite(t_dir))) or np.linalg.norm(t_dir) == 0:

@@ -176,8 +176,8 @@ def solution_off_plane(solutions: list[PlanarSolution], K: F64, uv_ref: F64, uv_
     every decomposition alike; too little parallax leaves them all close).
 
     The points themselves decide, not the rotation of E fitted to them with the plane: E on a plane plus
-    a few points is near-degenerate, and its decomposition can take the wrong solution. ground_robot
-    with klt_window_px 31 (2026-11-25): E's rotation agreed with the 4.3 deg solution, whose motion
+    a few points is near-degenerate, and its decomposition can take the wrong solution. On a floor
+    tracked with klt_window_px 31, E's rotation agreed with the 4.3 deg solution, whose motion
     leaves its 3 off-plane points 1.9-2.0 px from their epipolar lines; the true one (0.02 deg) leaves
     them at 0.13-0.24 px. Where E was right (max_features 80-140, a box in a floor pair), the right
     solution had 0.01-0.29 px and the other 2-16 px."""
@@ -200,8 +200,8 @@ def nearest_plane_motion(R: F64, t: F64, solutions: list[PlanarSolution]) -> tup
     solution with the smallest max(rotation / 0.5 deg, direction / 30 deg); (inf, inf) without one.
 
     A static plane allows only its decompositions' motions, so an E fitted to the same matches is one
-    of them unless part of its consensus moves. Measured (moving_mover and ground_robot started at
-    frames 0-85 and 0-240, general_motion, KITTI): at most 0.34 deg / 18 deg from the nearest where E
+    of them unless part of its consensus moves. Measured on the bundled bags started from many of their
+    frames and on KITTI: at most 0.34 deg / 18 deg from the nearest where E
     was right; 0.86-1.99 deg or 40-118 deg where a cart's points took E's consensus (the map then
     started 1-2 deg off: ATE 1-12 %, pose NEES 4000-13000)."""
     tn = np.asarray(t, dtype=np.float64) / max(float(np.linalg.norm(t)), 1e-300)
@@ -238,8 +238,8 @@ def pose_from_homography(H: F64, K: F64, xn_ref: F64, xn_cur: F64, inliers: Mask
     of the winner's good points, that solution is taken (the wrong one of a forward-moving camera sees
     its points under larger angles, so more pass the triangulation gates). When no solution that close
     has that many, the pair is ambiguous (None): with little parallax the right solution passes few
-    points through the gates, and the winner E disagrees with was 1.6-3.7 deg off on moving_mover
-    started at frame 20 and on synthetic floor pairs. Without ``prefer_R`` the rule above decides alone.
+    points through the gates, and the winner E disagrees with was 1.6-3.7 deg off on a floor with a cart
+    crossing it and on synthetic floor pairs. Without ``prefer_R`` the rule above decides alone.
     """
     results = homography_solutions(H, K, xn_ref, xn_cur, inliers, max_reproj_err_px, min_angle_deg)
     if not results:
@@ -284,8 +284,8 @@ def refine_pose_pnp(X_ref: F64, uv_cur: F64, K: F64, R_cur_ref: F64, t_cur_ref: 
     (``cv2.solvePnPRansac``, deterministic), and keep whichever result holds more points (the given
     start's on a tie). From a pose a frame or more away the first gate is wide, and a few points of a
     moving object in the map pull LM into their own minimum, after which the static points fail the
-    narrower gates: moving_mover from frame 20, the pose from the map at its 47th frame came out 0.138
-    deg off, 3 of its 36 points 5-19 px off under the true pose and 15 static ones rejected. (The
+    narrower gates: with a cart in the map, the pose from the map came out 0.138 deg off, 3 of its 36
+    points 5-19 px off under the true pose and 15 static ones rejected. (The
     consensus start alone, taken whenever it held 6 points, did worse on noisy images: moving_mover with
     3 grey levels of noise 0.25 -> 0.40 % ATE, with motion blur 0.70 -> 1.04 %.)
     """

@@ -252,8 +252,8 @@ def pose_undetermined(cov: F64 | None, t: F64, max_rotation_sigma_deg: float, ma
     """Why a first pose from E is not determined by its points (None when it is): its covariance's largest
     rotation standard deviation above ``max_rotation_sigma_deg`` (``init_max_rotation_sigma_deg``) or the
     direction of travel's above ``max_direction_sigma_deg``. This is the bas-relief ambiguity of a small
-    baseline seen over part of the image: moving_mover replayed from frame 31 (a cart on 40 % of the view,
-    0.77 deg parallax) had 0.52 and 18.7 deg, its map started 1 deg off and the run ended at 5.5 % ATE;
+    baseline seen over part of the image: a cart on 40 % of the view at 0.77 deg of parallax gave 0.52 and
+    18.7 deg, a map started 1 deg off and a run that ended at 5.5 % ATE;
     the largest on a good initialisation of any bundled bag or KITTI, from any start frame, were 0.08 and
     2.3 deg. Returns (rotation sigma, direction sigma) in degrees; no covariance (no parallax at all):
     undetermined, (NaN, NaN)."""
