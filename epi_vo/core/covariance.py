@@ -201,7 +201,8 @@ def cover(a: F64, b: F64) -> F64:
     Li = np.linalg.inv(L)
     w, V = np.linalg.eigh(Li @ (0.5 * (b + b.T)) @ Li.T)
     out = L @ (V * np.maximum(w, 1.0)) @ V.T @ L.T
-    return 0.5 * (out + out.T)
+    covered: F64 = 0.5 * (out + out.T)
+    return covered
 
 
 def is_finite(*arrays: F64) -> bool:

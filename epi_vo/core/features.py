@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import cv2
 import numpy as np
@@ -96,16 +96,16 @@ def detect_corners(gray: NDArray[np.uint8], existing: F32, cfg: VoConfig) -> F32
     radius = max(1, round(cfg.min_feature_distance_px / 2))
     for x, y in ((existing - 0.5) / 2).astype(np.int32):
         cv2.circle(mask, (int(x), int(y)), radius, 0, -1)
-    corners = cv2.goodFeaturesToTrack(half, maxCorners=3 * cfg.max_features, qualityLevel=cfg.corner_quality,
-                                      minDistance=cfg.min_feature_distance_px / 2, mask=mask, blockSize=3)
-    if corners is None:
+    found = cv2.goodFeaturesToTrack(half, maxCorners=3 * cfg.max_features, qualityLevel=cfg.corner_quality,
+                                    minDistance=cfg.min_feature_distance_px / 2, mask=mask, blockSize=3)
+    if found is None:
         return np.zeros((0, 2), np.float32)
-    corners = (corners.reshape(-1, 2) * 2.0 + 0.5).astype(np.float32)
+    corners: F32 = (found.reshape(-1, 2) * 2.0 + 0.5).astype(np.float32)
     # goodFeaturesToTrack returns corners by decreasing quality: keep that order.
     corners = corners[bucket_select(corners, None, existing, w, h, cfg)]
     if corners.shape[0]:
         # Back to full-resolution corner positions (a 5x5 gradient fit per corner, ~0.2 ms for 200).
-        corners = cv2.cornerSubPix(gray, corners.reshape(-1, 1, 2), (2, 2), (-1, -1), _SUBPIX_CRITERIA)
+        corners = cast(F32, cv2.cornerSubPix(gray, corners.reshape(-1, 1, 2), (2, 2), (-1, -1), _SUBPIX_CRITERIA))
     return corners.reshape(-1, 2)
 
 
@@ -160,7 +160,7 @@ def track_klt(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_pre
         return KltTracks(np.zeros((0, 2), np.float32), np.zeros(0, bool), 1.0 if gain is None else gain,
                          np.zeros(0, np.float32))
     if gain is not None:
-        img = gray_cur if gain == 1.0 else cv2.convertScaleAbs(gray_cur, alpha=gain, beta=0.0)
+        img = gray_cur if gain == 1.0 else cast(NDArray[np.uint8], cv2.convertScaleAbs(gray_cur, alpha=gain, beta=0.0))
         p1, ok, fb = _klt_both_ways(gray_prev, img, pts_prev, cfg)
         return KltTracks(p1, ok, gain, fb)
     p1, ok, fb = _klt_both_ways(gray_prev, gray_cur, pts_prev, cfg)
@@ -168,7 +168,7 @@ def track_klt(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_pre
     lead_ok = ok[lead]
     measured = exposure_change(gray_prev, gray_cur, pts_prev[lead][lead_ok], p1[lead][lead_ok])
     if measured is not None:
-        mapped = cv2.convertScaleAbs(gray_cur, alpha=measured, beta=0.0)
+        mapped = cast(NDArray[np.uint8], cv2.convertScaleAbs(gray_cur, alpha=measured, beta=0.0))
         p1_m, ok_m, fb_m = _klt_both_ways(gray_prev, mapped, pts_prev, cfg)
         if np.count_nonzero(ok_m[lead]) >= np.count_nonzero(lead_ok):
             return KltTracks(p1_m, ok_m, measured, fb_m)
@@ -182,7 +182,8 @@ def _patch_means(gray: NDArray[np.uint8], pts: F32, r: int = 2) -> NDArray[np.fl
     y = np.clip(np.rint(pts[:, 1]).astype(np.int64), r, h - 1 - r)
     d = np.arange(-r, r + 1)
     offsets = (d[:, None] * w + d[None, :]).ravel()
-    return np.ascontiguousarray(gray).ravel()[(y * w + x)[:, None] + offsets].mean(axis=1)
+    means: NDArray[np.float64] = np.ascontiguousarray(gray).ravel()[(y * w + x)[:, None] + offsets].mean(axis=1)
+    return means
 
 
 def exposure_change(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_prev: F32, pts_cur: F32
@@ -220,7 +221,8 @@ def _klt_both_ways(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pt
                    cfg: VoConfig) -> tuple[F32, Mask, NDArray[np.float32]]:
     win = (cfg.klt_window_px, cfg.klt_window_px)
     p0 = pts_prev.reshape(-1, 1, 2).astype(np.float32)
-    p1, st1, _ = cv2.calcOpticalFlowPyrLK(gray_prev, gray_cur, p0, None, winSize=win, maxLevel=cfg.klt_levels,
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(gray_prev, gray_cur, p0, None, winSize=win,  # type: ignore[call-overload]
+                                          maxLevel=cfg.klt_levels,
                                           criteria=_LK_CRITERIA)
     # Backward pass seeded with the start points: a good track converges there at once, so the
     # full-resolution level alone suffices (0.9 ms instead of 1.6 with two levels, 200 points); a bad
@@ -245,7 +247,7 @@ class OrbFeatures:
 
 
 def make_orb(cfg: VoConfig) -> cv2.ORB:
-    return cv2.ORB_create(nfeatures=cfg.orb_features)
+    return cv2.ORB.create(nfeatures=cfg.orb_features)
 
 
 def detect_orb(orb: cv2.ORB, gray: NDArray[np.uint8], cfg: VoConfig) -> OrbFeatures:
@@ -257,7 +259,7 @@ def detect_orb(orb: cv2.ORB, gray: NDArray[np.uint8], cfg: VoConfig) -> OrbFeatu
     resp = np.array([k.response for k in kps], dtype=np.float64)
     h, w = gray.shape
     keep = bucket_select(pts, resp, np.zeros((0, 2), np.float32), w, h, cfg)
-    return OrbFeatures(pts[keep], desc[keep])
+    return OrbFeatures(pts[keep], cast(NDArray[np.uint8], desc)[keep])
 
 
 def match_orb(desc_ref: NDArray[np.uint8], desc_cur: NDArray[np.uint8], ratio: float

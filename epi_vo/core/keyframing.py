@@ -159,7 +159,8 @@ def maybe_keyframe(state: TrackState, cfg: VoConfig, orb: cv2.ORB | None, solver
     if mapped.triangulated:
         n_triangulated = mapped.n_triangulated
     tracking = motion.state is TrackingState.TRACKING
-    step_scale = (None, 1.0)  # the scale source's anchor of this keyframe step and its correction
+    # the scale source's anchor of this keyframe step and its correction
+    step_scale: tuple[sc.WindowAnchor | None, float] = (None, 1.0)
     t = motion.t_cur_kf
     jumped = False
     if tracking:

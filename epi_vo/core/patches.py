@@ -20,6 +20,7 @@ whose patch has grown or shrunk by a third (the template's pixels no longer stan
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -50,7 +51,7 @@ def _sample(img: F32, t: F64, A: F64, ox: F32, oy: F32) -> F32:
     tf, Af = t.astype(np.float32), A.astype(np.float32)
     mx = tf[:, 0, None] + Af[:, 0, 0, None] * ox + Af[:, 0, 1, None] * oy
     my = tf[:, 1, None] + Af[:, 1, 0, None] * ox + Af[:, 1, 1, None] * oy
-    return cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return cast(F32, cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
 
 
 def _singular_values(A: F64) -> tuple[F64, F64]:
@@ -147,8 +148,8 @@ class PatchTemplates:
             at = pos[ok]
             replace = held[ok]
             k = at[replace]
-            new_tm, new_tss, new_sdw, new_hinv, new_A = (a.copy() for a in (self.tm, self.tss, self.sdw, self.hinv,
-                                                                             self.A))
+            new_tm, new_tss, new_sdw, new_hinv = self.tm.copy(), self.tss.copy(), self.sdw.copy(), self.hinv.copy()
+            new_A = self.A.copy()
             new_tm[k], new_tss[k] = tm[replace], tss[replace]
             new_sdw[k], new_hinv[k] = sdw[replace], hinv[replace]
             new_A[k] = np.eye(2)

@@ -20,6 +20,7 @@ import dataclasses
 import logging
 import time
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -344,5 +345,6 @@ def downscale(gray: NDArray[np.uint8], camera: CameraModel, max_width: int) -> t
     if max_width <= 0 or gray.shape[1] <= max_width:
         return gray, camera
     factor = max_width / gray.shape[1]
-    small = cv2.resize(gray, (max_width, round(gray.shape[0] * factor)), interpolation=cv2.INTER_AREA)
+    small = cast(NDArray[np.uint8], cv2.resize(gray, (max_width, round(gray.shape[0] * factor)),
+                                               interpolation=cv2.INTER_AREA))
     return small, camera.scaled(factor)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -41,9 +42,10 @@ def recover_pose(E: F64, uv_ref: F64, uv_cur: F64, K: F64, inliers: Mask, max_po
     xn_ref = (homogeneous(uv_ref) @ K_inv.T)[:, :2]
     xn_cur = (homogeneous(uv_cur) @ K_inv.T)[:, :2]
     vote = idx if idx.size <= max_points else idx[np.linspace(0, idx.size - 1, max_points).astype(np.int64)]
-    R1, R2, t = cv2.decomposeEssentialMat(np.asarray(E, dtype=np.float64))
-    R1, R2 = np.asarray(R1, np.float64), np.asarray(R2, np.float64)
-    t = np.asarray(t, dtype=np.float64).reshape(3)
+    R1_any, R2_any, t_any = cv2.decomposeEssentialMat(np.asarray(E, dtype=np.float64))
+    R1: F64 = np.asarray(R1_any, np.float64)
+    R2: F64 = np.asarray(R2_any, np.float64)
+    t: F64 = np.asarray(t_any, dtype=np.float64).reshape(3)
     # The depths are linear in t: those of (R, -t) are those of (R, t) negated.
     far = _CHEIRALITY_MAX_DISTANCE
     votes = []
@@ -150,10 +152,10 @@ def homography_solutions(H: F64, K: F64, xn_ref: F64, xn_cur: F64, inliers: Mask
     _, Rs, ts, ns = cv2.decomposeHomographyMat(H, K)
     idx = np.flatnonzero(inliers)
     out = []
-    for R, t, n in zip(Rs, ts, ns, strict=False):
-        R = np.asarray(R, dtype=np.float64)
-        t = np.asarray(t, dtype=np.float64).reshape(3)
-        n = np.asarray(n, dtype=np.float64).reshape(3)
+    for R_any, t_any, n_any in zip(Rs, ts, ns, strict=False):
+        R: F64 = np.asarray(R_any, dtype=np.float64)
+        t: F64 = np.asarray(t_any, dtype=np.float64).reshape(3)
+        n: F64 = np.asarray(n_any, dtype=np.float64).reshape(3)
         if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and np.all(np.isfinite(n))
                 and np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.norm(n) > 0):
             # OpenCV returns non-rotations for an H that no plane can produce (e.g. wildly unequal
@@ -268,7 +270,8 @@ def parallax_deg(R_cur_ref: F64, xn_ref: F64, xn_cur: F64) -> F64:
     b_ref = homogeneous(xn_ref) @ R_cur_ref.T
     b_cur = homogeneous(xn_cur)
     cos_a = np.einsum("ij,ij->i", b_ref, b_cur) / (np.linalg.norm(b_ref, axis=1) * np.linalg.norm(b_cur, axis=1))
-    return np.degrees(np.arccos(np.clip(cos_a, -1.0, 1.0)))
+    angles: F64 = np.degrees(np.arccos(np.clip(cos_a, -1.0, 1.0)))
+    return angles
 
 
 def refine_pose_pnp(X_ref: F64, uv_cur: F64, K: F64, R_cur_ref: F64, t_cur_ref: F64,
@@ -293,7 +296,7 @@ def refine_pose_pnp(X_ref: F64, uv_cur: F64, K: F64, R_cur_ref: F64, t_cur_ref: 
         return None
     obj = X_ref.reshape(-1, 1, 3).astype(np.float64)
     img = uv_cur.reshape(-1, 1, 2).astype(np.float64)
-    rvec, _ = cv2.Rodrigues(R_cur_ref)
+    rvec = cast(F64, cv2.Rodrigues(R_cur_ref)[0])
     best = _pnp_gated_lm(obj, img, uv_cur, K, rvec, t_cur_ref.reshape(3, 1).astype(np.float64), max_reproj_err_px)
     if robust_start:
         ok, rv, tv, inl = cv2.solvePnPRansac(obj, img, K, np.zeros(5), iterationsCount=200,
@@ -314,7 +317,8 @@ def _pnp_gated_lm(obj: F64, img: F64, uv_cur: F64, K: F64, rvec: F64, tvec: F64,
 
     def errors() -> F64:
         proj, _ = cv2.projectPoints(obj, rvec, tvec, K, zero_d)
-        return np.linalg.norm(proj.reshape(-1, 2) - uv_cur, axis=1)
+        e: F64 = np.linalg.norm(proj.reshape(-1, 2) - uv_cur, axis=1)
+        return e
 
     for i, gate in enumerate((4.0, 2.0, 1.0)):
         err = errors()
@@ -324,7 +328,8 @@ def _pnp_gated_lm(obj: F64, img: F64, uv_cur: F64, K: F64, rvec: F64, tvec: F64,
         keep = err <= limit
         if np.count_nonzero(keep) < 6:
             return None
-        rvec, tvec = cv2.solvePnPRefineLM(obj[keep], img[keep], K, zero_d, rvec, tvec)
+        refined = cv2.solvePnPRefineLM(obj[keep], img[keep], K, zero_d, rvec, tvec)
+        rvec, tvec = cast(F64, refined[0]), cast(F64, refined[1])
     keep = errors() <= max_reproj_err_px
     if np.count_nonzero(keep) < 6:
         return None

@@ -17,6 +17,7 @@ plane perpendicular to it. The returned 6x6 is over (c, phi), position first, as
 from __future__ import annotations
 
 import math
+from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -41,7 +42,8 @@ def _sampson(E: F64, h_kf: F64, h_cur: F64) -> F64:
     Etx = np.einsum("ni,kij->knj", h_cur, E)
     num = np.einsum("ni,kni->kn", h_cur, Ex)
     den = np.sqrt(Ex[..., 0] ** 2 + Ex[..., 1] ** 2 + Etx[..., 0] ** 2 + Etx[..., 1] ** 2)
-    return num / np.maximum(den, 1e-300)
+    d: F64 = num / np.maximum(den, 1e-300)
+    return d
 
 
 def _rotation_steps(R: F64, k: int, first: int) -> F64:
@@ -203,7 +205,7 @@ def map_step(R_cur_kf: F64, t_cur_kf: F64, X_kf: F64, xn_cur: F64) -> F64 | None
     if normal is None:
         return None
     try:
-        step = np.linalg.solve(normal[0], normal[1])
+        step = cast(F64, np.linalg.solve(normal[0], normal[1]))
     except np.linalg.LinAlgError:
         return None
     return step if np.all(np.isfinite(step)) else None
