@@ -140,7 +140,7 @@ class FrameResult:
     # calibration's made it look like parallax (the reason says "check the camera calibration"); else NaN
     focal_ratio: float = math.nan
     # The image noise the KLT tracks show this frame: per-axis RMS of their forward-backward errors (px;
-    # NaN with ORB or without tracks). It sets the twist's uncertainty (``VoPipeline._step_covariance``)
+    # NaN with ORB or without tracks). It sets the twist's uncertainty (``step._step_covariance``)
     track_noise_px: float = math.nan
     # KLT tracks moved onto their first image's patch this frame (``klt_patch_refine_px``); None: refinement off
     n_refined: int | None = None
