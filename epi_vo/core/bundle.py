@@ -89,7 +89,7 @@ MIN_POINTS = 8  # fewer adjusted points: the window is unusable
 MIN_OBS_PER_KF = 6  # fewer observations on an adjusted (not fixed) keyframe: the window is unusable
 MAX_PASSES = 2  # robust pass, then one pass on the gated observations
 ROTATION_TOL = 1e-6  # max |R^T R - I| of an input pose
-MIN_PLANE_POINTS = 3
+MIN_PLANE_POINTS = 3  # three points fix a plane: fewer floor points leave the plane prior unconstrained
 
 
 class DistancePrior(NamedTuple):

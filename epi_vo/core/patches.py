@@ -32,11 +32,17 @@ F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
 
 REFINE_ITERATIONS = 2  # Gauss-Newton steps (seeded by KLT and the last warp; four gave 0.002-0.02 px less drift)
-REFINE_STOP_PX = 0.02  # all updates below this: converged
+REFINE_STOP_PX = 0.02  # all updates below this: converged (a tenth of the drift the refinement removes per frame)
 REFINE_MAX_SHIFT_PX = 2.0  # a fit farther than this from the KLT position is not the same point
-REFINE_MIN_NCC = 0.8  # normalised cross-correlation of the fitted patch with its template
-REFINE_SCALE_RANGE = (0.75, 1.33)  # sqrt(det A) outside: the template is taken again from this image
-REFINE_MAX_ANISOTROPY = 2.0  # ratio of the warp's singular values
+# The fitted patch must correlate this well with its template (normalised cross-correlation, gain and bias
+# taken out): below, the patch no longer shows the template's texture (occlusion, a specular change).
+REFINE_MIN_NCC = 0.8
+# sqrt(det A) outside this range: the patch grew or shrank by a third, its template's pixels no longer stand
+# for the view's, and the template is taken again from this image.
+REFINE_SCALE_RANGE = (0.75, 1.33)
+# The warp's singular values this far apart: a patch seen this obliquely is a different texture, not the
+# template affinely moved.
+REFINE_MAX_ANISOTROPY = 2.0
 
 
 def _grid(patch_px: int, margin: int = 0) -> tuple[F32, F32]:

@@ -19,7 +19,9 @@ from epi_vo.core.geometry.models import essential_from_pose, fundamental_from_es
 from epi_vo.core.geometry.triangulation import Triangulation, triangulate
 from epi_vo.core.transforms import rotation_angle_deg
 
-# Distance (in baselines) beyond which recoverPose calls a point 'at infinity'.
+# Distance (in baselines) beyond which a point votes for no decomposition of E: only points whose rays are
+# parallel to numerical precision (at infinity) lie there. recoverPose's own cut (50 baselines) is lifted: at
+# video rates the baseline is short and real points lie thousands of baselines away.
 _CHEIRALITY_MAX_DISTANCE = 1.0e7
 
 
