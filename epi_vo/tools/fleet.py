@@ -55,7 +55,7 @@ from epi_vo.tools.fleet_summary import (
     write_json_atomic,
     write_summary,
 )
-from epi_vo.tools.replay import ReplaySummary, StopRequest, gt_topic_source, run_replay, stop_on_signals
+from epi_vo.tools.replay import ReplaySummary, StopRequest, gt_choice, run_replay, stop_on_signals
 from epi_vo.tools.replay_outputs import STATUS_FILE, check_outputs_clear, ensure_output_dir, output_paths
 
 _log = logging.getLogger(__name__)
@@ -129,8 +129,7 @@ def completed(job: FleetJob) -> ReplaySummary | None:
     if job.image_topic not in (None, summary.image_topic) or \
             job.camera_info_topic not in (None, summary.camera_info_topic):
         return None
-    if (job.no_gt and summary.gt_source) or (job.gt_topic is not None and
-                                             summary.gt_source != gt_topic_source(job.gt_topic)):
+    if summary.gt_choice != gt_choice(gt_topic=job.gt_topic, no_gt=job.no_gt):
         return None
     return summary
 

@@ -71,6 +71,19 @@ BASE_FRAME = "base_link"
 PATH_MAX_POSES = 1000
 
 
+GT_AUTO = "auto"
+GT_NONE = "none"
+
+
+def gt_choice(gt_tum: str | Path | None = None, gt_topic: str | None = None, no_gt: bool = False) -> str:
+    """``ReplaySummary.gt_choice`` of a run given these options."""
+    if no_gt:
+        return GT_NONE
+    if gt_tum is not None:
+        return f"file {gt_tum}"
+    return f"topic {gt_topic}" if gt_topic is not None else GT_AUTO
+
+
 @dataclass(frozen=True)
 class ReplaySummary:
     """Totals of one replay run (what ``stats.json`` holds)."""
@@ -105,6 +118,8 @@ class ReplaySummary:
     wall_s: float = 0.0  # run_replay from start to finish (opening the bag .. evaluation), seconds
     end_to_end_fps: float = 0.0  # frames / wall_s: reading, decoding, VO, writing, evaluation (process start-up
     # and imports excluded)
+    gt_choice: str = GT_AUTO  # how ground truth was chosen: GT_AUTO (the topic named so), GT_NONE (--no-gt),
+    # 'topic <name>' (--gt-topic), 'file <path>' (--gt)
     map_frame_id: str = ""  # vo_node's map_frame_id: '' the odometry carries the window's corrections; else
     # it stays continuous and /tf carries them as map_frame_id -> odom
 
@@ -374,7 +389,8 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
         rejected=[f"{n} frame(s) from frame {first_rejected[r]}: {r}" for r, n in rejected.items()],
         rejected_frames=sum(rejected.values()), skipped_messages=skipped, scale_source=cfg.scale_source,
         units=units, metric_from_frame=metric_from, poses_before_metric=held, wall_s=wall_s,
-        end_to_end_fps=n_frames / max(wall_s, 1e-9), map_frame_id=map_frame_id)
+        end_to_end_fps=n_frames / max(wall_s, 1e-9), map_frame_id=map_frame_id,
+        gt_choice=gt_choice(gt_tum, gt_topic, no_gt))
     write_stats(out, summary.to_json())
     return summary
 
