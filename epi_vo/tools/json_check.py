@@ -77,6 +77,11 @@ def fields_problem(data: Mapping[str, Any], field_types: Mapping[str, Any], wher
 
 
 def _name(tp: Any) -> str:
+    origin = typing.get_origin(tp)
+    if origin is dict:
+        return "an object"
+    if origin in (list, tuple):
+        return "a list"
     if tp is type(None):
         return "null"
     if tp is float:
