@@ -178,8 +178,9 @@ def compressed_to_gray(msg: Any, expected_size: tuple[int, int] | None = None) -
                     f"than the {MAX_DECODED_PIXELS} an image may have (not decoded)")
         raise ImageConversionError(msg_text)
     if expected_size is not None and (size.width, size.height) != tuple(expected_size):
-        msg_text = (f"{what}: image size {size.width}x{size.height} (declared by its {size.format.upper()} "
-                    f"header) does not match camera_info size {expected_size[0]}x{expected_size[1]} (not decoded)")
+        msg_text = (f"{what}: image size {size.width}x{size.height} does not match camera_info size "
+                    f"{expected_size[0]}x{expected_size[1]} (declared by its {size.format.upper()} header, not "
+                    "decoded)")
         raise ImageConversionError(msg_text)
     gray = None
     try:

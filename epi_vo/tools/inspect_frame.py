@@ -492,8 +492,6 @@ def _draw_histogram(ax: Any, d: PairData) -> None:
 # -------------------------------------------------------------------------------------------------
 def run(args: Any) -> int:
     """``epi-vo inspect``: args.bag, args.frame or args.stamp, args.output, args.params, topics."""
-    if args.frame is not None:
-        checks.number(args.frame, "--frame", minimum=0)
     if args.stamp is not None:  # NaN would pick frame 0 (every distance to it compares false)
         checks.number(args.stamp, "--stamp", minimum=0)
     cfg = load_config(args.params)
