@@ -253,7 +253,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _latency_rates(text: str, seconds: float) -> list[float]:
     """``--rates`` as numbers, each positive, finite and at most MAX_LATENCY_RATE_HZ, with ``--seconds`` long
     enough for a frame at each; ConfigError naming the value otherwise."""
-    from epi_vo.core.errors import ConfigError
+    from epi_vo.core.errors import ConfigError, quoted
     from epi_vo.io import checks
 
     checks.number(seconds, "--seconds", positive=True)
@@ -262,7 +262,7 @@ def _latency_rates(text: str, seconds: float) -> list[float]:
         try:
             rate = float(item)
         except ValueError:
-            raise ConfigError(f"--rates must be comma-separated numbers, not {item.strip()!r}") from None
+            raise ConfigError(f"--rates must be comma-separated numbers, not {quoted(item.strip())}") from None
         rates.append(checks.number(rate, "--rates", positive=True, maximum=MAX_LATENCY_RATE_HZ))
         if int(seconds * rate) < 1:
             raise ConfigError(f"--seconds {seconds:g} at {rate:g} Hz publishes no frame")
