@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import math
 import signal
 import sys
 from collections.abc import Sequence
@@ -16,11 +15,14 @@ from epi_vo.core.errors import EpiVoError
 if TYPE_CHECKING:
     from epi_vo.tools.replay import ReplaySummary
 
-# Exit codes: 0 done; 1 a verdict failed (soak); 2 unusable bag, file or arguments (one line names the
-# problem); 3 the replay ran but frames were rejected or messages skipped; 129 stopped by SIGHUP, 130
-# by SIGINT or SIGTERM (outputs finalised at a frame boundary).
+# Exit codes (docs/tools.md): 0 done; 1 a verdict failed (soak, gtcheck, monitor's timeout); 2 unusable
+# arguments, bag or file (one line names the problem; nothing was run); 3 the replay ran but frames were
+# rejected or messages skipped (a fleet: some bag did); 4 a fleet or summary in which some bag failed
+# (the counts line says how many); 129 stopped by SIGHUP, 130 by SIGINT or SIGTERM (outputs finalised at
+# a frame boundary).
 EXIT_INTERRUPTED = 130
 EXIT_HANGUP = 129
+MAX_LATENCY_RATE_HZ = 1000.0  # the fastest frame cameras; the bench publishes seconds x rate frames at that rate
 
 
 def _add_replay(sub: argparse._SubParsersAction) -> None:
@@ -28,8 +30,10 @@ def _add_replay(sub: argparse._SubParsersAction) -> None:
                        description="Replay a ROS 2 bag (directory or .mcap; MCAP or sqlite3) through the VO "
                                    "pipeline. Every frame is processed. One bag writes into OUTPUT; several bags "
                                    "(paths, a directory holding bags, globs) are replayed in parallel, each into "
-                                   "OUTPUT/<bag name>/, with OUTPUT/summary.csv and summary.md; the exit status is "
-                                   "then the number of bags that failed (at most 100), 130 when interrupted.")
+                                   "OUTPUT/<bag name>/, with OUTPUT/summary.csv and summary.md (exit status 4 when "
+                                   "a bag failed, 3 when one had problems). No output may overwrite or lie in an "
+                                   "input: such a run is refused before anything is written. Exit codes, ground "
+                                   "truth and recovery after a kill: docs/tools.md.")
     p.add_argument("bag", nargs="+", help="bag directory or .mcap file; several, a directory of bags or a glob "
                                           "('logs/**/*.mcap') for a fleet")
     p.add_argument("--output", "-o", required=True, help="output directory")
@@ -40,7 +44,12 @@ def _add_replay(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--params", help="ROS 2 parameter file (default: built-in defaults = config/epi_vo.yaml)")
     p.add_argument("--image-topic", help="sensor_msgs/Image or CompressedImage topic (default: the only one)")
     p.add_argument("--camera-info-topic", help="sensor_msgs/CameraInfo topic (default: the only one)")
-    p.add_argument("--gt", help="ground truth TUM file (default: a PoseStamped/Odometry topic in the bag, if any)")
+    gt = p.add_mutually_exclusive_group()
+    gt.add_argument("--gt", help="one bag: ground truth TUM file (default: the bag's PoseStamped/Odometry topic named "
+                                 "as ground truth, e.g. /ground_truth/pose or /gt/odom, if there is one)")
+    gt.add_argument("--gt-topic", help="the bag topic that holds ground truth (PoseStamped or Odometry); never the "
+                                       "wheel odometry scale source")
+    gt.add_argument("--no-gt", action="store_true", help="no ground truth, whatever the bag holds")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--rate", type=float, default=None,
                    help="one bag: hand the frames over at RATE times the pace of their stamps, as a camera would "
@@ -55,8 +64,19 @@ def _add_summarize(sub: argparse._SubParsersAction) -> None:
     p.add_argument("dirs", nargs="+", metavar="DIR",
                    help="replay output directories, or directories holding them (a fleet's OUTPUT)")
     p.add_argument("--output", "-o", default=None,
-                   help="where to write the summary (default: DIR when one holding outputs is given, else the "
-                        "directory the outputs share)")
+                   help="where to write the summary (default: DIR, when one is given)")
+    p.add_argument("--force", action="store_true",
+                   help="replace a summary there even when it lists bags this one does not")
+
+
+def _add_recover(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("recover", help="make the output.mcap of a killed replay readable (its complete chunks)",
+                       description="A replay killed without a chance to finish (SIGKILL, power cut) leaves an "
+                                   "output.mcap without its summary. recover copies its complete chunks into a new "
+                                   "output.mcap and keeps the damaged file beside it as output.mcap.damaged. "
+                                   "frames.jsonl and trajectory.tum hold every frame written (docs/tools.md).")
+    p.add_argument("dirs", nargs="+", metavar="DIR",
+                   help="replay output directories, or directories holding them (a fleet's OUTPUT)")
 
 
 def _add_benchmark(sub: argparse._SubParsersAction) -> None:
@@ -158,6 +178,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     _add_replay(sub)
     _add_summarize(sub)
+    _add_recover(sub)
     _add_benchmark(sub)
     _add_params(sub)
     _add_latency(sub)
@@ -175,6 +196,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _replay(args)
         if args.command == "summarize":
             return _summarize(args)
+        if args.command == "recover":
+            from epi_vo.tools.recover import run as recover_run
+
+            return recover_run(args)
         if args.command == "benchmark":
             from epi_vo.tools.benchmark import run_benchmark
 
@@ -194,7 +219,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "latency":
             from epi_vo.ros.live_bench import main as latency_main
 
-            return latency_main([float(r) for r in args.rates.split(",")], args.seconds)
+            return latency_main(_latency_rates(args.rates, args.seconds), args.seconds)
         if args.command == "params" and args.markdown:
             from epi_vo.io.params_doc import parameters_markdown
 
@@ -232,6 +257,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 2
 
 
+def _latency_rates(text: str, seconds: float) -> list[float]:
+    """``--rates`` as numbers, each positive, finite and at most MAX_LATENCY_RATE_HZ, with ``--seconds`` long
+    enough for a frame at each; ConfigError naming the value otherwise."""
+    from epi_vo.core.errors import ConfigError, quoted
+    from epi_vo.io import checks
+
+    checks.number(seconds, "--seconds", positive=True)
+    rates = []
+    for item in text.split(","):
+        try:
+            rate = float(item)
+        except ValueError:
+            raise ConfigError(f"--rates must be comma-separated numbers, not {quoted(item.strip())}") from None
+        rates.append(checks.number(rate, "--rates", positive=True, maximum=MAX_LATENCY_RATE_HZ))
+        if int(seconds * rate) < 1:
+            raise ConfigError(f"--seconds {seconds:g} at {rate:g} Hz publishes no frame")
+    return rates
+
+
 def _one_line(text: str) -> str:
     return " ".join(text.split())
 
@@ -252,13 +296,13 @@ def _say(line: str, *, stdout: bool = False) -> None:
 
 
 def _replay(args: argparse.Namespace) -> int:
+    from epi_vo.io import checks
     from epi_vo.io.params import load_config, load_node_options
-    from epi_vo.tools.fleet import is_fleet, nested_bags
+    from epi_vo.tools.fleet_bags import is_fleet, nested_bags
     from epi_vo.tools.replay import format_summary, run_replay
 
-    if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0.0):
-        _say(f"epi-vo: error: --rate must be a positive number, not {args.rate}")
-        return 2
+    if args.rate is not None:
+        checks.number(args.rate, "--rate", positive=True)
     nested = nested_bags(args.bag[0]) if len(args.bag) == 1 else []
     if nested:
         _say(f"epi-vo: error: {args.bag[0]} holds no bag itself but its sub-directories hold {len(nested)} "
@@ -273,7 +317,8 @@ def _replay(args: argparse.Namespace) -> int:
     summary = run_replay(args.bag[0], args.output, cfg, image_topic=args.image_topic,
                          camera_info_topic=args.camera_info_topic, gt_tum=args.gt,
                          progress=not args.no_progress, rate=args.rate,
-                         map_frame_id=load_node_options(args.params).map_frame_id)
+                         map_frame_id=load_node_options(args.params).map_frame_id, gt_topic=args.gt_topic,
+                         no_gt=args.no_gt, inputs=[args.params] if args.params else [])
     _say(format_summary(summary), stdout=True)
     if args.report:
         from epi_vo.tools.report import write_report
@@ -286,23 +331,25 @@ def _replay(args: argparse.Namespace) -> int:
 
 
 def _replay_fleet(args: argparse.Namespace) -> int:
+    from epi_vo.io import checks
     from epi_vo.io.params import load_config, load_node_options
-    from epi_vo.tools.fleet import find_bags, run_fleet
+    from epi_vo.tools.fleet import run_fleet
+    from epi_vo.tools.fleet_bags import find_bags
     from epi_vo.tools.fleet_summary import exit_code
 
     if args.gt is not None:
         _say("epi-vo: error: --gt is the ground truth of one bag; with several bags each bag's own ground-truth "
-             "topic is used")
+             "topic is used (--gt-topic names it)")
         return 2
-    if args.jobs is not None and args.jobs < 1:
-        _say(f"epi-vo: error: --jobs must be at least 1, got {args.jobs}")
-        return 2
+    if args.jobs is not None:
+        checks.number(args.jobs, "--jobs", minimum=1)
     cfg = load_config(args.params)
     bags = find_bags(args.bag)
     result = run_fleet(bags, args.output, cfg, jobs=args.jobs, force=args.force, report=args.report,
                        progress=not args.no_progress, image_topic=args.image_topic,
                        camera_info_topic=args.camera_info_topic,
-                       map_frame_id=load_node_options(args.params).map_frame_id)
+                       map_frame_id=load_node_options(args.params).map_frame_id, gt_topic=args.gt_topic,
+                       no_gt=args.no_gt, inputs=[args.params] if args.params else [])
     _print_rows(result.rows, result.summary_files)
     if result.signum is not None:
         hangup = result.signum == getattr(signal, "SIGHUP", None)
@@ -315,7 +362,7 @@ def _replay_fleet(args: argparse.Namespace) -> int:
 def _summarize(args: argparse.Namespace) -> int:
     from epi_vo.tools.fleet_summary import exit_code, summarize
 
-    rows, files = summarize(args.dirs, args.output)
+    rows, files = summarize(args.dirs, args.output, force=args.force)
     _print_rows(rows, files)
     return exit_code(rows)
 

@@ -86,8 +86,8 @@ def main(argv: list[str]) -> int:
     rng = np.random.default_rng(0)
     count = [0]
 
-    def perturbed(msg, compressed):  # type: ignore[no-untyped-def]
-        gray = decode(msg, compressed)
+    def perturbed(msg, compressed, expected_size=None):  # type: ignore[no-untyped-def]
+        gray = decode(msg, compressed, expected_size)
         i = count[0]
         count[0] += 1
         if blur and i % blur_every == 0:

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from epi_vo.core.errors import CameraModelError
+from epi_vo.core.errors import CameraModelError, quoted
 
 # Iterative undistortion: OpenCV's default 5 iterations leave ~0.1 px error at the corners of a
 # moderately distorted lens; 30 iterations converge to < 1e-4 px for the models we accept.
@@ -170,7 +170,7 @@ class CameraModel:
             # OpenCV's distortion functions ignore skew; accepting it would silently mis-project.
             raise CameraModelError(f"camera_info K has skew K[1] = {K[0, 1]}; skewed intrinsics are not supported")
         if not np.all(np.isfinite(D)):
-            raise CameraModelError(f"camera_info D is not finite: {D.tolist()}")
+            raise CameraModelError(f"camera_info D is not finite: {quoted(D.tolist())}")
         if width <= 0 or height <= 0:
             raise CameraModelError(f"camera_info image size {width}x{height} is empty")
         side = float(max(width, height))
@@ -185,12 +185,13 @@ class CameraModel:
                     f"camera_info principal point {name} = {c:.6g} px is far outside the {width}x{height} image "
                     f"(expected {-size} to {2 * size} px)")
         if D.size and float(np.max(np.abs(D))) > _MAX_ABS_DISTORTION:
-            raise CameraModelError(f"camera_info D has implausible coefficients: {D.tolist()}")
+            raise CameraModelError(f"camera_info D has implausible coefficients: {quoted(D.tolist())}")
         try:
             model = DistortionModel(distortion_model)
         except ValueError:
             known = ", ".join(m.value for m in DistortionModel)
-            raise CameraModelError(f"unknown distortion model '{distortion_model}' (supported: {known})") from None
+            raise CameraModelError(
+                f"unknown distortion model {quoted(distortion_model)} (supported: {known})") from None
         if D.size == 0 or not np.any(D):
             # Many drivers publish an empty D for rectified images: no distortion at all.
             D = np.zeros(4 if model is DistortionModel.EQUIDISTANT else 5)

@@ -51,3 +51,25 @@ class Interrupted(KeyboardInterrupt):
     def __init__(self, signum: int) -> None:
         super().__init__(signum)
         self.signum = signum
+
+
+QUOTE_MAX_CHARS = 60  # of a value quoted from a message into an error: enough to recognise it, and bounded,
+# since the error becomes the reason of every frame's record and status (a 1 MB encoding string would
+# otherwise be copied into each of them)
+
+
+def clipped(text: str, limit: int = QUOTE_MAX_CHARS) -> str:
+    """``text`` cut to ``limit`` characters, with its full length said when it was cut."""
+    return text if len(text) <= limit else f"{text[:limit]}… ({len(text)} characters)"
+
+
+def quoted(value: object, limit: int = QUOTE_MAX_CHARS) -> str:
+    """``repr(value)`` for an error message, cut to about ``limit`` characters with the full length said
+    ("'xxxx…' (1048576 characters)"). Sequences (lists, arrays) show their first items and their length."""
+    if isinstance(value, str):
+        if len(value) <= limit:
+            return repr(value)
+        return f"{value[:limit]!r}… ({len(value)} characters)"
+    if isinstance(value, list | tuple) and len(value) > 8:
+        return f"{list(value[:8])!r}… ({len(value)} values)"
+    return clipped(repr(value), limit)

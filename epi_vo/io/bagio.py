@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import bisect
 import logging
+import re
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +27,7 @@ from rosbags.rosbag2 import ReaderError
 from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_typestore
 
+from epi_vo.core.camera import CameraModelCache
 from epi_vo.core.errors import BagError, EpiVoError
 from epi_vo.core.frame import clamp_stamp_ns
 from epi_vo.io.msgconv import (
@@ -34,6 +36,7 @@ from epi_vo.io.msgconv import (
     stamp_problem,
     stamp_to_ns,
 )
+from epi_vo.io.paths import BAG_STORAGE_SUFFIXES, check_bag_path
 
 if TYPE_CHECKING:
     from collections.abc import Iterator
@@ -211,6 +214,34 @@ def _choose_topic(
     raise BagError(msg)
 
 
+_GT_WORDS = ("gt", "groundtruth")
+
+
+def is_ground_truth_name(topic: str) -> bool:
+    """Whether a topic is named as ground truth: a part of its name (between '/', '_' or '-', any case) is
+    ``gt`` or ``groundtruth``, or two neighbouring parts are ``ground`` and ``truth`` (``/ground_truth/pose``,
+    ``/gt/odom``, ``/mocap/pose_gt``). A pose topic named otherwise (``/wheel/odom``, ``/odom``,
+    ``/vicon/pose``) is the robot's own estimate or a sensor as far as a bag can tell: ground truth only
+    when chosen with ``--gt-topic``."""
+    words = [w for w in re.split(r"[/_\-]+", topic.lower()) if w]
+    pairs = ("".join(words[i:i + 2]) for i in range(len(words) - 1))
+    return any(w in _GT_WORDS for w in words) or "groundtruth" in pairs
+
+
+def _ground_truth_topic(topic_types: dict[str, str | None], explicit: str | None,
+                        wheel_topic: str | None) -> str | None:
+    """The ground-truth topic (see :func:`open_camera_bag`); None when the bag has none."""
+    if explicit is not None:
+        _choose_topic(topic_types, _GT_KIND, explicit)
+        if explicit == wheel_topic:
+            msg = (f"--gt-topic {explicit!r} is the wheel odometry topic, the scale source: ground truth must "
+                   "be independent of what it judges")
+            raise BagError(msg)
+        return explicit
+    named = {k: v for k, v in topic_types.items() if k != wheel_topic and is_ground_truth_name(k)}
+    return _choose_topic(named, _GT_KIND, None)
+
+
 def _required_topic(
     topic_types: dict[str, str | None],
     kind: _TopicKind,
@@ -284,6 +315,7 @@ class CameraBag:
         # Messages of the camera_info and ground-truth topics that could not be decoded (skipped),
         # one line each; images that cannot be decoded are frames with a problem instead.
         self.problems: list[str] = []
+        self._cameras = CameraModelCache()  # for usable_gray: the size an image must have
 
         camera_infos = []
         for log_time_ns, msg, problem in self._read(camera_info_topic):
@@ -367,7 +399,8 @@ class CameraBag:
         if frame.problem is not None or frame.camera_info_msg is None:
             return None
         try:
-            return decode_frame(frame.image_msg, self.image_is_compressed)
+            camera = self._cameras.get(frame.camera_info_msg)
+            return decode_frame(frame.image_msg, self.image_is_compressed, (camera.width, camera.height))
         except EpiVoError:
             return None
 
@@ -455,6 +488,8 @@ def open_camera_bag(
     camera_info_topic: str | None = None,
     gt_topic: str | None = None,
     wheel_topic: str | None = None,
+    *,
+    no_ground_truth: bool = False,
 ) -> CameraBag:
     """Open a camera bag and choose its topics.
 
@@ -464,23 +499,21 @@ def open_camera_bag(
     nav_msgs/Odometry (optional). A kind with exactly one topic is taken; with several, a
     camera_info in the image topic's namespace is taken, anything else is a BagError naming the
     candidates and the flag that chooses. A given topic must exist with a matching type. Ground
-    truth: the wheel odometry topic is never taken for it, and among several candidates the single one
-    named ``ground_truth`` / ``groundtruth`` is. ``wheel_topic`` (nav_msgs/Odometry, for the wheel
-    odometry scale source) must exist when given: a BagError names it and the Odometry topics there are.
+    truth (see :func:`is_ground_truth_name`): ``gt_topic`` when given, else the one PoseStamped /
+    Odometry topic named as ground truth; never the wheel odometry topic (the scale source cannot judge
+    itself); none with ``no_ground_truth``. ``wheel_topic`` (nav_msgs/Odometry, for the wheel odometry
+    scale source) must exist when given: a BagError names it and the Odometry topics there are.
 
     Raises BagError for a missing path, a non-bag, an unreadable or truncated file, an empty bag, a
     missing image or camera_info topic, an image topic without messages and ambiguous topics.
     """
-    path = Path(path)
-    if not path.exists():
-        msg = f"bag not found: {path}"
-        raise BagError(msg)
+    path = check_bag_path(path)
     if path.is_dir() and not (path / "metadata.yaml").exists():
-        files = sorted(x.name for x in path.iterdir() if x.suffix in {".mcap", ".db3"})
+        files = sorted(x.name for x in path.iterdir() if x.suffix in BAG_STORAGE_SUFFIXES)
         hint = f"; to read a file in it, pass its path: {', '.join(files)}" if files else ""
         msg = f"{path} is a directory without metadata.yaml, not a rosbag2 bag{hint}"
         raise BagError(msg)
-    if path.is_file() and path.suffix not in {".mcap", ".db3"}:
+    if path.is_file() and path.suffix not in BAG_STORAGE_SUFFIXES:
         msg = f"{path} is not a rosbag2 bag: expected a bag directory, a .mcap or a .db3 file"
         raise BagError(msg)
     if path.is_dir():
@@ -513,12 +546,7 @@ def open_camera_bag(
         )
         if wheel_topic is not None:
             _choose_topic(topic_types, _WHEEL_KIND, wheel_topic)
-        gt_types = {k: v for k, v in topic_types.items() if k != wheel_topic or k == gt_topic}
-        named_gt = [k for k, v in gt_types.items() if v in _GT_KIND.msgtypes
-                    and ("ground_truth" in k.lower() or "groundtruth" in k.lower())]
-        if gt_topic is None and len(named_gt) == 1:
-            gt_topic = named_gt[0]
-        chosen_gt = _choose_topic(gt_types, _GT_KIND, gt_topic)
+        chosen_gt = None if no_ground_truth else _ground_truth_topic(topic_types, gt_topic, wheel_topic)
         bag = CameraBag(path, reader, chosen_image, chosen_info, chosen_gt, wheel_topic)
     except BaseException:
         reader.close()
@@ -563,10 +591,7 @@ class CameraTopicsBag:
 
     def __init__(self, path: str | Path, image_topic: str | None = None,
                  camera_info_topic: str | None = None) -> None:
-        self.path = Path(path)
-        if not self.path.exists():
-            msg = f"bag not found: {self.path}"
-            raise BagError(msg)
+        self.path = check_bag_path(path)
         try:
             reader = AnyReader([self.path], default_typestore=_TYPESTORE)
             reader.open()

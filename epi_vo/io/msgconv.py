@@ -14,8 +14,9 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from epi_vo.core.errors import EpiVoError, ImageConversionError
+from epi_vo.core.errors import EpiVoError, ImageConversionError, clipped, quoted
 from epi_vo.core.frame import MAX_STAMP_NS
+from epi_vo.io.image_header import declared_size
 
 
 @dataclass(frozen=True)
@@ -103,7 +104,7 @@ def image_to_gray(msg: Any) -> NDArray[np.uint8]:
     pixel_format = _PIXEL_FORMATS.get(encoding)
     if pixel_format is None:
         msg_text = (
-            f"unsupported image encoding {encoding!r} "
+            f"unsupported image encoding {quoted(encoding)} "
             f"(supported: {', '.join(SUPPORTED_IMAGE_ENCODINGS)})"
         )
         raise ImageConversionError(msg_text)
@@ -145,30 +146,60 @@ def image_to_gray(msg: Any) -> NDArray[np.uint8]:
     return cv2.cvtColor(np.ascontiguousarray(pixels), pixel_format.to_gray)
 
 
-def compressed_to_gray(msg: Any) -> NDArray[np.uint8]:
+# The most pixels a CompressedImage may declare: beyond every camera a VO runs on (8K is 33 Mpx), and a
+# bound on what decoding allocates (OpenCV decodes colour first: ~200 MB at this size) that no payload,
+# however small, can raise: a 1 MB PNG of one colour can declare 30000 x 30000 pixels.
+MAX_DECODED_PIXELS = 1 << 26
+
+
+def compressed_to_gray(msg: Any, expected_size: tuple[int, int] | None = None) -> NDArray[np.uint8]:
     """Gray image (H, W) uint8 decoded from a ``sensor_msgs/CompressedImage``-like object.
 
-    Reads ``format`` (only for messages) and ``data``; decodes JPEG or PNG (any format OpenCV's
-    ``imdecode`` recognises from the payload) with ``IMREAD_GRAYSCALE``, which also reduces 16-bit
-    PNG to 8 bits. Raises ImageConversionError for an empty or undecodable payload; never returns
-    None.
+    Reads ``format`` (only for messages) and ``data``: a JPEG or a PNG (the formats of ROS's compressed
+    transport), decoded with ``IMREAD_GRAYSCALE`` (16-bit PNG reduced to 8 bits) and
+    ``IMREAD_IGNORE_ORIENTATION``: an EXIF orientation tag is not applied, as image_transport's compressed
+    subscriber does not apply it (the pixels are the sensor's, as camera_info describes them).
+
+    Before decoding, the size the header declares (:func:`epi_vo.io.image_header.declared_size`) must be
+    at most ``MAX_DECODED_PIXELS`` and, with ``expected_size`` (width, height: camera_info's, after
+    binning and roi), equal to it: a payload that would decode into more pixels is never decoded.
+    Raises ImageConversionError (beginning "could not decode CompressedImage") for an empty, undecodable,
+    oversized or mismatched payload; never returns None.
     """
     buffer = _bytes_of(msg.data, "CompressedImage")
+    what = f"could not decode CompressedImage (format {quoted(msg.format)}, {buffer.size} bytes)"
+    if not buffer.size:
+        raise ImageConversionError(what)
+    size = declared_size(buffer)
+    if isinstance(size, str):
+        raise ImageConversionError(f"{what}: {size}")
+    if size.width * size.height > MAX_DECODED_PIXELS:
+        msg_text = (f"{what}: its {size.format.upper()} header declares {size.width}x{size.height} pixels, more "
+                    f"than the {MAX_DECODED_PIXELS} an image may have (not decoded)")
+        raise ImageConversionError(msg_text)
+    if expected_size is not None and (size.width, size.height) != tuple(expected_size):
+        msg_text = (f"{what}: image size {size.width}x{size.height} does not match camera_info size "
+                    f"{expected_size[0]}x{expected_size[1]} (declared by its {size.format.upper()} header, not "
+                    "decoded)")
+        raise ImageConversionError(msg_text)
     gray = None
-    if buffer.size:
-        try:
-            gray = cv2.imdecode(buffer, cv2.IMREAD_GRAYSCALE)
-        except cv2.error:
-            gray = None
+    try:
+        gray = cv2.imdecode(buffer, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
+    except cv2.error:
+        gray = None
     if gray is None:
-        msg_text = f"could not decode CompressedImage (format {msg.format!r}, {buffer.size} bytes)"
+        raise ImageConversionError(what)
+    if gray.shape != (size.height, size.width):  # decoded otherwise than declared: not what was checked
+        msg_text = f"{what}: decoded {gray.shape[1]}x{gray.shape[0]}, its header declares {size.width}x{size.height}"
         raise ImageConversionError(msg_text)
     return gray
 
 
-def decode_frame(msg: Any, compressed: bool) -> NDArray[np.uint8]:
+def decode_frame(msg: Any, compressed: bool, expected_size: tuple[int, int] | None = None) -> NDArray[np.uint8]:
     """Grayscale pixels of a sensor_msgs/CompressedImage (``compressed``) or Image-like message.
 
+    ``expected_size`` (width, height), camera_info's: a CompressedImage declaring another size is refused
+    before it is decoded (see :func:`compressed_to_gray`; a raw Image's size is checked by the pipeline).
     Raises ImageConversionError for anything that is not a usable image message, also a missing
     message (None: its bytes could not be deserialised) or fields of the wrong type.
     """
@@ -176,12 +207,12 @@ def decode_frame(msg: Any, compressed: bool) -> NDArray[np.uint8]:
         msg_text = "no image message (its bytes could not be decoded)"
         raise ImageConversionError(msg_text)
     try:
-        return compressed_to_gray(msg) if compressed else image_to_gray(msg)
+        return compressed_to_gray(msg, expected_size) if compressed else image_to_gray(msg)
     except ImageConversionError:
         raise
     except (AttributeError, TypeError, ValueError, OverflowError) as err:
         kind = "CompressedImage" if compressed else "Image"
-        msg_text = f"not a usable sensor_msgs/{kind} message ({type(err).__name__}: {err})"
+        msg_text = f"not a usable sensor_msgs/{kind} message ({type(err).__name__}: {clipped(str(err), 200)})"
         raise ImageConversionError(msg_text) from None
 
 

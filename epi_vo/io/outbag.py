@@ -62,6 +62,9 @@ _TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 # then publishes with rclcpp's default profile (reliable, volatile, keep last 10).
 _OFFERED_QOS_PROFILES = ""
 
+# The MCAP header's library of every file OutputBag writes: how a fleet tells an epi_vo output from a bag.
+OUTPUT_LIBRARY = "epi_vo"
+
 _OUTPUT_TOPICS: dict[str, str] = {
     ODOMETRY_TOPIC: ODOMETRY_TYPE,
     POINTS_TOPIC: POINT_CLOUD2_TYPE,
@@ -69,6 +72,35 @@ _OUTPUT_TOPICS: dict[str, str] = {
     DIAGNOSTICS_TOPIC: DIAGNOSTIC_ARRAY_TYPE,
     TF_TOPIC: TF_MESSAGE_TYPE,
 }
+
+
+_MCAP_MAGIC = b"\x89MCAP0\r\n"
+_MCAP_HEADER_OPCODE = 0x01
+
+
+def is_output_bag(path: str | Path) -> bool:
+    """Whether ``path`` is a regular file written by :class:`OutputBag` (its MCAP header names
+    ``OUTPUT_LIBRARY``): a replay's output, never a camera bag. Reads the first bytes only; a FIFO or
+    device is not opened."""
+    path = Path(path)
+    try:
+        if not path.is_file():
+            return False
+        with path.open("rb") as f:
+            head = f.read(512)
+    except OSError:
+        return False
+    # Magic, then the Header record: opcode (1 byte), length (uint64), profile and library (uint32 length +
+    # UTF-8 each), little-endian.
+    if not head.startswith(_MCAP_MAGIC) or len(head) < 21 or head[8] != _MCAP_HEADER_OPCODE:
+        return False
+    at = 17
+    (profile_len,) = struct.unpack_from("<I", head, at)
+    at += 4 + profile_len
+    if at + 4 > len(head):
+        return False
+    (library_len,) = struct.unpack_from("<I", head, at)
+    return head[at + 4:at + 4 + library_len] == OUTPUT_LIBRARY.encode()
 
 
 def checked_array(
@@ -193,7 +225,7 @@ class OutputBag:
             raise BagError(msg) from err
 
         writer = McapWriter(self._stream, compression=CompressionType.ZSTD)
-        writer.start(profile="ros2", library="epi_vo")
+        writer.start(profile="ros2", library=OUTPUT_LIBRARY)
         schema_ids: dict[str, int] = {}
         self._channel_ids: dict[str, int] = {}
         for topic, msgtype in _OUTPUT_TOPICS.items():
@@ -236,6 +268,19 @@ class OutputBag:
             raise BagError(msg) from err
         finally:
             self._stream.close()
+
+    def flush(self) -> None:
+        """Close the chunk in progress and hand everything written so far to the OS: a process killed later
+        leaves a file whose chunks up to here are complete (``epi-vo recover`` copies them into a readable
+        file; without the summary no reader opens the killed file itself)."""
+        if self._writer is None:
+            msg = f"output bag {self.path} is closed"
+            raise BagError(msg)
+        try:
+            self._writer.flush()
+        except OSError as err:
+            msg = f"cannot write output bag {self.path}: {err.strerror or err}"
+            raise BagError(msg) from err
 
     def _check_time(self, topic: str, stamp_ns: int) -> int:
         """``stamp_ns`` as int when it is a valid ROS time; BagError naming the topic otherwise."""

@@ -24,6 +24,7 @@ from epi_vo.core.config import (
 )
 from epi_vo.core.errors import ConfigError
 from epi_vo.io.node_options import NODE_DOCS, NODE_OPTION_NAMES, NodeOptions, is_read_only, make_node_options
+from epi_vo.io.paths import refuse_special_file
 
 
 def load_params_file(path: str | Path, node_name: str = "vo_node") -> dict[str, Any]:
@@ -32,6 +33,7 @@ def load_params_file(path: str | Path, node_name: str = "vo_node") -> dict[str, 
     Returns every parameter found (pipeline and node parameters alike); the caller splits them.
     """
     path = Path(path)
+    refuse_special_file(path, "parameter file", ConfigError)
     try:
         doc = yaml.safe_load(path.read_bytes().decode("utf-8"))
     except OSError as exc:

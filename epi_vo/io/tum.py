@@ -4,20 +4,17 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from epi_vo.core.errors import BagError
 from epi_vo.io.outbag import checked_array
-
-if TYPE_CHECKING:
-
-
-    pass
+from epi_vo.io.paths import refuse_special_file
 
 logger = logging.getLogger(__name__)
+
+TUM_FILE = "TUM trajectory file"  # what a path read by read_tum is called in a refusal
 
 # --------------------------------------------------------------------------------------------------
 # TUM trajectories
@@ -33,6 +30,7 @@ def read_tum(
     line number).
     """
     path = Path(path)
+    refuse_special_file(path, TUM_FILE)
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as err:

@@ -46,6 +46,7 @@ from types import FrameType, MappingProxyType
 from typing import Any
 
 from epi_vo.core.diagnostics import DiagnosticLevel
+from epi_vo.io import checks
 
 STATUS_SUFFIX = ": tracking"
 HISTORY_LENGTH = 8  # distinct warning/error reasons kept
@@ -420,6 +421,11 @@ def run(args: argparse.Namespace) -> int:
     from rclpy.executors import ExternalShutdownException
     from rclpy.signals import SignalHandlerOptions
 
+    checks.topic_name(args.odometry_topic, "--odometry-topic")
+    if args.node_name is not None:
+        checks.node_name(args.node_name, "--node-name")
+    if args.timeout is not None:
+        checks.number(args.timeout, "--timeout", positive=True, maximum=threading.TIMEOUT_MAX)
     # As in `epi-vo play`: without rclpy's handlers, SIGINT/SIGTERM raise KeyboardInterrupt in the spin
     # loop and the context stays valid for a clean shutdown. Installed explicitly because a shell starts
     # background jobs with SIGINT ignored.

@@ -53,7 +53,7 @@ from epi_vo.core.config import VoConfig, live_advice
 from epi_vo.core.debug_image import draw_matches
 from epi_vo.core.decisions import Decision
 from epi_vo.core.diagnostics import DiagnosticStatusRecord
-from epi_vo.core.errors import CameraModelError, EpiVoError
+from epi_vo.core.errors import CameraModelError, EpiVoError, clipped
 from epi_vo.core.frame import FrameResult
 from epi_vo.core.odometry import OdometryConverter, T_base_cam_from_params, status_pose
 from epi_vo.core.status import frame_status
@@ -265,7 +265,7 @@ class VoNodeBase(NodeDiagnostics):
         stamp = msgconv.stamp_to_ns(msg.header.stamp)
         with self._cv:
             if not self._camera_frame:
-                self._camera_frame = msg.header.frame_id
+                self._camera_frame = clipped(str(msg.header.frame_id))  # in every status: bounded
             if self._frames.add_image(stamp, msg, len(msg.data), time.monotonic()):
                 self._cv.notify()
 
@@ -425,8 +425,9 @@ class VoNodeBase(NodeDiagnostics):
         if nxt is None or nxt.info is None or msgconv.stamp_problem(nxt.image.header.stamp) is not None:
             return
         try:
-            gray = msgconv.decode_frame(nxt.image, isinstance(nxt.image, CompressedImage))
             camera = self._cameras.get(nxt.info)
+            gray = msgconv.decode_frame(nxt.image, isinstance(nxt.image, CompressedImage),
+                                        (camera.width, camera.height))
         except EpiVoError:
             return  # decoded again in its turn, and rejected there with the reason
         self._ahead = (nxt, gray)
@@ -446,10 +447,11 @@ class VoNodeBase(NodeDiagnostics):
                 self.get_logger().warning("camera_info stamps do not match image stamps; using the latest "
                                           "camera_info")
             ahead, self._ahead = self._ahead, None
+            camera = self._cameras.get(item.info)  # first: a compressed image of another size is not decoded
             gray = ahead[1] if ahead is not None and ahead[0] is item else \
-                msgconv.decode_frame(item.image, isinstance(item.image, CompressedImage))
+                msgconv.decode_frame(item.image, isinstance(item.image, CompressedImage), (camera.width, camera.height))
             self._look_ahead()
-            result = self._pipeline.process(gray, self._cameras.get(item.info), stamp)
+            result = self._pipeline.process(gray, camera, stamp)
         result = self._anchored(result)
         self._n_processed += 1
         if result.skipped:

@@ -49,6 +49,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from epi_vo.core.errors import BagError, ConfigError
+from epi_vo.io import checks
 from epi_vo.io.bagio import CAMERA_INFO_TYPE, COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, BagMessage, CameraTopicsBag
 
 NODE_NAME = "epi_vo_player"
@@ -63,6 +64,9 @@ _MSG_CLASSES: dict[str, type[Any]] = {
     CAMERA_INFO_TYPE: CameraInfo,
 }
 _NS_PER_S = 1_000_000_000
+# The slowest playback: one second of bag then lasts over a quarter of an hour. Slower is a typing mistake
+# (1e-300 would make the first wait longer than the platform can wait), not a use.
+MIN_RATE = 1e-3
 # Bound on waiting for reliable subscribers' acknowledgements. Fast DDS readers acknowledge on a writer
 # heartbeat: one comes with the data when the history fills up, otherwise every 3 s; and a reader whose
 # side of discovery completes late acknowledges only then (seen up to ~3 s on loopback). Long enough for
@@ -108,18 +112,26 @@ class PlayOptions:
         problems = []
         if not (math.isfinite(self.rate) and self.rate >= 0.0):
             problems.append(f"rate must be a finite number >= 0, got {self.rate}")
+        elif 0.0 < self.rate < MIN_RATE:
+            problems.append(f"rate must be 0 (as fast as acknowledged) or at least {MIN_RATE:g}, got {self.rate:g}")
         if self.qos_depth < 1:
             problems.append(f"qos_depth must be >= 1, got {self.qos_depth}")
         if self.start_delay_s is not None and not (math.isfinite(self.start_delay_s) and self.start_delay_s >= 0):
             problems.append(f"start_delay must be a finite number >= 0, got {self.start_delay_s}")
+        elif self.start_delay_s is not None and self.start_delay_s > threading.TIMEOUT_MAX:
+            problems.append(f"start_delay must be at most {threading.TIMEOUT_MAX:g} s (the longest wait the platform "
+                            f"can make), got {self.start_delay_s:g}")
         if not (math.isfinite(self.subscriber_wait_s) and self.subscriber_wait_s >= 0):
             problems.append(f"subscriber_wait_s must be a finite number >= 0, got {self.subscriber_wait_s}")
         if not isinstance(self.qos_reliability, Reliability):
             problems.append(f"qos_reliability must be a Reliability, got {self.qos_reliability!r}")
         for name in ("remap_image", "remap_camera_info"):
             value = getattr(self, name)
-            if value is not None and not value.strip("/"):
-                problems.append(f"{name} must be a topic name, got {value!r}")
+            if value is not None:
+                try:
+                    checks.topic_name(value, name)
+                except ConfigError as exc:
+                    problems.append(str(exc))
         if problems:
             raise ConfigError("invalid play options: " + "; ".join(problems))
 
@@ -360,6 +372,7 @@ def run_play(bag_path: str | Path, options: PlayOptions | None = None, namespace
     # Without rclpy's signal handlers, SIGINT and SIGTERM raise KeyboardInterrupt wherever playback is (a
     # sleep, the subscriber wait), and the context is still valid for the summary and the shutdown.
     # Installed explicitly: a shell starts background jobs with SIGINT ignored.
+    checks.namespace(namespace, "namespace")
     previous_handlers = {}
     if threading.current_thread() is threading.main_thread():
         previous_handlers = {sig: signal.signal(sig, _raise_keyboard_interrupt)

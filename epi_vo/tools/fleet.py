@@ -17,14 +17,17 @@ each bag exactly as a single-bag run would, into ``OUT/<name>/``, then writes ``
   ones stop between two frames with their outputs finalised (as a single-bag replay does) and marked
   ``interrupted`` in ``status.json``; bags finished before keep their valid outputs. Exit status 130 (129
   for SIGHUP).
-* **Exit status** otherwise: the number of failed bags (:func:`epi_vo.tools.fleet_summary.exit_code`).
+* **Inputs are never outputs.** Before anything is written, every output of every bag and the summary are
+  checked against every bag (and the parameter file): one that would overwrite an input or write into a
+  bag directory refuses the whole fleet (:func:`epi_vo.tools.replay_outputs.check_outputs_clear`).
+* **Exit status** otherwise: :func:`epi_vo.tools.fleet_summary.exit_code` (0 every bag ok, 3 some with
+  problems, 4 some failed; docs/tools.md).
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
-import glob
 import json
 import logging
 import multiprocessing
@@ -39,128 +42,25 @@ from pathlib import Path
 from typing import Any
 
 from epi_vo.core.config import VoConfig
-from epi_vo.core.errors import BagError, EpiVoError, Interrupted
+from epi_vo.core.errors import EpiVoError, Interrupted
+from epi_vo.tools.fleet_bags import output_names
 from epi_vo.tools.fleet_summary import (
     REPORT_HTML,
-    STATUS_FILE,
     BagRow,
     BagStatus,
     read_stats,
     read_status,
     status_of,
+    summary_paths,
     write_json_atomic,
     write_summary,
 )
-from epi_vo.tools.replay import ReplaySummary, StopRequest, ensure_output_dir, run_replay, stop_on_signals
+from epi_vo.tools.replay import ReplaySummary, StopRequest, gt_choice, run_replay, stop_on_signals
+from epi_vo.tools.replay_outputs import STATUS_FILE, check_outputs_clear, ensure_output_dir, output_paths
 
 _log = logging.getLogger(__name__)
 
-BAG_SUFFIXES = (".mcap", ".db3")
 PROGRESS_EVERY_S = 0.2  # a worker reports its frames at most this often
-
-
-# --------------------------------------------------------------------------------------------------
-# Which bags
-
-
-def is_bag(path: Path) -> bool:
-    """A rosbag2 directory (with metadata.yaml) or a single .mcap / .db3 file."""
-    return (path.is_dir() and (path / "metadata.yaml").is_file()) or (path.is_file() and path.suffix in BAG_SUFFIXES)
-
-
-def _bags_in(directory: Path) -> list[Path]:
-    """The bags directly in ``directory`` (sub-directories that are bags, .mcap / .db3 files), and the
-    storage files of a sub-directory without metadata.yaml: a recorder that died (power cut, kill -9)
-    leaves its bag directory without it, and such a bag must get its row (replayed from the file, or
-    failed with its reason), not be passed over."""
-    try:
-        children = sorted(directory.iterdir())
-    except OSError:
-        return []
-    found = []
-    for c in children:
-        if is_bag(c):
-            found.append(c)
-        elif c.is_dir():
-            try:
-                found += sorted(f for f in c.iterdir() if f.is_file() and f.suffix in BAG_SUFFIXES)
-            except OSError:
-                continue
-    return found
-
-
-def nested_bags(arg: str) -> list[Path]:
-    """The bags one level below a directory that holds none itself (``DIR/<name>/<bag>``, as epi_vo's
-    bags/ and scripts/robot_drives.py's output are laid out): a directory is a fleet of the bags directly
-    in it, so such a one is named by the glob ``'DIR/*'``, and the error for ``DIR`` says so."""
-    path = Path(arg)
-    if not path.is_dir() or is_bag(path) or _bags_in(path):
-        return []
-    return [b for c in sorted(path.iterdir()) if c.is_dir() and not is_bag(c) for b in _bags_in(c)]
-
-
-def is_fleet(args: Sequence[str]) -> bool:
-    """Whether the replay arguments ask for a fleet: several of them, a glob, or one directory holding bags
-    (one argument that is a bag, or names nothing usable, is the single-bag replay)."""
-    if len(args) != 1:
-        return True
-    path = Path(args[0])
-    if not path.exists():
-        return glob.has_magic(args[0])
-    return path.is_dir() and not is_bag(path) and bool(_bags_in(path))
-
-
-def find_bags(args: Sequence[str]) -> list[Path]:
-    """The bags the replay arguments name, in order, each once: bags as given, the bags directly in a directory,
-    and what a glob matches (``**`` recurses); a path that does not exist is kept (its replay fails with
-    "bag not found", the others go on). BagError when a glob matches no bag, or a directory holds none."""
-    found: list[Path] = []
-    for arg in args:
-        literal = Path(arg)
-        if literal.exists() or not glob.has_magic(arg):
-            if literal.is_dir() and not is_bag(literal):
-                inside = _bags_in(literal)
-                if not inside:
-                    raise BagError(f"{literal} is neither a bag nor a directory holding bags")
-                found += inside
-            else:
-                found.append(literal)
-            continue
-        matches = [Path(m) for m in sorted(glob.glob(arg, recursive=True))]
-        bags = [m for m in matches if is_bag(m) and not is_bag(m.parent)]  # not the .mcap inside a bag directory
-        bags += [b for m in matches if m.is_dir() and not is_bag(m) for b in _bags_in(m)]
-        if not bags:
-            raise BagError(f"no bag matches {arg!r}")
-        found += bags
-    unique: dict[Path, Path] = {}
-    for path in found:
-        unique.setdefault(path.resolve() if path.exists() else path.absolute(), path)
-    return list(unique.values())
-
-
-def output_names(bags: Sequence[Path]) -> list[str]:
-    """A directory name per bag: its name (a file's without the suffix); where names repeat, as many parent
-    directories as make them differ, joined by '-' (``general_motion-bag``, ``planar-bag``)."""
-    parts = [list((p.resolve() if p.exists() else p.absolute()).parent.parts[1:]) for p in bags]
-    leaves = [p.stem if p.suffix in BAG_SUFFIXES and not p.is_dir() else p.name for p in bags]
-    depth = [0] * len(bags)
-
-    def name(i: int) -> str:
-        return "-".join([*parts[i][len(parts[i]) - depth[i]:], leaves[i]]) if depth[i] else leaves[i]
-
-    while True:
-        names = [name(i) for i in range(len(bags))]
-        clashes = [i for i, n in enumerate(names) if names.count(n) > 1 and depth[i] < len(parts[i])]
-        if not clashes:
-            break
-        for i in clashes:
-            depth[i] += 1
-    seen: dict[str, int] = {}
-    for i, n in enumerate(names):  # still equal (a dir and a .mcap of one name in one place): numbered
-        seen[n] = seen.get(n, 0) + 1
-        if seen[n] > 1:
-            names[i] = f"{n}-{seen[n]}"
-    return names
 
 
 # --------------------------------------------------------------------------------------------------
@@ -181,6 +81,8 @@ class FleetJob:
     report: bool = False
     force: bool = False
     map_frame_id: str = ""
+    gt_topic: str | None = None  # the ground-truth topic of every bag (default: the one named as such)
+    no_gt: bool = False  # no ground truth, whatever the bags hold
 
 
 _worker_events: Any = None  # the progress queue of this worker process (set by _init_worker)
@@ -227,6 +129,8 @@ def completed(job: FleetJob) -> ReplaySummary | None:
     if job.image_topic not in (None, summary.image_topic) or \
             job.camera_info_topic not in (None, summary.camera_info_topic):
         return None
+    if summary.gt_choice != gt_choice(gt_topic=job.gt_topic, no_gt=job.no_gt):
+        return None
     return summary
 
 
@@ -258,7 +162,8 @@ def replay_one(job: FleetJob) -> BagRow:
     try:
         summary = run_replay(job.bag, out, job.cfg, image_topic=job.image_topic,
                              camera_info_topic=job.camera_info_topic, on_result=progress.frame,
-                             on_open=progress.total, map_frame_id=job.map_frame_id)
+                             on_open=progress.total, map_frame_id=job.map_frame_id, gt_topic=job.gt_topic,
+                             no_gt=job.no_gt)
     except Interrupted as exc:
         by = "the fleet was interrupted" if _worker_stop is not None and _worker_stop.is_set() else \
             _signal_name(exc.signum)
@@ -359,18 +264,25 @@ class FleetResult:
 def run_fleet(bags: Sequence[Path], output_dir: str | Path, cfg: VoConfig, *, jobs: int | None = None,
               force: bool = False, report: bool = False, progress: bool = False, image_topic: str | None = None,
               camera_info_topic: str | None = None, on_row: Callable[[BagRow], None] | None = None,
-              map_frame_id: str = "") -> FleetResult:
-    """Replay ``bags`` (see :func:`find_bags`) into ``output_dir/<name>/`` with ``jobs`` processes (default: the
-    number of cores) and write the summary. See the module doc for resume, signals and failures.
+              map_frame_id: str = "", gt_topic: str | None = None, no_gt: bool = False,
+              inputs: Sequence[str | Path] = ()) -> FleetResult:
+    """Replay ``bags`` (see :func:`epi_vo.tools.fleet_bags.find_bags`) into ``output_dir/<name>/`` with ``jobs``
+    processes (default: the number of cores) and write the summary. See the module doc for resume, signals and
+    failures. ``inputs``: other files the run reads (a parameter file).
 
     Raises:
-        OutputError: the output directory cannot be created or the summary not written.
+        OutputError: an output of some bag (or the summary) would overwrite an input or write into a bag
+            directory (checked for every bag before anything is written: nothing runs then), the output
+            directory cannot be created or the summary not written.
     """
-    out = ensure_output_dir(output_dir)
     names = output_names(bags)
+    planned = [*summary_paths(Path(output_dir)), *(p for name in names for p in output_paths(Path(output_dir) / name))]
+    check_outputs_clear([*bags, *inputs], planned)
+    out = ensure_output_dir(output_dir)
     # Absolute bag paths: stats.json then names the bag whatever the directory a later run starts from.
     todo = [FleetJob(i, name, str(bag.absolute()), str(out / name), cfg, image_topic, camera_info_topic, report,
-                     force, map_frame_id) for i, (bag, name) in enumerate(zip(bags, names, strict=True))]
+                     force, map_frame_id, gt_topic, no_gt)
+            for i, (bag, name) in enumerate(zip(bags, names, strict=True))]
     rows: dict[int, BagRow] = {}
     attempts = dict.fromkeys(range(len(todo)), 0)
     workers = max(1, min(jobs or os.cpu_count() or 1, len(todo)))

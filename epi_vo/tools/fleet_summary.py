@@ -4,7 +4,7 @@ A bag's row comes from the files in its output directory alone (``epi-vo summari
 of runs made anywhere, e.g. one bag per cluster job):
 
 - ``stats.json``: written last, atomically, by every replay that ran to its end
-  (:func:`epi_vo.tools.replay.write_stats`); without it the directory holds no finished replay;
+  (:func:`epi_vo.tools.replay_outputs.write_stats`); without it the directory holds no finished replay;
 - ``status.json``: written by fleet replay (:mod:`epi_vo.tools.fleet`) around each bag: ``running`` when the
   bag starts (so a worker that was killed leaves it), then its outcome with a one-line reason. A single-bag
   ``epi-vo replay`` writes none: its status then follows from ``stats.json``.
@@ -13,7 +13,7 @@ Statuses: ``ok``; ``problems`` (ran to the end, but frames were rejected or mess
 single-bag exit status 3); ``failed`` (the bag could not be replayed, or every frame was rejected);
 ``interrupted`` (a signal stopped it; its outputs are finalised and agree, but cover only part of the bag);
 ``incomplete`` (no ``stats.json`` and nothing says why: still running, killed, or not run); ``not run``.
-Every status but ``ok`` and ``problems`` counts as failed in the exit code.
+Every status but ``ok`` and ``problems`` counts as failed in the exit code (:func:`exit_code`).
 """
 
 from __future__ import annotations
@@ -32,14 +32,15 @@ from typing import Any
 
 from epi_vo.core.errors import OutputError
 from epi_vo.core.frame import Model, TrackingState
-from epi_vo.tools.replay import CALIBRATION_NOTE, STATS_FILE, ReplaySummary
+from epi_vo.tools.replay import CALIBRATION_NOTE, ReplaySummary
+from epi_vo.tools.replay_outputs import STATS_FILE, STATUS_FILE
 
-STATUS_FILE = "status.json"
 SUMMARY_CSV = "summary.csv"
 SUMMARY_MD = "summary.md"
 INDEX_HTML = "index.html"
 REPORT_HTML = "report.html"  # what ``epi-vo report`` writes into a replay's directory
-MAX_EXIT_CODE = 100  # exit status of a fleet: the number of failed bags, capped below the signal codes
+EXIT_PROBLEMS = 3  # as a single replay whose frames were rejected or messages skipped
+EXIT_BAGS_FAILED = 4  # some bag failed; apart from 2 ("arguments unusable": nothing was run)
 
 
 class BagStatus(enum.Enum):
@@ -89,10 +90,32 @@ def status_of(summary: ReplaySummary) -> tuple[BagStatus, str]:
 def read_stats(directory: Path) -> ReplaySummary | None:
     """The replay summary in ``directory/stats.json``; None when there is none or it cannot be read."""
     try:
-        data = json.loads((directory / STATS_FILE).read_text(encoding="utf-8"))
-        return ReplaySummary.from_json(data) if isinstance(data, dict) else None
-    except (OSError, UnicodeError, ValueError, TypeError, OutputError):
+        return load_stats(directory)
+    except OutputError:
         return None
+
+
+def load_stats(directory: Path) -> ReplaySummary | None:
+    """The replay summary in ``directory/stats.json``; None when there is none. OutputError naming the file
+    and the problem when there is one that is not a stats.json of epi-vo replay (not JSON, a field missing
+    or of the wrong type): such a file was edited or damaged, and a summary made from it would be wrong."""
+    path = directory / STATS_FILE
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        return None
+    except (OSError, UnicodeError) as exc:
+        raise OutputError(f"{path}: cannot read: {exc}") from None
+    try:
+        data = json.loads(text)
+    except ValueError as exc:
+        raise OutputError(f"{path}: not JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise OutputError(f"{path}: expected a JSON object, not {type(data).__name__}")
+    try:
+        return ReplaySummary.from_json(data)
+    except OutputError as exc:
+        raise OutputError(f"{path}: {str(exc).removeprefix('stats.json: ')}") from None
 
 
 def read_status(directory: Path) -> dict[str, Any]:
@@ -112,8 +135,9 @@ def write_json_atomic(path: Path, data: dict[str, Any]) -> None:
 
 
 def row_from_directory(directory: Path, name: str | None = None) -> BagRow:
-    """The row of one replay output directory, from its ``stats.json`` and ``status.json``."""
-    summary = read_stats(directory)
+    """The row of one replay output directory, from its ``stats.json`` and ``status.json``. OutputError
+    when its stats.json is not one (see :func:`load_stats`)."""
+    summary = load_stats(directory)
     recorded = read_status(directory)
     bag = str(recorded.get("bag") or (summary.bag if summary else ""))
     run = str(recorded.get("run", ""))
@@ -162,8 +186,12 @@ def _is_output_dir(p: Path) -> bool:
 
 
 def exit_code(rows: Sequence[BagRow]) -> int:
-    """The number of bags that failed (any status but ok and problems), capped at MAX_EXIT_CODE."""
-    return min(sum(r.status.failed for r in rows), MAX_EXIT_CODE)
+    """The exit status of a fleet or a summary (docs/tools.md): ``EXIT_BAGS_FAILED`` when a bag failed
+    (any status but ok and problems; how many, the summary's counts line says), else ``EXIT_PROBLEMS``
+    when a bag had rejected frames or skipped messages (a single replay's exit status then), else 0."""
+    if any(r.status.failed for r in rows):
+        return EXIT_BAGS_FAILED
+    return EXIT_PROBLEMS if any(r.status is BagStatus.PROBLEMS for r in rows) else 0
 
 
 # --------------------------------------------------------------------------------------------------
@@ -270,6 +298,11 @@ def render_index(rows: Sequence[BagRow], base: Path) -> str:
             f"<table><tr>{head}</tr>{''.join(body)}</table></body></html>\n")
 
 
+def summary_paths(out: Path) -> list[Path]:
+    """Every path :func:`write_summary` may write in ``out`` (the files and their temporaries)."""
+    return [out / n for name in (SUMMARY_CSV, SUMMARY_MD, INDEX_HTML) for n in (name, f".{name}.tmp")]
+
+
 def write_summary(out: Path, rows: Sequence[BagRow], *, index: bool) -> list[Path]:
     """``out/summary.csv`` and ``out/summary.md`` (and ``out/index.html`` when ``index``); their paths."""
     written = []
@@ -285,18 +318,46 @@ def write_summary(out: Path, rows: Sequence[BagRow], *, index: bool) -> list[Pat
     return written
 
 
-def summarize(paths: Sequence[str | Path], output: str | Path | None = None) -> tuple[list[BagRow], list[Path]]:
+def summarize(paths: Sequence[str | Path], output: str | Path | None = None, *,
+              force: bool = False) -> tuple[list[BagRow], list[Path]]:
     """``epi-vo summarize``: the rows of the replay output directories in ``paths`` (see
     :func:`find_output_dirs`) and the summary files written for them into ``output`` (default: the one path
-    given when it holds the output directories, else the directory the output directories share)."""
+    given, be it an output directory or one holding them; with several paths ``output`` must be given).
+
+    A summary already there that lists bags this one would not (a fleet's larger summary, or a file of
+    another kind) is not replaced unless ``force``: OutputError names it.
+    """
     dirs = find_output_dirs(paths)
     if output is None:
-        output = Path(paths[0]) if len(paths) == 1 and dirs and dirs[0] != Path(paths[0]) else \
-            Path(os.path.commonpath([d.resolve().parent for d in dirs]))
+        if len(paths) != 1:
+            raise OutputError(f"{len(paths)} directories given: say where the summary goes with --output")
+        output = paths[0]
     out = Path(output)
+    rows = [row_from_directory(d) for d in dirs]
+    if not force:
+        _check_not_dropping(out / SUMMARY_CSV, rows)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise OutputError(f"cannot create {out}: {exc.strerror or exc}") from None
-    rows = [row_from_directory(d) for d in dirs]
     return rows, write_summary(out, rows, index=any(r.report for r in rows))
+
+
+def _check_not_dropping(path: Path, rows: Sequence[BagRow]) -> None:
+    """OutputError when ``path`` exists and is not a summary of (at most) the bags in ``rows``."""
+    if not path.exists():
+        return
+    try:
+        with path.open(newline="", encoding="utf-8") as f:
+            names = [r.get("name") for r in csv.DictReader(f)]
+    except (OSError, UnicodeError, csv.Error) as exc:
+        raise OutputError(f"{path} exists and cannot be read as a summary ({exc}): not replaced; pass --force to "
+                          "replace it, or --output to write elsewhere") from None
+    if any(n is None for n in names):
+        raise OutputError(f"{path} exists and is not an epi-vo summary: not replaced; pass --force to replace it, "
+                          "or --output to write elsewhere")
+    dropped = sorted(set(names) - {r.name for r in rows})
+    if dropped:
+        raise OutputError(f"{path} lists {len(names)} bag(s), {len(dropped)} of which this summary of {len(rows)} "
+                          f"would drop (e.g. {dropped[0]}): not replaced; pass --force to replace it, or --output "
+                          "to write elsewhere")

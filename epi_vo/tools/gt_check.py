@@ -204,26 +204,39 @@ def check_ground_truth(bag_path: str | Path, gt: tuple[F64, F64, F64], gap: int 
     ``MAX_TIME_DIFF`` or with an image that cannot be decoded are left out of the pairs.
 
     Raises:
-        EpiVoError: the bag cannot be read, has no camera_info, or ``gap`` < 1.
+        EpiVoError: the bag cannot be read, ``gap`` < 1, or the ground truth cannot be used, with the reason:
+            fewer than two poses, a zero quaternion, no image within ``MAX_TIME_DIFF`` of a pose (the two
+            time ranges are named), no decodable image with camera_info among those that have one, or no two
+            frames ``gap`` apart that both have one.
     """
     if gap < 1:
         raise EpiVoError(f"ground-truth check: gap must be at least 1 frame, not {gap}")
     gt_s, gt_p, gt_q = (np.asarray(a, dtype=np.float64) for a in gt)
     if gt_s.size < 2:
         raise EpiVoError("ground-truth check: fewer than two ground-truth poses")
+    order = np.argsort(gt_s, kind="stable")  # nearest_rows needs the stamps in order; a file need not be
+    gt_s, gt_p, gt_q = gt_s[order], gt_p[order], gt_q[order]
+    zero = np.flatnonzero(np.linalg.norm(gt_q, axis=1) == 0.0)
+    if zero.size:
+        raise EpiVoError(f"ground-truth check: the ground-truth pose at {gt_s[zero[0]]:.6f} s has a zero quaternion "
+                         "(no orientation)")
     steps = np.linalg.norm(np.diff(gt_p, axis=0), axis=1)
     min_baseline = MIN_BASELINE * float(np.mean(steps)) if np.mean(steps) > 0.0 else math.inf
     sift = cv2.SIFT_create(max_features)
     matcher = cv2.BFMatcher(cv2.NORM_L2)
     camera: CameraModel | None = None
     kept: list[tuple[int, int, F64, F64, np.ndarray]] = []  # index, stamp, T_w_c, keypoints (px), descriptors
-    with bagio.open_camera_bag(bag_path) as bag:
+    image_s: list[float] = []  # stamps of the images looked at
+    with_gt = 0  # of them, those with a ground-truth pose within MAX_TIME_DIFF
+    with bagio.open_camera_bag(bag_path, no_ground_truth=True) as bag:
         for index, frame in enumerate(bag.iter_frames()):
             if index % gap:
                 continue
+            image_s.append(frame.stamp_ns * 1e-9)
             j = int(nearest_rows(gt_s, np.array([frame.stamp_ns * 1e-9]))[0])
             if abs(gt_s[j] - frame.stamp_ns * 1e-9) > MAX_TIME_DIFF:
                 continue
+            with_gt += 1
             gray = bag.usable_gray(frame)
             if gray is None:
                 continue
@@ -233,8 +246,13 @@ def check_ground_truth(bag_path: str | Path, gt: tuple[F64, F64, F64], gap: int 
             pts = np.array([k.pt for k in kps], dtype=np.float64).reshape(-1, 2)
             T = poses_from_xyz_quat(gt_p[j:j + 1], gt_q[j:j + 1])[0]
             kept.append((index, int(frame.stamp_ns), T, pts, desc))
+    if not with_gt:
+        raise EpiVoError(f"ground-truth check: no image of {bag_path} is within {MAX_TIME_DIFF} s of a ground-truth "
+                         f"pose (images {min(image_s, default=math.nan):.3f}-{max(image_s, default=math.nan):.3f} s, "
+                         f"ground truth {gt_s[0]:.3f}-{gt_s[-1]:.3f} s)")
     if camera is None:
-        raise EpiVoError(f"ground-truth check: {bag_path} has no decodable image with camera_info and ground truth")
+        raise EpiVoError(f"ground-truth check: {bag_path} has no decodable image with camera_info among the "
+                         f"{with_gt} frame(s) that have a ground-truth pose")
     f = float(camera.fx)
     pairs: list[PairCheck] = []
     for (i1, s1, T1, p1, d1), (i2, s2, T2, p2, d2) in itertools.pairwise(kept):
@@ -257,6 +275,9 @@ def check_ground_truth(bag_path: str | Path, gt: tuple[F64, F64, F64], gap: int 
         n, gt_px, im_px, rot, direction, motion = checked
         pairs.append(PairCheck(i1, i2, s1, s2, n, gt_px, im_px, rot, direction, model, agrees(gt_px, im_px),
                                motion))
+    if not pairs:
+        raise EpiVoError(f"ground-truth check: no two frames {gap} apart both have a ground-truth pose and a "
+                         f"decodable image ({len(kept)} of the {len(image_s)} frames looked at, every {gap}th, have)")
     return GroundTruthCheck(pairs, *_confirmed_from(pairs, kept))
 
 
@@ -292,7 +313,8 @@ def format_check(check: GroundTruthCheck) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """``epi-vo gtcheck BAG --gt FILE [--gap N]``: print the check; exit status 0 when the ground truth
-    agrees with the images at every judged pair, 1 when some pair disagrees."""
+    agrees with the images at every judged pair, 1 when some pair disagrees; EpiVoError (exit status 2, one
+    line with the reason) when the ground truth cannot be used or no pair could be judged."""
     bag = Path(args.bag)
     gt_file = args.gt
     if gt_file is None:  # the bundled layout: <name>/bag beside <name>/groundtruth_tum.txt
@@ -302,4 +324,6 @@ def run(args: argparse.Namespace) -> int:
             raise EpiVoError(f"gtcheck: no --gt given and no {candidates[1]}")
     check = check_ground_truth(bag, tum.read_tum(gt_file), gap=args.gap)
     print(format_check(check), flush=True)
+    if not any(p.agrees is not None for p in check.pairs):  # no verdict: never "agrees"
+        raise EpiVoError(f"ground-truth check: {check.summary()}")
     return 1 if check.disagreeing else 0

@@ -42,7 +42,7 @@ from epi_vo.core.errors import BagError, OutputError
 from epi_vo.core.frame import FrameResult, Model
 from epi_vo.core.geometry import CHI2_1DOF, CHI2_2DOF, epipolar_distances_sq, homogeneous, transfer_errors_sq
 from epi_vo.core.pipeline import downscale
-from epi_vo.io import bagio
+from epi_vo.io import bagio, checks
 from epi_vo.io.params import load_config
 from epi_vo.runner import make_pipeline
 from epi_vo.tools.replay import process_frame
@@ -493,6 +493,8 @@ def _draw_histogram(ax: Any, d: PairData) -> None:
 # -------------------------------------------------------------------------------------------------
 def run(args: Any) -> int:
     """``epi-vo inspect``: args.bag, args.frame or args.stamp, args.output, args.params, topics."""
+    if args.stamp is not None:  # NaN would pick frame 0 (every distance to it compares false)
+        checks.number(args.stamp, "--stamp", minimum=0)
     cfg = load_config(args.params)
     out_arg = Path(args.output) if args.output else None
     if out_arg is not None and not out_arg.is_dir() and out_arg.parent.exists() and not out_arg.parent.is_dir():

@@ -17,17 +17,18 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import functools
 import json
 import logging
 import math
-import os
 import signal
 import threading
 import time
-from collections.abc import Callable, Iterable, Iterator
+import typing
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import MISSING, asdict, dataclass, field, fields
 from pathlib import Path
-from typing import IO, TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -40,10 +41,27 @@ from epi_vo.core.odometry import OdometryConverter, OdometrySample, sample_statu
 from epi_vo.core.pipeline import VoPipeline
 from epi_vo.core.status import frame_status
 from epi_vo.io import bagio, outbag, tum
-from epi_vo.io.msgconv import decode_frame, ns_to_ros_time
+from epi_vo.io.msgconv import decode_frame
+from epi_vo.io.paths import check_bag_path, refuse_special_file
 from epi_vo.io.wheel_feed import WheelFeed
 from epi_vo.runner import make_pipeline
 from epi_vo.tools.consistency import OdometryLog, consistency_metrics, format_consistency
+from epi_vo.tools.json_check import fields_problem
+from epi_vo.tools.replay_outputs import (
+    FRAMES_FILE,
+    OUTPUT_BAG,
+    OUTPUT_FLUSH_FRAMES,
+    TRAJECTORY_FILE,
+    PathWindow,
+    check_outputs_clear,
+    ensure_output_dir,
+    open_output,
+    os_reason,
+    output_paths,
+    remove_stats,
+    tum_stamp,
+    write_stats,
+)
 
 if TYPE_CHECKING:
     from epi_vo.tools.evaluation import TrajectoryMetrics
@@ -53,6 +71,19 @@ _log = logging.getLogger(__name__)
 ODOM_FRAME = "odom"
 BASE_FRAME = "base_link"
 PATH_MAX_POSES = 1000
+
+
+GT_AUTO = "auto"
+GT_NONE = "none"
+
+
+def gt_choice(gt_tum: str | Path | None = None, gt_topic: str | None = None, no_gt: bool = False) -> str:
+    """``ReplaySummary.gt_choice`` of a run given these options."""
+    if no_gt:
+        return GT_NONE
+    if gt_tum is not None:
+        return f"file {gt_tum}"
+    return f"topic {gt_topic}" if gt_topic is not None else GT_AUTO
 
 
 @dataclass(frozen=True)
@@ -89,6 +120,8 @@ class ReplaySummary:
     wall_s: float = 0.0  # run_replay from start to finish (opening the bag .. evaluation), seconds
     end_to_end_fps: float = 0.0  # frames / wall_s: reading, decoding, VO, writing, evaluation (process start-up
     # and imports excluded)
+    gt_choice: str = GT_AUTO  # how ground truth was chosen: GT_AUTO (the topic named so), GT_NONE (--no-gt),
+    # 'topic <name>' (--gt-topic), 'file <path>' (--gt)
     map_frame_id: str = ""  # vo_node's map_frame_id: '' the odometry carries the window's corrections; else
     # it stays continuous and /tf carries them as map_frame_id -> odom
     # scale_source wheel_odometry: the messages of its topic and what became of them (WheelInputCounts)
@@ -111,6 +144,9 @@ class ReplaySummary:
                          if f.name not in data and f.default is MISSING and f.default_factory is MISSING)
         if missing:
             raise OutputError(f"not a stats.json of epi-vo replay: no {', '.join(missing)}")
+        problem = stats_problem(data)
+        if problem:
+            raise OutputError(problem)
         values = {k: v for k, v in data.items() if k in names}
         for name in ("ms_per_frame", "tracked_percent", "path_length", "wall_s", "end_to_end_fps"):
             if name in values and values[name] is None:  # written as null when it was not finite
@@ -127,6 +163,26 @@ class ReplaySummary:
         if self.skipped_messages:
             parts.append(f"{len(self.skipped_messages)} message(s) skipped: {self.skipped_messages[0]}")
         return " ".join("; ".join(parts).split())
+
+
+@functools.cache
+def _stats_types() -> dict[str, Any]:
+    """The JSON type of every field of stats.json (a float may be null: written so when not finite)."""
+    def nullable(tp: Any) -> Any:
+        if tp is float:
+            return float | None
+        if typing.get_origin(tp) is dict:
+            key, value = typing.get_args(tp)
+            return dict[key, nullable(value)]  # type: ignore[valid-type]
+        return tp
+
+    return {k: nullable(v) for k, v in typing.get_type_hints(ReplaySummary).items()}
+
+
+def stats_problem(data: dict[str, Any], where: str = "stats.json") -> str | None:
+    """Why the fields of a ``stats.json`` (those present) do not have the types :class:`ReplaySummary` gives
+    them, in one line naming the field; None when they do."""
+    return fields_problem(data, _stats_types(), where)
 
 
 def _jsonable(x: Any) -> Any:
@@ -168,7 +224,8 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                gt_tum: str | Path | None = None, progress: bool = False,
                on_result: Callable[[FrameResult], None] | None = None,
                on_open: Callable[[int], None] | None = None, lookahead: bool = True,
-               rate: float | None = None, map_frame_id: str = "") -> ReplaySummary:
+               rate: float | None = None, map_frame_id: str = "", gt_topic: str | None = None,
+               no_gt: bool = False, inputs: Sequence[str | Path] = ()) -> ReplaySummary:
     """Replay every image of a bag through the pipeline and write the outputs (see module doc).
 
     A frame that cannot be used (undecodable message or image, header stamp that is no ROS time,
@@ -190,22 +247,31 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     which jumps by the windowed adjustment's corrections; a frame name keeps /vo/odometry continuous and
     puts the corrections into the ``map_frame_id -> odom`` transform on /tf (beside ``odom -> base_link``,
     written at every frame with a pose either way), as the node broadcasts them.
+    Ground truth: ``gt_tum`` (a TUM file) when given, else the bag's ``gt_topic``, else its one topic named
+    as ground truth (:func:`epi_vo.io.bagio.is_ground_truth_name`); none with ``no_gt``. ``inputs``: other
+    files the run reads (a parameter file), which no output may overwrite either.
 
     Raises:
-        BagError: unreadable or empty bag, missing or ambiguous topics.
-        OutputError: the output directory or a file in it cannot be created or written.
+        BagError: unreadable or empty bag, missing or ambiguous topics, a bag that is no regular file or
+            directory (a FIFO, a device).
+        OutputError: an output would overwrite an input or write into a bag directory (checked before
+            anything is written), or the output directory or a file in it cannot be created or written.
         Interrupted: SIGINT, SIGTERM or SIGHUP arrived; raised between two frames, outputs finalised.
     """
     started = time.perf_counter()
     cfg = cfg or VoConfig()
+    check_bag_path(bag_path)
+    if gt_tum is not None:
+        refuse_special_file(gt_tum, tum.TUM_FILE)
+    check_outputs_clear([bag_path, gt_tum, *inputs], output_paths(Path(output_dir)))
     out = ensure_output_dir(output_dir)
-    _remove_stats(out)  # stats.json is written last: without it the directory holds no finished replay
+    remove_stats(out)  # stats.json is written last: without it the directory holds no finished replay
     pipeline = make_pipeline(cfg)
     converter = OdometryConverter(continuous=bool(map_frame_id))
     cameras = CameraModelCache()
     results_pose: list[tuple[float, np.ndarray, np.ndarray]] = []
     metric_stamps: list[dict[str, Any]] = []  # the poses published in metres (see evaluation.metric_poses)
-    path_poses = _PathWindow(PATH_MAX_POSES)
+    path_poses = PathWindow(PATH_MAX_POSES)
     states: collections.Counter[str] = collections.Counter()
     models: collections.Counter[str] = collections.Counter()
     stage_times: dict[str, list[float]] = collections.defaultdict(list)
@@ -221,10 +287,11 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
 
     try:
         with stop_on_signals() as stop, \
-                bagio.open_camera_bag(bag_path, image_topic, camera_info_topic,
-                                      wheel_topic=_wheel_topic(cfg)) as bag, \
-                _open_output(out / "frames.jsonl") as frames_f, _open_output(out / "trajectory.tum") as tum_f, \
-                outbag.OutputBag(out / "output.mcap", overwrite=True) as obag, \
+                bagio.open_camera_bag(bag_path, image_topic, camera_info_topic, gt_topic,
+                                      wheel_topic=_wheel_topic(cfg), no_ground_truth=no_gt or gt_tum is not None
+                                      ) as bag, \
+                open_output(out / FRAMES_FILE) as frames_f, open_output(out / TRAJECTORY_FILE) as tum_f, \
+                outbag.OutputBag(out / OUTPUT_BAG, overwrite=True) as obag, \
                 _Progress(progress, bag.frame_count) as bar:
             if on_open is not None:
                 on_open(bag.frame_count)
@@ -265,7 +332,8 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                     n_pose += 1
                     p, q = result.position, result.quat_xyzw
                     stamp_s = result.stamp_ns * 1e-9
-                    tum_f.write(f"{_tum_stamp(result.stamp_ns)} " + " ".join(f"{v:.9f}" for v in (*p, *q)) + "\n")
+                    tum_f.write(f"{tum_stamp(result.stamp_ns)} " + " ".join(f"{v:.9f}" for v in (*p, *q)) + "\n")
+                    tum_f.flush()  # as frames.jsonl: what a kill leaves holds every frame written
                     results_pose.append((stamp_s, p.copy(), q.copy()))
                     if result.scale.metric:
                         metric_stamps.append({"stamp_ns": result.stamp_ns, "metric_scale": True})
@@ -279,12 +347,14 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                 else:
                     obag.write_diagnostics(result.stamp_ns, [frame_status(
                         result, "epi_vo", "replay", status_pose(converter, result, ODOM_FRAME, BASE_FRAME), record)])
+                if n_frames % OUTPUT_FLUSH_FRAMES == 0:
+                    obag.flush()  # a complete chunk on disk: what epi-vo recover can copy after a kill
                 bar.update()
                 if on_result is not None:
                     on_result(result)
             wheel_counts = wheel.counts()
     except OSError as exc:  # reading is wrapped in BagError by bagio: this is an output file
-        raise OutputError(f"cannot write the outputs in {out}: {_os_reason(exc)}") from exc
+        raise OutputError(f"cannot write the outputs in {out}: {os_reason(exc)}") from exc
 
     if n_frames == 0:
         raise BagError(f"bag {bag_path} has no image messages on {bag.image_topic}")
@@ -327,69 +397,19 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
         rejected_frames=sum(rejected.values()), skipped_messages=skipped, scale_source=cfg.scale_source,
         units=units, metric_from_frame=metric_from, poses_before_metric=held, wall_s=wall_s,
         end_to_end_fps=n_frames / max(wall_s, 1e-9), map_frame_id=map_frame_id,
-        wheel_odometry=None if wheel_counts is None else wheel_counts.record())
-    write_stats(out, summary)
+        wheel_odometry=None if wheel_counts is None else wheel_counts.record(),
+        gt_choice=gt_choice(gt_tum, gt_topic, no_gt))
+    write_stats(out, summary.to_json())
     return summary
 
 
-STATS_FILE = "stats.json"
 CALIBRATION_NOTE = "check the camera calibration"  # how the note on rotation-only frames under another focal begins
-
-
-def write_stats(out: Path, summary: ReplaySummary) -> None:
-    """``out/stats.json``, atomically (a temporary file renamed over it): it is written last, so its presence
-    means the replay in ``out`` ran to the end (what fleet replay's resume relies on)."""
-    path = out / STATS_FILE
-    tmp = out / f".{STATS_FILE}.tmp"
-    try:
-        tmp.write_text(json.dumps(summary.to_json(), indent=2) + "\n")
-        os.replace(tmp, path)
-    except OSError as exc:
-        raise OutputError(f"cannot write {path}: {_os_reason(exc)}") from exc
-
-
-def _remove_stats(out: Path) -> None:
-    try:
-        (out / STATS_FILE).unlink(missing_ok=True)
-    except OSError as exc:
-        raise OutputError(f"cannot replace {out / STATS_FILE}: {_os_reason(exc)}") from exc
 
 
 def _wheel_topic(cfg: VoConfig) -> str | None:
     return cfg.wheel_odometry_topic if cfg.scale_source == "wheel_odometry" else None
 
 
-def _os_reason(exc: OSError) -> str:
-    where = f" ({exc.filename})" if exc.filename else ""
-    return f"{exc.strerror or exc}{where}"
-
-
-def ensure_output_dir(output_dir: str | Path) -> Path:
-    """The output directory, created if needed; OutputError naming the problem when it cannot be."""
-    out = Path(output_dir)
-    if out.exists() and not out.is_dir():
-        raise OutputError(f"output {out} exists and is not a directory")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OutputError(f"cannot create the output directory {out}: {_os_reason(exc)}") from None
-    return out
-
-
-@contextlib.contextmanager
-def _open_output(path: Path) -> Iterator[IO[str]]:
-    try:
-        f = path.open("w", encoding="utf-8")
-    except OSError as exc:
-        raise OutputError(f"cannot create {path}: {_os_reason(exc)}") from None
-    with f:
-        yield f
-
-
-def _tum_stamp(stamp_ns: int) -> str:
-    """The stamp in seconds with 9 decimals, exact (a float would round large stamps)."""
-    sec, nanosec = ns_to_ros_time(stamp_ns)
-    return f"{sec}.{nanosec:09d}"
 
 
 class _Progress:
@@ -466,7 +486,8 @@ def _decode(frame: bagio.BagFrame, bag: bagio.CameraBag, cameras: CameraModelCac
     """The frame's image and camera; EpiVoError naming what is wrong with them."""
     if frame.camera_info_msg is None:
         raise BagError(_no_camera_info(bag))
-    return decode_frame(frame.image_msg, bag.image_is_compressed), cameras.get(frame.camera_info_msg)
+    camera = cameras.get(frame.camera_info_msg)  # first: a compressed image of another size is not decoded
+    return decode_frame(frame.image_msg, bag.image_is_compressed, (camera.width, camera.height)), camera
 
 
 class _Decoded:
@@ -553,36 +574,8 @@ def stop_on_signals() -> Iterator[StopRequest]:
             signal.signal(sig, handler)
 
 
-class _PathWindow:
-    """The last ``size`` poses of /vo/path (stamp, position, quat_xyzw) as contiguous arrays without a copy per
-    frame: rows are appended into a buffer twice the window, shifted back to the start when it is full."""
-
-    def __init__(self, size: int) -> None:
-        self._size = size
-        self._stamps = np.zeros(2 * size, dtype=np.int64)
-        self._poses = np.zeros((2 * size, 7))  # x y z, qx qy qz qw
-        self._end = 0
-
-    def append(self, stamp_ns: int, position: np.ndarray, quat_xyzw: np.ndarray) -> None:
-        if self._end == len(self._stamps):
-            keep = self._size - 1
-            self._stamps[:keep] = self._stamps[self._end - keep:self._end]
-            self._poses[:keep] = self._poses[self._end - keep:self._end]
-            self._end = keep
-        self._stamps[self._end] = stamp_ns
-        self._poses[self._end, :3] = position
-        self._poses[self._end, 3:] = quat_xyzw
-        self._end += 1
-
-    def window(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """stamps_ns (M,), positions (M, 3), quats_xyzw (M, 4) of the last M <= size poses (views)."""
-        start = max(self._end - self._size, 0)
-        poses = self._poses[start:self._end]
-        return self._stamps[start:self._end], poses[:, :3], poses[:, 3:]
-
-
 def _write_outputs(obag: outbag.OutputBag, converter: OdometryConverter, result: FrameResult,
-                   path_poses: _PathWindow, record: dict[str, Any] | None = None,
+                   path_poses: PathWindow, record: dict[str, Any] | None = None,
                    map_frame_id: str = "") -> OdometrySample:
     sample = converter.convert_result(result)
     obag.write_odometry(result.stamp_ns, ODOM_FRAME, BASE_FRAME, sample.position, sample.quat_xyzw,
@@ -610,7 +603,12 @@ def _ground_truth(bag: bagio.CameraBag, gt_tum: str | Path | None
     gt = bag.read_ground_truth()
     if gt is None:
         return None
-    return f"bag topic {bag.gt_topic}", (gt.stamps_ns * 1e-9, gt.positions, gt.quats_xyzw)
+    return gt_topic_source(gt.topic), (gt.stamps_ns * 1e-9, gt.positions, gt.quats_xyzw)
+
+
+def gt_topic_source(topic: str) -> str:
+    """``stats.json``'s ``gt_source`` for ground truth read from a bag topic."""
+    return f"bag topic {topic}"
 
 
 def _evaluate(poses: list[tuple[float, np.ndarray, np.ndarray]], metric_stamps: list[dict[str, Any]],

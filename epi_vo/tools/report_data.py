@@ -41,6 +41,7 @@ from numpy.typing import NDArray
 
 from epi_vo.core.config import config_fields
 from epi_vo.core.errors import EpiVoError, ReportError
+from epi_vo.core.frame import Model, TrackingState
 from epi_vo.io import tum
 from epi_vo.tools.evaluation import (
     MIN_MATCHED_POSES,
@@ -50,6 +51,8 @@ from epi_vo.tools.evaluation import (
     metric_poses,
     to_evo_trajectory,
 )
+from epi_vo.tools.json_check import fields_problem
+from epi_vo.tools.replay import stats_problem
 
 _log = logging.getLogger(__name__)
 
@@ -62,6 +65,20 @@ REPORT_PNG_DIR = "report"
 _RECORD_KEYS = ("index", "stamp", "state", "has_pose", "is_keyframe", "model", "rh", "n_features", "n_tracked",
                 "n_inliers", "inlier_ratio", "median_parallax_deg", "n_triangulated", "positive_depth_ratio",
                 "median_reproj_err_px", "timings_ms", "reason")
+_OPT = float | None  # a measurement written as null when it was not finite
+# The type of every key FrameResult.to_record writes (checked where present: older records lack some).
+RECORD_TYPES: dict[str, Any] = {
+    "index": int, "stamp": float, "stamp_ns": int, "state": TrackingState, "has_pose": bool, "is_keyframe": bool,
+    "model": Model, "rh": _OPT, "n_features": int, "n_tracked": int, "n_inliers": int, "inlier_ratio": _OPT,
+    "median_parallax_deg": _OPT, "n_triangulated": int, "positive_depth_ratio": _OPT,
+    "median_reproj_err_px": _OPT, "relative_scale": _OPT, "n_keyframes": int, "position": list[float],
+    "quat_xyzw": list[float], "covariance_diagonal": list[float], "n_points": int, "timings_ms": dict[str, float],
+    "reason": str, "skipped": bool, "rejected": bool, "units": str, "scale_source": str, "metric_scale": bool,
+    "scale": _OPT, "scale_rel_std": _OPT, "floor_pitch_deg": _OPT, "floor_roll_deg": _OPT, "scale_reason": str,
+    "static_score": _OPT, "n_moving": int, "moving_fraction": _OPT, "moving_region": list[int] | None,
+    "focal_ratio": _OPT, "track_noise_px": _OPT, "n_refined": int | None, "window_correction": _OPT,
+    "window_correction_deg": _OPT, "wheel_messages": dict[str, int] | None,
+}
 
 # A trajectory.tum row belongs to the frame record with the nearest stamp within this. TUM stamps carry
 # 9 decimals, but float64 seconds near the Unix epoch resolve only ~0.24 us; 0.1 ms is still far below
@@ -133,6 +150,9 @@ def load_run(directory: str | Path) -> Run:
         if not isinstance(stats, dict):
             msg = f"{d / 'stats.json'}: expected a JSON object"
             raise ReportError(msg)
+        problem = stats_problem(stats, str(d / "stats.json"))
+        if problem:
+            raise ReportError(problem)
     return Run(d, records, est, est_frame_index, gt, stats)
 
 
@@ -158,6 +178,9 @@ def _read_records(path: Path) -> tuple[dict[str, Any], ...]:
         if missing:
             msg = f"{path}:{line_number}: frame record without {', '.join(missing)}"
             raise ReportError(msg)
+        problem = fields_problem(rec, RECORD_TYPES, f"{path}:{line_number}")
+        if problem:
+            raise ReportError(problem)
         records.append(rec)
     if not records:
         msg = f"{path}: no frame records"
@@ -414,6 +437,11 @@ def _num(value: Any) -> float:
     return math.nan if value is None else float(value)
 
 
+def _param_number(value: Any) -> float:
+    """A parameter shown against a series: NaN (not drawn) unless it is a number."""
+    return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else math.nan
+
+
 @dataclass(frozen=True)
 class Timeline:
     """Per-frame series of the frame records, one entry per record (None in a record -> NaN)."""
@@ -462,7 +490,7 @@ def timeline(run: Run) -> Timeline:
         positive_depth_ratio=series("positive_depth_ratio"), median_reproj_err_px=series("median_reproj_err_px"),
         stage_ms={s: np.array([_num(r["timings_ms"].get(s)) for r in recs]) for s in stages},
         total_ms=np.array([_num(r["timings_ms"].get("total")) for r in recs]),
-        rh_threshold=float(params.get("rh_threshold", math.nan)), rh_threshold_source=source)
+        rh_threshold=_param_number(params.get("rh_threshold")), rh_threshold_source=source)
 
 
 # --- spans ------------------------------------------------------------------------------------------

@@ -31,7 +31,7 @@ from epi_vo.core.config import VoConfig
 from epi_vo.core.errors import BagError
 from epi_vo.core.odometry import OdometryConverter, status_pose
 from epi_vo.core.status import frame_status
-from epi_vo.io import bagio
+from epi_vo.io import bagio, checks
 from epi_vo.io.msgconv import decode_frame
 from epi_vo.runner import make_pipeline
 
@@ -182,6 +182,9 @@ def run(args: argparse.Namespace) -> int:
     """``epi-vo soak``: print RSS over time and the verdict; exit status 0 on PASS, 1 on FAIL."""
     from epi_vo.io.params import load_config
 
+    checks.number(args.warmup, "--warmup", minimum=0)
+    checks.number(args.every, "--every", minimum=1)
+    checks.number(args.max_growth, "--max-growth", positive=True)
     if args.frames <= args.warmup or args.every <= 0:
         print(f"epi-vo: error: --frames ({args.frames}) must exceed --warmup ({args.warmup}) and --every must be "
               "positive", file=sys.stderr)

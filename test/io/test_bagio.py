@@ -18,7 +18,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from epi_vo.core.diagnostics import DiagnosticLevel, DiagnosticStatusRecord
 from epi_vo.core.errors import BagError
-from epi_vo.io.bagio import BagFrame, open_camera_bag
+from epi_vo.io.bagio import BagFrame, is_ground_truth_name, open_camera_bag
 from epi_vo.io.msgconv import image_to_gray, point_cloud2_fields, read_points_xyz
 from epi_vo.io.outbag import OutputBag
 from epi_vo.io.tum import read_tum, write_tum
@@ -395,13 +395,43 @@ def test_ground_truth_pose_stamped_sorted_by_stamp(camera_bag_path: Path) -> Non
 def test_ground_truth_odometry(tmp_path: Path) -> None:
     records = _camera_records()
     records += [Record("/odom", ODOMETRY, 7, _odometry(7, (1.0, 2.0, 3.0), (0.0, 0.6, 0.0, 0.8)))]
-    with open_camera_bag(write_bag(tmp_path / "bag", records)) as bag:
+    with open_camera_bag(write_bag(tmp_path / "bag", records), gt_topic="/odom") as bag:
         gt = bag.read_ground_truth()
     assert gt is not None
     assert gt.frame_id == "map"
     np.testing.assert_array_equal(gt.stamps_ns, [7])
     np.testing.assert_array_equal(gt.positions, [[1.0, 2.0, 3.0]])
     np.testing.assert_array_equal(gt.quats_xyzw, [[0.0, 0.6, 0.0, 0.8]])
+
+
+def test_ground_truth_is_only_a_topic_named_so(tmp_path: Path) -> None:
+    """An Odometry / PoseStamped topic is ground truth only when named so or chosen: a robot's own odometry
+    (/wheel/odom, /odom) or a sensor's pose is not taken for it; the wheel odometry topic (the scale source)
+    never, not even when chosen; no_ground_truth takes none."""
+    records = _camera_records()
+    records += [Record("/wheel/odom", ODOMETRY, 7, _odometry(7, (1.0, 2.0, 3.0), (0, 0, 0, 1)))]
+    records += [Record("/camera/pose", POSE_STAMPED, 7, _pose_stamped(7, (0, 0, 0), (0, 0, 0, 1)))]
+    path = write_bag(tmp_path / "bag", records)
+    with open_camera_bag(path) as bag:
+        assert bag.gt_topic is None and bag.read_ground_truth() is None
+    with open_camera_bag(path, gt_topic="/camera/pose") as bag:
+        assert bag.gt_topic == "/camera/pose"
+    with pytest.raises(BagError, match="'/wheel/odom' is the wheel odometry topic, the scale source"):
+        open_camera_bag(path, gt_topic="/wheel/odom", wheel_topic="/wheel/odom")
+    records += [Record("/mocap/pose_gt", POSE_STAMPED, 7, _pose_stamped(7, (0, 0, 0), (0, 0, 0, 1)))]
+    path = write_bag(tmp_path / "bag2", records)
+    with open_camera_bag(path) as bag:
+        assert bag.gt_topic == "/mocap/pose_gt"
+    with open_camera_bag(path, no_ground_truth=True) as bag:
+        assert bag.gt_topic is None
+
+
+@pytest.mark.parametrize(("topic", "named"), [
+    ("/ground_truth/pose", True), ("/gt/odom", True), ("/mocap/pose_gt", True), ("/GroundTruth", True),
+    ("/robot/ground-truth/odom", True), ("/wheel/odom", False), ("/odom", False), ("/vicon/pose", False),
+    ("/lgtm/pose", False), ("/ground/pose", False), ("/truth", False)])
+def test_ground_truth_names(topic: str, named: bool) -> None:
+    assert is_ground_truth_name(topic) is named
 
 
 def test_no_ground_truth(tmp_path: Path) -> None:

@@ -460,3 +460,49 @@ def test_camera_normalize_far_pixels_do_not_raise(name: str, pts: list[tuple[flo
     """Far outside the image the distortion model means nothing, but normalize must not raise."""
     xn = _CAMERAS[name].normalize(np.array(pts, dtype=np.float64).reshape(-1, 2))
     assert xn.shape == (len(pts), 2)
+
+
+# --------------------------------------------------------------------------------------------------
+# Compressed images: the declared size decides before any decoding
+# --------------------------------------------------------------------------------------------------
+
+
+def _sof_jpeg(width: int, height: int, tail: bytes) -> bytes:
+    """SOI, a baseline frame header (SOF0) declaring ``width`` x ``height`` with one component, then ``tail``."""
+    sof = b"\xff\xc0" + (11).to_bytes(2, "big") + b"\x08" + height.to_bytes(2, "big") + width.to_bytes(2, "big") \
+        + b"\x01\x01\x11\x00"
+    return b"\xff\xd8" + sof + tail
+
+
+@FUZZ
+@given(st.sampled_from(["png", "jpeg"]), st.integers(0, 2**16 - 1), st.integers(0, 2**16 - 1),
+       st.binary(max_size=200), st.sampled_from([None, (64, 48), (640, 480)]))
+def test_a_compressed_image_is_decoded_only_at_its_declared_allowed_size(
+        fmt: str, width: int, height: int, tail: bytes, expected: tuple[int, int] | None) -> None:
+    """Any declared size with any payload after the header: decoded only when the size is within the cap and
+    camera_info's; then the image has exactly that size. Otherwise an ImageConversionError, and OpenCV is not
+    asked to decode (a declared 65535 x 65535 would allocate 4 GB)."""
+    from encoded_images import png_header
+
+    from epi_vo.io import msgconv
+
+    data = png_header(width, height) + tail if fmt == "png" else _sof_jpeg(width, height, tail)
+    calls = []
+    real = msgconv.cv2.imdecode
+
+    def spy(buf: Any, flags: int) -> Any:
+        calls.append(1)
+        return real(buf, flags)
+
+    msgconv.cv2.imdecode = spy
+    try:
+        gray = compressed_to_gray(SimpleNamespace(format=fmt, data=data), expected)
+    except ImageConversionError as exc:
+        assert str(exc).startswith("could not decode CompressedImage")
+        allowed = width * height <= msgconv.MAX_DECODED_PIXELS and expected in (None, (width, height))
+        assert calls == [] or allowed
+        return
+    finally:
+        msgconv.cv2.imdecode = real
+    assert gray.shape == (height, width) and width * height <= msgconv.MAX_DECODED_PIXELS
+    assert expected in (None, (width, height))

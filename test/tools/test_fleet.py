@@ -22,8 +22,8 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from epi_vo.cli import main
-from epi_vo.tools.fleet import find_bags, is_fleet, output_names
-from epi_vo.tools.fleet_summary import MAX_EXIT_CODE, BagRow, BagStatus, exit_code, row_from_directory
+from epi_vo.tools.fleet_bags import find_bags, is_fleet, output_names
+from epi_vo.tools.fleet_summary import EXIT_BAGS_FAILED, BagRow, BagStatus, exit_code, row_from_directory
 from epi_vo.tools.replay import run_replay
 
 REPO = Path(__file__).resolve().parents[2]
@@ -95,7 +95,7 @@ def test_one_row_per_bag_and_the_broken_one_failed(fleet_run: tuple[Path, int]) 
     out, rc = fleet_run
     rows = _summary(out)
     assert list(rows) == ["general_motion", "planar", "zz_broken"]
-    assert rc == 1  # one bag failed
+    assert rc == EXIT_BAGS_FAILED  # one bag failed
     for name in ("general_motion", "planar"):
         r = rows[name]
         assert r["status"] == "ok" and r["reason"] == "" and r["run"] == "replayed", r
@@ -129,10 +129,10 @@ def test_resume_skips_complete_bags_and_force_redoes_them(fleet_dir: Path, tmp_p
     out = tmp_path / "out"
     args = ["replay", str(fleet_dir / "general_motion"), str(fleet_dir / "zz_broken.mcap"), "-o", str(out),
             "--no-progress"]
-    assert main(args) == 1
+    assert main(args) == EXIT_BAGS_FAILED
     files = [out / "general_motion" / f for f in ("stats.json", "trajectory.tum", "frames.jsonl", "output.mcap")]
     before = [f.stat().st_mtime_ns for f in files]
-    assert main(args) == 1
+    assert main(args) == EXIT_BAGS_FAILED
     assert [f.stat().st_mtime_ns for f in files] == before  # not replayed
     rows = _summary(out)
     assert rows["general_motion"]["run"] == "skipped: complete" and rows["general_motion"]["status"] == "ok"
@@ -142,18 +142,18 @@ def test_resume_skips_complete_bags_and_force_redoes_them(fleet_dir: Path, tmp_p
     # Other parameters: not the same replay, so done again.
     params = tmp_path / "p.yaml"
     params.write_text("/**:\n  ros__parameters:\n    max_features: 400\n")
-    assert main([*args, "--params", str(params)]) == 1
+    assert main([*args, "--params", str(params)]) == EXIT_BAGS_FAILED
     assert _summary(out)["general_motion"]["run"] == "replayed"
     before = [f.stat().st_mtime_ns for f in files]
-    assert main([*args, "--params", str(params), "--force"]) == 1
+    assert main([*args, "--params", str(params), "--force"]) == EXIT_BAGS_FAILED
     assert _summary(out)["general_motion"]["run"] == "replayed"
     assert all(f.stat().st_mtime_ns != b for f, b in zip(files, before, strict=True))
     # vo_node's map_frame_id changes /vo/odometry and /tf: not the same replay either.
     params.write_text("/**:\n  ros__parameters:\n    max_features: 400\n    map_frame_id: map\n")
-    assert main([*args, "--params", str(params)]) == 1
+    assert main([*args, "--params", str(params)]) == EXIT_BAGS_FAILED
     assert _summary(out)["general_motion"]["run"] == "replayed"
     assert json.loads((out / "general_motion" / "stats.json").read_text())["map_frame_id"] == "map"
-    assert main([*args, "--params", str(params)]) == 1
+    assert main([*args, "--params", str(params)]) == EXIT_BAGS_FAILED
     assert _summary(out)["general_motion"]["run"] == "skipped: complete"
 
 
@@ -162,7 +162,7 @@ def test_summarize_rebuilds_the_summary(fleet_run: tuple[Path, int], tmp_path: P
     out, _ = fleet_run
     expected = _summary(out)
     dest = tmp_path / "again"
-    assert main(["summarize", str(out), "--output", str(dest)]) == 1
+    assert main(["summarize", str(out), "--output", str(dest)]) == EXIT_BAGS_FAILED
     rows = _summary(dest)
     assert list(rows) == list(expected)
     for name, row in rows.items():
@@ -175,7 +175,7 @@ def test_summarize_rebuilds_the_summary(fleet_run: tuple[Path, int], tmp_path: P
     run_replay(Path(expected["planar"]["bag"]), single / "planar")
     (single / "lost").mkdir()
     (single / "lost" / "frames.jsonl").write_text("")  # started, never finished
-    assert main(["summarize", str(single)]) == 1
+    assert main(["summarize", str(single)]) == EXIT_BAGS_FAILED
     rows = _summary(single)
     assert rows["planar"]["status"] == "ok" and rows["planar"]["frames"] == "30"
     assert rows["lost"]["status"] == "incomplete" and "stats.json" in rows["lost"]["reason"]
@@ -212,7 +212,9 @@ def test_which_arguments_make_a_fleet(fleet_dir: Path) -> None:
     assert is_fleet([str(fleet_dir / "planar"), str(fleet_dir / "general_motion")])
     assert is_fleet([str(fleet_dir / "p*")])
     assert [p.name for p in find_bags([str(fleet_dir / "*")])] == ["general_motion", "planar", "zz_broken.mcap"]
-    assert [p.name for p in find_bags([str(fleet_dir / "**" / "*.mcap")])] == ["zz_broken.mcap"]  # not in a bag dir
+    # A storage file of a bag directory stands for the directory (once, whatever its split files).
+    assert [p.name for p in find_bags([str(fleet_dir / "**" / "*.mcap")])] == ["general_motion", "planar",
+                                                                              "zz_broken.mcap"]
     assert [p.name for p in find_bags([str(fleet_dir), str(fleet_dir / "planar")])] == [
         "general_motion", "planar", "zz_broken.mcap"]  # each once
 
@@ -235,13 +237,16 @@ def test_output_names_are_unique() -> None:
     assert output_names([Path("/a/x/bag"), Path("/b/x/bag")]) == ["a-x-bag", "b-x-bag"]
 
 
-def test_exit_code_counts_failed_bags_capped() -> None:
+def test_exit_code_says_failed_bags_apart_from_unusable_arguments() -> None:
+    """Any number of failed bags is exit status 4 (never 2, "arguments unusable", nor a signal's 129 / 130);
+    bags with problems only, 3, as a single replay with rejected frames."""
     def row(status: BagStatus) -> BagRow:
         return BagRow("n", "b", status, "", "", "")
 
-    assert exit_code([row(BagStatus.OK), row(BagStatus.PROBLEMS)]) == 0
-    assert exit_code([row(BagStatus.FAILED), row(BagStatus.INCOMPLETE), row(BagStatus.OK)]) == 2
-    assert exit_code([row(BagStatus.FAILED)] * 500) == MAX_EXIT_CODE
+    assert exit_code([row(BagStatus.OK)] * 3) == 0
+    assert exit_code([row(BagStatus.OK), row(BagStatus.PROBLEMS)]) == 3
+    for n in (1, 2, 129, 130, 500):
+        assert exit_code([row(BagStatus.FAILED), row(BagStatus.INCOMPLETE), row(BagStatus.OK)][:2] * n) == 4
 
 
 def test_gt_file_is_for_one_bag_only(fleet_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -318,7 +323,7 @@ def test_interrupt_leaves_finished_bags_valid(fleet_dir: Path, tmp_path: Path) -
     rows = _summary(out)
     assert rows["a_short"]["run"] == "skipped: complete" and rows["c_short"]["status"] == "ok"
     # summarize sees the interrupted bag for what it is.
-    assert main(["summarize", str(out)]) == 1
+    assert main(["summarize", str(out)]) == EXIT_BAGS_FAILED
     assert _summary(out)["b_long"]["status"] == "interrupted"
 
 
@@ -340,4 +345,4 @@ def test_a_bag_directory_without_metadata_gets_its_row(fleet_dir: Path, tmp_path
     assert set(rows) == {"crashed_bad_0", "crashed_good_0"}
     assert rows["crashed_good_0"]["status"] == "ok" and int(rows["crashed_good_0"]["frames"]) == 30
     assert rows["crashed_bad_0"]["status"] == "failed" and rows["crashed_bad_0"]["reason"]
-    assert rc == 1
+    assert rc == EXIT_BAGS_FAILED

@@ -133,3 +133,47 @@ def test_benchmark_row_gets_the_nees_from_the_confirmed_frame() -> None:
     plain = bench_epi_vo("general_motion", d / "bag", d / "groundtruth_tum.txt", VoConfig(),
                          checked=GroundTruthCheck([good], 0, ns[0]))
     assert plain.gt_checked_from is None and np.isnan(plain.nees_rot_checked)
+
+
+def _shifted(gt: tuple[np.ndarray, np.ndarray, np.ndarray], seconds: float) -> tuple[np.ndarray, ...]:
+    return gt[0] + seconds, gt[1], gt[2]
+
+
+@pytest.mark.parametrize(("change", "said"), ids=["shifted", "two poses", "zero quaternion"], argvalues=[
+    (lambda gt: _shifted(gt, 1000.0), "no image of {bag} is within 0.01 s of a ground-truth pose (images "
+                                      "1000.000-1003.733 s, ground truth 2000.000-2003.933 s)"),
+    (lambda gt: tuple(a[:2] for a in gt), "no two frames 4 apart both have a ground-truth pose and a decodable "
+                                          "image (1 of the 15 frames looked at, every 4th, have)"),
+    (lambda gt: (gt[0], gt[1], np.zeros_like(gt[2])),
+     "the ground-truth pose at 1000.000000 s has a zero quaternion (no orientation)"),
+])
+def test_unusable_ground_truth_says_why_and_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                    change: object, said: str) -> None:
+    """Ground truth that cannot judge anything is never "agrees" or "not judged" with exit 0: one line says
+    what is wrong with it (time ranges that do not meet, too few poses, no orientation)."""
+    bag = BAGS / "planar" / "bag"
+    gt_file = tmp_path / "gt.txt"
+    tum.write_tum(gt_file, *change(tum.read_tum(BAGS / "planar" / "groundtruth_tum.txt")))  # type: ignore[operator]
+    assert main(["gtcheck", str(bag), "--gt", str(gt_file)]) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == f"epi-vo: error: ground-truth check: {said.format(bag=bag)}"
+
+
+def test_ground_truth_in_any_order_is_checked(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    s, p, q = tum.read_tum(BAGS / "planar" / "groundtruth_tum.txt")
+    gt_file = tmp_path / "gt.txt"
+    tum.write_tum(gt_file, s[::-1], p[::-1], q[::-1])
+    assert main(["gtcheck", str(BAGS / "planar" / "bag"), "--gt", str(gt_file)]) == 0
+    assert "agrees with the images at all 14 pairs" in capsys.readouterr().out
+
+
+def test_no_pair_judged_is_no_verdict(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """Pairs with too few matches to judge: the table is printed, but the exit status is not "agrees"."""
+    import epi_vo.tools.gt_check as gt_check
+
+    monkeypatch.setattr(gt_check, "MIN_MATCHES", 10**6)
+    assert main(["gtcheck", str(BAGS / "planar" / "bag")]) == 2
+    captured = capsys.readouterr()
+    assert captured.out.count("n/a") == 14
+    assert captured.err.strip() == ("epi-vo: error: ground-truth check: not judged: no pair of frames with enough "
+                                    "matches")

@@ -235,8 +235,16 @@ def test_stats_json_only_for_a_finished_replay(tmp_path: Path, capsys: pytest.Ca
     out = tmp_path / "out"
     out.mkdir()
     (out / "stats.json").write_text("{}")
+    # A bag refused before anything is written (not found, a FIFO, an output on an input) leaves the directory
+    # as it was.
     assert main(["replay", str(tmp_path / "missing_bag"), "--output", str(out), "--no-progress"]) == 2
     assert "bag not found" in capsys.readouterr().err
+    assert (out / "stats.json").read_text() == "{}"
+    # One that fails once the outputs are opened leaves no stats.json.
+    broken = tmp_path / "broken.mcap"
+    broken.write_bytes(b"\x89MCAP0\r\n cut short")
+    assert main(["replay", str(broken), "--output", str(out), "--no-progress"]) == 2
+    assert "broken.mcap" in capsys.readouterr().err
     assert not (out / "stats.json").exists()
     assert not list(out.glob(".*.tmp"))
 

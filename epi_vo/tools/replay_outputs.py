@@ -1,0 +1,149 @@
+"""The files of a replay output directory: their names, the rule that none of them lands on an input, and
+how they are created and written (see :mod:`epi_vo.tools.replay` for what each holds).
+
+**Overlap.** Before anything is opened for writing, every path a replay may write in its directory
+(:func:`output_paths`: its outputs, the fleet's ``status.json``, the report, ``epi-vo recover``'s files) is
+checked against every input (the bag, a rosbag2 bag directory as a whole, the ground-truth and parameter
+files): an output that is an input, or lies inside an input directory, is refused with an OutputError
+(:func:`check_outputs_clear`), so that no input is ever truncated or written into.
+
+**What survives a kill** (SIGKILL, power cut: no chance to finalise): ``frames.jsonl`` and
+``trajectory.tum`` are flushed after every frame, so they hold every frame written (the last line may be
+cut when the kill came in the middle of a write); ``output.mcap`` is written in chunks, one closed and
+flushed every ``OUTPUT_FLUSH_FRAMES`` frames, and lacks its summary and end magic: ``epi-vo recover`` copies
+its complete chunks into a readable file; ``stats.json`` is missing (it is written last), which is how a
+fleet and ``epi-vo summarize`` tell the directory holds no finished replay.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+from epi_vo.core.errors import OutputError
+from epi_vo.io.msgconv import ns_to_ros_time
+from epi_vo.io.paths import find_overlap, special_file_kind
+
+STATS_FILE = "stats.json"
+FRAMES_FILE = "frames.jsonl"
+TRAJECTORY_FILE = "trajectory.tum"
+OUTPUT_BAG = "output.mcap"
+GROUNDTRUTH_FILE = "groundtruth.tum"
+STATUS_FILE = "status.json"  # written by fleet replay around each bag
+DAMAGED_BAG = "output.mcap.damaged"  # epi-vo recover keeps the damaged output.mcap under this name
+# Every name a replay directory may get: the replay's outputs, the fleet's bookkeeping, the report
+# (report.html and its report/ directory of figures), recover's files, and the temporaries renamed over them.
+DIRECTORY_NAMES = (FRAMES_FILE, TRAJECTORY_FILE, OUTPUT_BAG, GROUNDTRUTH_FILE, STATS_FILE, f".{STATS_FILE}.tmp",
+                   STATUS_FILE, f".{STATUS_FILE}.tmp", "report.html", "report", DAMAGED_BAG,
+                   f".{OUTPUT_BAG}.recovering")
+# output.mcap's chunk is closed, compressed and handed to the OS every this many frames: what a kill can
+# cost of it (a second of a 30 Hz camera), against one chunk per frame, which compresses /vo/path's
+# repeated poses poorly.
+OUTPUT_FLUSH_FRAMES = 30
+
+
+def output_paths(out: Path) -> list[Path]:
+    """Every path a replay, its fleet bookkeeping, its report or ``epi-vo recover`` may write in ``out``."""
+    return [out / name for name in DIRECTORY_NAMES]
+
+
+def check_outputs_clear(inputs: Sequence[str | Path | None], outputs: Sequence[Path]) -> None:
+    """OutputError naming the first output that would land on an input (the same file, or a path inside an
+    input directory), or that exists as a FIFO or device (opening it for writing could block); nothing is
+    opened. ``inputs`` may hold None (an input not given)."""
+    given = [Path(p) for p in inputs if p is not None]
+    overlap = find_overlap(given, outputs)
+    if overlap is not None:
+        how = "write into" if overlap.input.is_dir() else "overwrite"
+        raise OutputError(f"refused: output {overlap.output} would {how} the input {overlap.input}; "
+                          "choose an output directory apart from the inputs")
+    for path in outputs:
+        kind = special_file_kind(path)
+        if kind is not None:
+            raise OutputError(f"refused: output {path} exists and is a {kind}; writing it could block")
+
+
+def os_reason(exc: OSError) -> str:
+    where = f" ({exc.filename})" if exc.filename else ""
+    return f"{exc.strerror or exc}{where}"
+
+
+def ensure_output_dir(output_dir: str | Path) -> Path:
+    """The output directory, created if needed; OutputError naming the problem when it cannot be."""
+    out = Path(output_dir)
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"output {out} exists and is not a directory")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"cannot create the output directory {out}: {os_reason(exc)}") from None
+    return out
+
+
+@contextlib.contextmanager
+def open_output(path: Path) -> Iterator[IO[str]]:
+    try:
+        f = path.open("w", encoding="utf-8")
+    except OSError as exc:
+        raise OutputError(f"cannot create {path}: {os_reason(exc)}") from None
+    with f:
+        yield f
+
+
+def write_stats(out: Path, data: dict[str, Any]) -> None:
+    """``out/stats.json``, atomically (a temporary file renamed over it): it is written last, so its presence
+    means the replay in ``out`` ran to the end (what fleet replay's resume relies on)."""
+    path = out / STATS_FILE
+    tmp = out / f".{STATS_FILE}.tmp"
+    try:
+        tmp.write_text(json.dumps(data, indent=2) + "\n")
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise OutputError(f"cannot write {path}: {os_reason(exc)}") from exc
+
+
+def remove_stats(out: Path) -> None:
+    try:
+        (out / STATS_FILE).unlink(missing_ok=True)
+    except OSError as exc:
+        raise OutputError(f"cannot replace {out / STATS_FILE}: {os_reason(exc)}") from exc
+
+
+def tum_stamp(stamp_ns: int) -> str:
+    """The stamp in seconds with 9 decimals, exact (a float would round large stamps)."""
+    sec, nanosec = ns_to_ros_time(stamp_ns)
+    return f"{sec}.{nanosec:09d}"
+
+
+class PathWindow:
+    """The last ``size`` poses of /vo/path (stamp, position, quat_xyzw) as contiguous arrays without a copy per
+    frame: rows are appended into a buffer twice the window, shifted back to the start when it is full."""
+
+    def __init__(self, size: int) -> None:
+        self._size = size
+        self._stamps = np.zeros(2 * size, dtype=np.int64)
+        self._poses = np.zeros((2 * size, 7))  # x y z, qx qy qz qw
+        self._end = 0
+
+    def append(self, stamp_ns: int, position: np.ndarray, quat_xyzw: np.ndarray) -> None:
+        if self._end == len(self._stamps):
+            keep = self._size - 1
+            self._stamps[:keep] = self._stamps[self._end - keep:self._end]
+            self._poses[:keep] = self._poses[self._end - keep:self._end]
+            self._end = keep
+        self._stamps[self._end] = stamp_ns
+        self._poses[self._end, :3] = position
+        self._poses[self._end, 3:] = quat_xyzw
+        self._end += 1
+
+    def window(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """stamps_ns (M,), positions (M, 3), quats_xyzw (M, 4) of the last M <= size poses (views)."""
+        start = max(self._end - self._size, 0)
+        poses = self._poses[start:self._end]
+        return self._stamps[start:self._end], poses[:, :3], poses[:, 3:]
