@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from epi_vo.core.config import VoConfig
+from epi_vo.core.decisions import Decision, Note, note
 
 F32 = NDArray[np.float32]
 Mask = NDArray[np.bool_]
@@ -297,13 +298,27 @@ def track_klt_now(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts
     return track_klt(gray_prev, gray_cur, pts_prev, cfg), 0.0
 
 
+@dataclass(frozen=True)
+class Tracked:
+    """The features stage's result: the correspondences keyframe -> current image and what tracking saw."""
+
+    pts: F32  # (N, 2) current raw pixels
+    rows: NDArray[np.int64]  # (N,) keyframe row of each
+    orb: OrbFeatures | None  # this image's ORB features (frontend 'orb')
+    ahead_ms: float  # KLT done ahead of this call (ms; 0: now)
+    gain: float  # the exposure gain the image was tracked with (1.0: unchanged)
+    noise_px: float  # the tracking noise the kept tracks' forward-backward errors show (``fb_noise_px``)
+
+    @property
+    def notes(self) -> tuple[Note, ...]:
+        """The stage's decision: an image scaled onto the previous exposure to be tracked."""
+        return (note(Decision.EXPOSURE_CHANGED, gain=self.gain),) if self.gain != 1.0 else ()
+
+
 def track(gray: NDArray[np.uint8], cfg: VoConfig, orb: cv2.ORB | None, gray_prev: NDArray[np.uint8] | None,
           pts_prev: F32, rows_prev: NDArray[np.int64], kf_descriptors: NDArray[np.uint8] | None,
-          klt: KltTracker = track_klt_now
-          ) -> tuple[F32, NDArray[np.int64], OrbFeatures | None, float, float, float]:
-    """Correspondences keyframe -> current image: (current raw pixels, keyframe rows, ORB features, ms of
-    KLT done ahead of this call, the exposure gain the image was tracked with (1.0: unchanged), the
-    tracking noise the kept tracks' forward-backward errors show (``fb_noise_px``; NaN for ORB)).
+          klt: KltTracker = track_klt_now) -> Tracked:
+    """Correspondences keyframe -> current image (``Tracked``; the tracking noise is NaN for ORB).
 
     KLT (``orb`` None) follows the previous frame's points ``pts_prev`` (keyframe rows ``rows_prev``)
     into ``gray`` through ``klt`` (``track_klt``, possibly computed ahead: ``epi_vo.core.workers``); ORB
@@ -313,8 +328,8 @@ def track(gray: NDArray[np.uint8], cfg: VoConfig, orb: cv2.ORB | None, gray_prev
         assert gray_prev is not None
         tracks, ms = klt(gray_prev, gray, pts_prev, cfg)
         ok = tracks.ok
-        return tracks.pts[ok], rows_prev[ok], None, ms, tracks.gain, fb_noise_px(tracks.fb[ok])
+        return Tracked(tracks.pts[ok], rows_prev[ok], None, ms, tracks.gain, fb_noise_px(tracks.fb[ok]))
     feats = detect_orb(orb, gray, cfg)
     assert kf_descriptors is not None
     i_kf, i_cur = match_orb(kf_descriptors, feats.descriptors, cfg.orb_ratio)
-    return feats.pts[i_cur], i_kf, OrbFeatures(feats.pts, feats.descriptors), 0.0, 1.0, math.nan
+    return Tracked(feats.pts[i_cur], i_kf, OrbFeatures(feats.pts, feats.descriptors), 0.0, 1.0, math.nan)

@@ -76,15 +76,6 @@ class Measured:
     position: bool = False
 
 
-@dataclass(frozen=True)
-class StepScale:
-    """The scale source's anchor of the newest keyframe step and its correction of that step (the windowed
-    adjustment takes both)."""
-
-    anchor: sc.WindowAnchor | None = None
-    factor: float = 1.0
-
-
 def _eye4() -> F64:
     return np.eye(4)
 
@@ -124,7 +115,6 @@ class TrackState:
     last_relative: LastRelative | None = None
     tracked_noise: TrackedNoise = field(default_factory=TrackedNoise)
     fx: float = 1.0  # the focal length (px) of the last frame's CameraInfo
-    step_scale: StepScale = field(default_factory=StepScale)
     motion: MotionMemory = field(default_factory=MotionMemory)
     wheel: WheelOdometry = field(default_factory=WheelOdometry)
 

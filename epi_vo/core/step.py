@@ -183,9 +183,9 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
     cfg, gray, camera, stamp_ns = env.cfg, frame.gray, frame.camera, frame.stamp_ns
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    pts_cur, rows, orb_cur, ahead_ms, gain, track_noise = fe.track(
-        gray, cfg, env.orb, state.tracks.gray, state.tracks.pts, state.tracks.rows, kf.descriptors,
-        env.workers.track_klt)
+    tracked = fe.track(gray, cfg, env.orb, state.tracks.gray, state.tracks.pts, state.tracks.rows, kf.descriptors,
+                       env.workers.track_klt)
+    pts_cur, rows, orb_cur, track_noise = tracked.pts, tracked.rows, tracked.orb, tracked.noise_px
     n_refined = None
     if state.patches is not None and kf.ids is not None:
         patches, pts_cur, n_refined = state.patches.refined(gray, pts_cur, kf.ids[rows])
@@ -194,14 +194,13 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
     noise_ratio = covm.twist_noise_ratio(track_noise, cfg.twist_noise_fb_factor, cfg.twist_noise_floor_px,
                                          cfg.pixel_noise_px)
     state = dataclasses.replace(state, tracked_noise=_booked_noise(state, kf, noise_ratio))
-    if gain != 1.0:
-        notes = (*notes, note(Decision.EXPOSURE_CHANGED, gain=gain))
+    notes = notes + tracked.notes
     ahead = Ahead(gray, pts_cur) if env.orb is None else None  # KLT from this image into the next may start now
     xn_cur = camera.normalize(pts_cur)
     uv_cur = camera.to_pixels(xn_cur)
     timings["frontend"] = _ms(t0)
-    if ahead_ms:  # KLT done ahead of this frame, during the previous one (not in "total")
-        timings["klt_ahead"] = ahead_ms
+    if tracked.ahead_ms:  # KLT done ahead of this frame, during the previous one (not in "total")
+        timings["klt_ahead"] = tracked.ahead_ms
     n_tracked = int(rows.shape[0])
 
     motion: mo.Motion | None = None

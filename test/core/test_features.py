@@ -118,6 +118,7 @@ def test_the_tracking_noise_is_the_per_axis_rms_of_the_kept_tracks_forward_backw
         return np.clip(img + rng.normal(0.0, 6.0, img.shape), 0, 255).astype(np.uint8)
 
     dirty = fe.track(noisy(_moved(texture, 1.0)), CFG, None, noisy(texture), points, rows, None)
-    assert len(clean[1]) >= 0.95 * len(points) and len(dirty[1]) >= 0.9 * len(points)
-    assert 0.0 < clean[5] < 0.005, clean[5]
-    assert dirty[5] > 5.0 * clean[5], (clean[5], dirty[5])
+    assert len(clean.rows) >= 0.95 * len(points) and len(dirty.rows) >= 0.9 * len(points)
+    assert 0.0 < clean.noise_px < 0.005, clean.noise_px
+    assert dirty.noise_px > 5.0 * clean.noise_px, (clean.noise_px, dirty.noise_px)
+    assert clean.gain == 1.0 and clean.notes == ()  # the same exposure: no decision to report
