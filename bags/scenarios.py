@@ -34,6 +34,7 @@ import hashlib
 import itertools
 import json
 import math
+import multiprocessing
 import os
 import shutil
 import sys
@@ -368,7 +369,9 @@ def ensure(profile: Profile, families: Sequence[str] | None = None, seeds: Seque
                 if progress:
                     progress(f"rendered {family}-s{seed}: {c:.1f} s CPU, {w:.1f} s")
         else:
-            with concurrent.futures.ProcessPoolExecutor(max_workers=jobs) as pool:
+            # spawned, not forked: a process that has run OpenCV's thread pool can hang a forked child in it
+            spawn = multiprocessing.get_context("spawn")
+            with concurrent.futures.ProcessPoolExecutor(max_workers=jobs, mp_context=spawn) as pool:
                 for family, seed, c, w in pool.map(_render_into_cache, tasks):
                     cpu += c
                     if progress:

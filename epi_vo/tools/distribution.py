@@ -20,6 +20,7 @@ import concurrent.futures
 import dataclasses
 import importlib
 import logging
+import multiprocessing
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -159,7 +160,9 @@ def run_tasks(tasks: Sequence[SequenceTask | RealTask], jobs: int, progress: Cal
     if jobs <= 1:
         _quiet_alignment()
         return [said(_run_task(t)) for t in tasks]
-    with concurrent.futures.ProcessPoolExecutor(max_workers=jobs, initializer=_init_worker) as pool:
+    # spawned, not forked: a process that has run OpenCV's thread pool can hang a forked child in it
+    spawn = multiprocessing.get_context("spawn")
+    with concurrent.futures.ProcessPoolExecutor(max_workers=jobs, mp_context=spawn, initializer=_init_worker) as pool:
         return [said(r) for r in pool.map(_run_task, tasks)]
 
 
