@@ -104,6 +104,14 @@ class RecordHeader:
         return "\n".join(lines)
 
 
+def load_now() -> str:
+    """The load average now (1, 5, 15 min), for a record's timings: ms/frame depends on it."""
+    try:
+        return ", ".join(f"{v:.2f}" for v in os.getloadavg())
+    except OSError:
+        return "n/a"
+
+
 def jsonable(x: Any) -> Any:
     """Strict JSON: non-finite floats become null, tuples lists, dataclass-like rows dicts."""
     if isinstance(x, dict):

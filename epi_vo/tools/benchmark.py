@@ -45,7 +45,7 @@ from epi_vo.core.frame import FrameResult
 from epi_vo.core.transforms import quat_xyzw_from_rotation
 from epi_vo.io import bagio, tum
 from epi_vo.io.params import load_config
-from epi_vo.tools.bench_record import RecordHeader, write_record
+from epi_vo.tools.bench_record import RecordHeader, load_now, write_record
 from epi_vo.tools.evaluation import StampedPoses, evaluate_trajectory, metric_poses, replay_dir_nees
 from epi_vo.tools.gt_check import AGREE_EXCESS_PX, GroundTruthCheck, check_ground_truth
 from epi_vo.tools.reference import ReferencePipeline
@@ -383,7 +383,7 @@ def run_benchmark(bags_dir: str | None, kitti_dir: str | None, params: str | Non
         elapsed = time.perf_counter() - started
         markdown = "\n\n".join([
             header.markdown("epi-vo benchmark: the bundled bags and the KITTI clip",
-                            {"benchmark time": f"{elapsed:.0f} s"}),
+                            {"benchmark time": f"{elapsed:.0f} s", "load average at the end": load_now()}),
             "```\n" + table + "\n```", LEGEND.replace("\n", "\n\n"), "```\n" + checked + "\n```"])
         md, js = write_record(record_dir, "bundled", markdown,
                               {"header": dataclasses.asdict(header), "benchmark_s": elapsed, "legend": LEGEND,

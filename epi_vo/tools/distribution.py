@@ -36,7 +36,7 @@ from epi_vo.core.errors import EpiVoError
 from epi_vo.io import tum
 from epi_vo.io.params import load_config
 from epi_vo.tools import distribution_table as dt
-from epi_vo.tools.bench_record import RecordHeader, jsonable, repo_root, write_record
+from epi_vo.tools.bench_record import RecordHeader, jsonable, load_now, repo_root, write_record
 from epi_vo.tools.benchmark import METRIC_VARIANTS, BenchRow, bench_epi_vo, bench_reference, row_dict
 from epi_vo.tools.gt_check import GroundTruthCheck, check_ground_truth
 
@@ -206,6 +206,7 @@ def run_distribution(suite: str, params: str | None, *, families: Sequence[str] 
                        f"({render_total_cpu / 2 / 60:.1f} min on a quiet 2-core machine); this run rendered "
                        f"{rendered.rendered} in {rendered.wall_s:.0f} s",
         "benchmark time": f"{bench_s:.0f} s in {jobs} processes ({len(tasks)} tasks)",
+        "load average at the end": load_now(),
     }
     body = [dt.family_tables(stats, seq_results)]
     if real_rows:
