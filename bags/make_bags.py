@@ -374,16 +374,23 @@ def _paving() -> NDArray[np.uint8]:
     return np.clip(np.rint(paving), 0, 255).astype(np.uint8)
 
 
+# Textures made by code rather than read from a photograph: name -> a function returning the grayscale
+# uint8 image (deterministic). The scenario families (bags/scenarios.py) register their own here.
+TEXTURE_MAKERS: dict[str, Callable[[], NDArray[np.uint8]]] = {}
+
+
 @functools.cache
 def load_texture(name: str) -> NDArray[np.uint8]:
-    """Grayscale uint8 texture by name: a scikit-image photograph, or the poster mosaic or the paving built
-    from them."""
+    """Grayscale uint8 texture by name: a scikit-image photograph, the poster mosaic or the paving built
+    from them, or one of ``TEXTURE_MAKERS``."""
     if name == MOSAIC_TEXTURE:
         return _poster_mosaic()
     if name == PAVING_TEXTURE:
         return _paving()
+    if name in TEXTURE_MAKERS:
+        return np.ascontiguousarray(TEXTURE_MAKERS[name](), dtype=np.uint8)
     if name not in PHOTO_TEXTURES and name not in MOVER_TEXTURES:
-        known = (*PHOTO_TEXTURES, *MOVER_TEXTURES, MOSAIC_TEXTURE, PAVING_TEXTURE)
+        known = (*PHOTO_TEXTURES, *MOVER_TEXTURES, MOSAIC_TEXTURE, PAVING_TEXTURE, *TEXTURE_MAKERS)
         msg = f"unknown texture {name!r}; expected one of {known}"
         raise SceneError(msg)
     image = np.asarray(getattr(skimage.data, name)())
@@ -1148,6 +1155,18 @@ class RenderResult:
     mover_coverage: FloatImage | None = None
 
 
+@dataclass(frozen=True)
+class RowBand:
+    """Output rows ``first_row`` up to (not including) ``stop_row`` seen from ``T_w_c`` (4, 4), with the
+    movers' quads ``moving_quads`` placed for that instant. A rolling-shutter sensor reads its rows out one
+    after the other while the camera moves: each band of rows is rendered at its own pose."""
+
+    first_row: int
+    stop_row: int
+    T_w_c: Matrix4
+    moving_quads: tuple[Quad, ...] = ()
+
+
 class Renderer:
     """Ray-casting renderer of a fixed scene for a fixed camera; ``render(T_w_c)`` gives the uint8 image."""
 
@@ -1163,18 +1182,28 @@ class Renderer:
         ``moving_quads`` (already placed in the world for this frame, ``BagSpec.moving_quads_at``) are
         z-buffered against the static scene; the result then also holds their per-pixel coverage.
         """
-        T_c_w = invert_se3(np.asarray(T_w_c, dtype=np.float64))
-        R_c_w, t_c_w = T_c_w[:3, :3], T_c_w[:3, 3]
+        return self.render_bands((RowBand(0, self.camera.height, T_w_c, tuple(moving_quads)),))
+
+    def render_bands(self, bands: Sequence[RowBand]) -> RenderResult:
+        """Noise-free image whose row bands are each seen from their own pose (a rolling shutter), with
+        coverage and depth; the bands should cover every row once (rows no band covers see nothing). The
+        optics' blur is applied to the whole image after the bands are put together."""
         shape = self._xn.shape
         zbuf = np.full(shape, np.inf)
         image = np.zeros(shape, np.float32)
-        on_mover = np.zeros(shape, bool) if moving_quads else None
-        for quad in self.quads:
-            self._draw_quad(quad, R_c_w, t_c_w, zbuf, image, on_mover, False)
-        for quad in moving_quads:
-            self._draw_quad(quad, R_c_w, t_c_w, zbuf, image, on_mover, True)
-        covered = np.isfinite(zbuf)
+        on_mover = np.zeros(shape, bool) if any(band.moving_quads for band in bands) else None
         s = self.supersample
+        for band in bands:
+            rows = slice(band.first_row * s, band.stop_row * s)
+            T_c_w = invert_se3(np.asarray(band.T_w_c, dtype=np.float64))
+            R_c_w, t_c_w = T_c_w[:3, :3], T_c_w[:3, 3]
+            target = _Target(zbuf[rows], image[rows], None if on_mover is None else on_mover[rows],
+                             self._xn[rows], self._yn[rows])
+            for quad in self.quads:
+                self._draw_quad(quad, R_c_w, t_c_w, target, False)
+            for quad in band.moving_quads:
+                self._draw_quad(quad, R_c_w, t_c_w, target, True)
+        covered = np.isfinite(zbuf)
         size = (self.camera.width, self.camera.height)
         mover_coverage = None
         if on_mover is not None:
@@ -1190,18 +1219,11 @@ class Renderer:
         """uint8 image from ``T_w_c`` (4, 4); sensor noise when a generator is given, none otherwise."""
         return sensor_image(self.render_ideal(T_w_c).image, noise_rng)
 
-    def _draw_quad(
-        self,
-        quad: Quad,
-        R_c_w: NDArray[np.float64],
-        t_c_w: NDArray[np.float64],
-        zbuf: NDArray[np.float64],
-        image: FloatImage,
-        on_mover: NDArray[np.bool_] | None = None,
-        is_mover: bool = False,
-    ) -> None:
-        """Ray-cast one quad into the supersampled ``image`` where it is nearer than ``zbuf`` (both updated);
-        where it is drawn, ``on_mover`` (if given) records whether the quad is a moving one."""
+    def _draw_quad(self, quad: Quad, R_c_w: NDArray[np.float64], t_c_w: NDArray[np.float64], target: _Target,
+                   is_mover: bool = False) -> None:
+        """Ray-cast one quad into the supersampled rows of ``target`` where it is nearer than their z-buffer
+        (image and z-buffer updated); where it is drawn, the mover mask (if any) records whether the quad is
+        a moving one."""
         origin_c = R_c_w @ np.asarray(quad.origin_w) + t_c_w
         eu_c = R_c_w @ np.asarray(quad.edge_u_w)
         ev_c = R_c_w @ np.asarray(quad.edge_v_w)
@@ -1212,16 +1234,16 @@ class Renderer:
         # Rays can only hit the quad inside the bounding box of its (near-clipped) projection.
         x_proj, y_proj = polygon_c[:, 0] / polygon_c[:, 2], polygon_c[:, 1] / polygon_c[:, 2]
         in_box = (
-            (self._xn >= x_proj.min())
-            & (self._xn <= x_proj.max())
-            & (self._yn >= y_proj.min())
-            & (self._yn <= y_proj.max())
+            (target.xn >= x_proj.min())
+            & (target.xn <= x_proj.max())
+            & (target.yn >= y_proj.min())
+            & (target.yn <= y_proj.max())
         )
         rows, cols = np.flatnonzero(in_box.any(axis=1)), np.flatnonzero(in_box.any(axis=0))
         if rows.size == 0 or cols.size == 0:
             return
         window = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
-        xn, yn = self._xn[window], self._yn[window]
+        xn, yn = target.xn[window], target.yn[window]
 
         # Plane n . X = d in the camera frame; the ray X = z (xn, yn, 1) meets it at z = d / (n . ray).
         normal_c = np.cross(eu_c, ev_c)
@@ -1231,7 +1253,7 @@ class Renderer:
             # Rectangle coordinates of the hit: a = (X - origin) . eu / |eu|^2, likewise b along ev.
             a = (z * (eu_c[0] * xn + eu_c[1] * yn + eu_c[2]) - eu_c @ origin_c) / (eu_c @ eu_c)
             b = (z * (ev_c[0] * xn + ev_c[1] * yn + ev_c[2]) - ev_c @ origin_c) / (ev_c @ ev_c)
-        zbuf_window = zbuf[window]
+        zbuf_window = target.zbuf[window]
         visible = (z > NEAR_M) & (z < zbuf_window) & (a >= 0.0) & (a <= 1.0) & (b >= 0.0) & (b <= 1.0)
         if not visible.any():
             return
@@ -1248,11 +1270,23 @@ class Renderer:
         fv = _mirror_fold(safe_v).astype(np.float32)
         sample = _sample_trilinear(texture_pyramid(quad.texture), fu, fv, level, visible)
         shaded = quad.gain * sample + quad.offset
-        image_window = image[window]
+        image_window = target.image[window]
         image_window[visible] = shaded[visible]
         zbuf_window[visible] = z[visible]
-        if on_mover is not None:
-            on_mover[window][visible] = is_mover
+        if target.on_mover is not None:
+            target.on_mover[window][visible] = is_mover
+
+
+@dataclass(frozen=True)
+class _Target:
+    """Views of the supersampled rows one pose draws into: z-buffer, image, mover mask (None without
+    movers) and the rays' normalized coordinates of those rows."""
+
+    zbuf: NDArray[np.float64]
+    image: FloatImage
+    on_mover: NDArray[np.bool_] | None
+    xn: NDArray[np.float64]
+    yn: NDArray[np.float64]
 
 
 def _gradients(

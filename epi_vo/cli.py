@@ -81,12 +81,26 @@ def _add_recover(sub: argparse._SubParsersAction) -> None:
 
 def _add_benchmark(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("benchmark", help="epi_vo vs the seed article's reference pipeline on the bundled bags "
-                                         "(and the KITTI clip when present)")
+                                         "(and the KITTI clip when present), or on the scenario distribution")
+    p.add_argument("--suite", choices=("bundled", "distribution", "subset"), default="bundled",
+                   help="bundled: the bundled bags and the KITTI clip (default); distribution: every family x seed "
+                        "of the scenario distribution and the real clips, per family (docs/distribution.md); "
+                        "subset: the test suite's one short seed per family")
     p.add_argument("--bags", default=None, help="folder of bundled bags (default: the repo's bags/)")
     p.add_argument("--kitti", default=None,
                    help="KITTI clip folder (default: ../shared/data/kitti06_0-50 next to the repo, if present)")
     p.add_argument("--params", help="ROS 2 parameter file for epi_vo")
-    p.add_argument("--output", default=None, help="also write the table as JSON here")
+    p.add_argument("--output", default=None, help="also write the table as JSON here (bundled)")
+    p.add_argument("--families", nargs="+", metavar="FAMILY", help="distribution: only these families")
+    p.add_argument("--seeds", nargs="+", type=int, metavar="SEED", help="distribution: only these seeds (default 0-7)")
+    p.add_argument("--jobs", type=int, default=2, help="distribution: sequences rendered and run at once (default 2)")
+    p.add_argument("--cache", default=None, help="distribution: scenario cache root (default $EPI_VO_SCENARIO_CACHE "
+                                                 "or ~/.cache/epi_vo/scenarios)")
+    p.add_argument("--data", default=None, help="distribution: folder of the real clips (default ../shared/data)")
+    p.add_argument("--no-real", action="store_true", help="distribution: leave the real clips out")
+    p.add_argument("--record-dir", default=None,
+                   help="where the dated record goes (default: docs/benchmarks of the source tree)")
+    p.add_argument("--no-record", action="store_true", help="print only: write no dated record")
 
 
 def _add_gtcheck(sub: argparse._SubParsersAction) -> None:
@@ -201,9 +215,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             return recover_run(args)
         if args.command == "benchmark":
-            from epi_vo.tools.benchmark import run_benchmark
-
-            return run_benchmark(args.bags, args.kitti, args.params, args.output)
+            return _benchmark(args)
         if args.command == "monitor":
             from epi_vo.ros.monitor import run as monitor_run
 
@@ -274,6 +286,25 @@ def _latency_rates(text: str, seconds: float) -> list[float]:
         if int(seconds * rate) < 1:
             raise ConfigError(f"--seconds {seconds:g} at {rate:g} Hz publishes no frame")
     return rates
+
+
+def _benchmark(args: argparse.Namespace) -> int:
+    from epi_vo.tools.bench_record import default_record_dir
+
+    record = None if args.no_record else (Path(args.record_dir) if args.record_dir else default_record_dir())
+    if args.suite == "bundled":
+        from epi_vo.tools.benchmark import run_benchmark
+
+        return run_benchmark(args.bags, args.kitti, args.params, args.output, record)
+    for flag, value in (("--bags", args.bags), ("--kitti", args.kitti), ("--output", args.output)):
+        if value is not None:
+            _say(f"epi-vo: error: {flag} is an option of the bundled suite, not of --suite {args.suite} (its JSON "
+                 "is written beside the dated record)")
+            return 2
+    from epi_vo.tools.distribution import run_distribution
+
+    return run_distribution(args.suite, args.params, families=args.families, seeds=args.seeds, jobs=args.jobs,
+                            cache=args.cache, data_dir=args.data, real=not args.no_real, record_dir=record)
 
 
 def _one_line(text: str) -> str:

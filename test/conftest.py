@@ -219,3 +219,40 @@ def make_bags() -> object:
     finally:
         sys.path.remove(bags)
     return make_bags
+
+
+# ============================================================================================
+# The scenario distribution's subset (bags/scenarios.py) -- used by test_scenarios.py and
+# test_distribution.py
+# ============================================================================================
+@pytest.fixture(scope="session")
+def scenario_generator() -> object:
+    """``bags/scenarios.py`` (the scenario generator) as a module; skipped without scikit-image."""
+    pytest.importorskip("skimage", reason="bags/scenarios.py needs scikit-image (bags/requirements.txt)")
+    from epi_vo.tools.distribution import load_generator
+
+    return load_generator()
+
+
+@pytest.fixture(scope="session")
+def scenario_subset(scenario_generator: object, tmp_path_factory: pytest.TempPathFactory) -> list:
+    """The subset (one short seed per family) in the scenario cache, rendered when missing (a fresh machine
+    renders it: about a minute and a half of CPU). The cache is ``$EPI_VO_SCENARIO_CACHE`` or
+    ``~/.cache/epi_vo/scenarios``; a temporary one when that cannot be written."""
+    from pathlib import Path
+
+    gen = scenario_generator
+    root = gen.default_cache_root()
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        probe = root / f".write-probe-{id(root)}"
+        probe.write_text("")
+        probe.unlink()
+    except OSError:
+        root = Path(tmp_path_factory.mktemp("scenario_cache"))
+    return gen.ensure(gen.PROFILES["subset"], root=root, jobs=2).sequences
+
+
+# ============================================================================================
+# End of the scenario distribution section.
+# ============================================================================================

@@ -33,6 +33,7 @@ import dataclasses
 import json
 import math
 import tempfile
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,9 +41,11 @@ import numpy as np
 
 from epi_vo.core.config import VoConfig
 from epi_vo.core.errors import EpiVoError, EvaluationError, OutputError
+from epi_vo.core.frame import FrameResult
 from epi_vo.core.transforms import quat_xyzw_from_rotation
 from epi_vo.io import bagio, tum
 from epi_vo.io.params import load_config
+from epi_vo.tools.bench_record import RecordHeader, load_now, write_record
 from epi_vo.tools.evaluation import StampedPoses, evaluate_trajectory, metric_poses, replay_dir_nees
 from epi_vo.tools.gt_check import AGREE_EXCESS_PX, GroundTruthCheck, check_ground_truth
 from epi_vo.tools.reference import ReferencePipeline
@@ -80,6 +83,16 @@ class BenchRow:
     nees_pos_checked_inside_percent: float = math.nan
     nees_rot_checked: float = math.nan
     nees_rot_checked_inside_percent: float = math.nan
+    keyframes: int = 0  # keyframes the run made (epi_vo rows)
+    metric_after_s: float = math.nan  # metric rows: seconds from the first frame to the first pose in metres
+    # (inf: never established)
+    moved_max: float = math.nan  # largest distance of a published position from the first, estimate units
+    moved_depth_percent: float = math.nan  # that, as % of the median depth of the run's own map points (epi_vo
+    # rows; 0 when it never moved, inf when it moved without a map point)
+
+    @property
+    def keyframes_per_frame(self) -> float:
+        return self.keyframes / self.frames if self.frames else math.nan
 
 
 # Metric scale sources the benchmark runs on top of the default configuration, per dataset name.
@@ -136,14 +149,50 @@ def _metrics_row(name: str, pipeline: str, frames: int, n_pose: int, ms: float, 
                     _moving_frames(positions), gt_len, step_scale, ate_se3)
 
 
+class _Displacement:
+    """How far a run's published positions wander from its first, against the depth of its own map: on a
+    camera that does not move, any displacement is invented, and only its size against the scene says how
+    much (the run's units are its own)."""
+
+    def __init__(self) -> None:
+        self.first: np.ndarray | None = None
+        self.largest = 0.0
+        self.depths: list[float] = []
+
+    def __call__(self, result: FrameResult) -> None:
+        if not result.has_pose:
+            return
+        p = np.asarray(result.position, dtype=np.float64)
+        if self.first is None:
+            self.first = p.copy()
+        self.largest = max(self.largest, float(np.linalg.norm(p - self.first)))
+        if result.points_w.shape[0]:
+            self.depths.append(float(np.median(np.linalg.norm(result.points_w - p, axis=1))))
+
+    def depth_percent(self) -> float:
+        if self.largest == 0.0:
+            return 0.0
+        return 100.0 * self.largest / float(np.median(self.depths)) if self.depths else math.inf
+
+
+def _metric_after_s(records: list[dict], metric_row: bool) -> float:
+    """Seconds from the first frame to the first pose in metres; inf when none (NaN for a row without a
+    metric scale source)."""
+    if not metric_row or not records:
+        return math.nan
+    first = next((r for r in records if r.get("metric_scale") and r.get("has_pose")), None)
+    return math.inf if first is None else (int(first["stamp_ns"]) - int(records[0]["stamp_ns"])) * 1e-9
+
+
 def bench_epi_vo(name: str, bag: Path, gt_path: Path, cfg: VoConfig, label: str = "epi_vo",
                  checked: GroundTruthCheck | None = None) -> BenchRow:
     """One epi_vo row; with ``checked`` that found the ground truth contradicted before some frame, also
     the NEES from that frame on."""
     gt = tum.read_tum(gt_path)
+    moved = _Displacement()
     with tempfile.TemporaryDirectory() as tmp:
         # KLT in line: per-frame times as a live node has them; the replay judges its covariance itself
-        summary = run_replay(bag, tmp, cfg, gt_tum=gt_path, lookahead=False)
+        summary = run_replay(bag, tmp, cfg, gt_tum=gt_path, lookahead=False, on_result=moved)
         stamps, positions, quats = tum.read_tum(Path(tmp) / "trajectory.tum")
         records = [json.loads(line) for line in (Path(tmp) / "frames.jsonl").read_text(encoding="utf-8").splitlines()
                    if line.strip()]
@@ -161,7 +210,9 @@ def bench_epi_vo(name: str, bag: Path, gt_path: Path, cfg: VoConfig, label: str 
         row = dataclasses.replace(row, step_scale=math.nan, ate_se3_percent=math.nan)
     # end_to_end_fps: a newer ReplaySummary field; an older summary has none (n/a).
     row = dataclasses.replace(row, e2e_fps=float(getattr(summary, "end_to_end_fps", math.nan) or math.nan),
-                              held_poses=held, ms_p95=_p95(totals))
+                              held_poses=held, ms_p95=_p95(totals), keyframes=summary.keyframes,
+                              metric_after_s=_metric_after_s(records, cfg.scale_source != "none"),
+                              moved_max=moved.largest, moved_depth_percent=moved.depth_percent())
     m = summary.metrics or {}
     if "nees_frames" in m:  # tools.consistency: the published pose and twist against the ground truth
         row = dataclasses.replace(row, nees_pos=m["nees_pos"], nees_pos_inside_percent=m["nees_pos_inside_percent"],
@@ -218,10 +269,13 @@ def bench_reference(name: str, bag_path: Path, gt_path: Path) -> BenchRow:
                 stamps.append(r.stamp_s)
                 positions.append(r.T_w_c[:3, 3])
                 quats.append(quat_xyzw_from_rotation(r.T_w_c[:3, :3]))
+    positions_array = np.array(positions).reshape(-1, 3)
     row = _metrics_row(name, "reference", frames, n_ok, float(np.median(times)) if times else math.nan,
-                       np.array(stamps), np.array(positions).reshape(-1, 3), np.array(quats).reshape(-1, 4), gt)
-    # unit steps: no metres
-    return dataclasses.replace(row, step_scale=math.nan, ate_se3_percent=math.nan, ms_p95=_p95(times))
+                       np.array(stamps), positions_array, np.array(quats).reshape(-1, 4), gt)
+    moved = float(np.linalg.norm(positions_array - positions_array[0], axis=1).max()) if n_ok else 0.0
+    # unit steps: no metres, and no map whose depth would give its displacement a size
+    return dataclasses.replace(row, step_scale=math.nan, ate_se3_percent=math.nan, ms_p95=_p95(times),
+                               moved_max=moved)
 
 
 def _p95(times_ms: list[float]) -> float:
@@ -263,7 +317,34 @@ def _check_output_file(output: str) -> Path:
     return out
 
 
-def run_benchmark(bags_dir: str | None, kitti_dir: str | None, params: str | None, output: str | None) -> int:
+LEGEND = ("ATE after Sim(3) alignment (evo); 'moving' = frames whose position changed (on pure_rotation "
+          "any is invented translation); ms/frame = median processing time, decoding excluded (p95ms: its 95th "
+          "percentile); metric rows "
+          "(epi_vo[source]): scale = median estimated / GT step length, SE3ATE% = ATE with SE(3) alignment only "
+          "(no scale), % of path; held = poses published before the source established metres (held at the "
+          "map's origin, VO units): a metric row's trajectory figures are over its other poses.\n"
+          "NEES pos / rot = mean normalised estimation error squared of the tracking "
+          "frames against the published /vo/odometry covariance (3 dof, consistent: 3), after the global scale "
+          "(Sim(3) anchored at the odometry origin; SE(3) when metric); in 3σ % = share within the chi-square "
+          "3-dof 99 % bound 11.345 (n/a: no tracking frame, e.g. a static or rotating camera); NEES v / w = "
+          "the same for the published twist (linear / angular velocity) against the ground truth's velocity, "
+          "with their share inside the same bound (in 3σ v / w %); "
+          "e2e fps = end-to-end replay frames/s.")
+
+
+def row_dict(r: BenchRow) -> dict[str, object]:
+    """A row for JSON (n/a is null: strict JSON has no NaN)."""
+    d = dataclasses.asdict(r)
+    d["keyframes_per_frame"] = r.keyframes_per_frame
+    return {k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in d.items()}
+
+
+def run_benchmark(bags_dir: str | None, kitti_dir: str | None, params: str | None, output: str | None,
+                  record_dir: Path | None = None) -> int:
+    """The bundled bags (and the KITTI clip): the table on stdout, as JSON in ``output``, and as a dated
+    record (``bench_record``) under ``record_dir`` when given."""
+    header = RecordHeader.now()
+    started = time.perf_counter()
     cfg = load_config(params)
     out = _check_output_file(output) if output else None
     if bags_dir is not None and not Path(bags_dir).is_dir():
@@ -287,28 +368,25 @@ def run_benchmark(bags_dir: str | None, kitti_dir: str | None, params: str | Non
                                      checked=check))
         rows.append(bench_reference(name, bag, gt))
         print("\n".join(format_table(rows[start:]).splitlines()[2:]), flush=True)
+    table, checked = format_table(rows), format_checks(checks, rows)
     print()
-    print(format_table(rows))
-    print("\nATE after Sim(3) alignment (evo); 'moving' = frames whose position changed (on pure_rotation "
-          "any is invented translation); ms/frame = median processing time, decoding excluded (p95ms: its 95th "
-          "percentile); metric rows "
-          "(epi_vo[source]): scale = median estimated / GT step length, SE3ATE% = ATE with SE(3) alignment only "
-          "(no scale), % of path; held = poses published before the source established metres (held at the "
-          "map's origin, VO units): a metric row's trajectory figures are over its other poses.\n"
-          "NEES pos / rot = mean normalised estimation error squared of the tracking "
-          "frames against the published /vo/odometry covariance (3 dof, consistent: 3), after the global scale "
-          "(Sim(3) anchored at the odometry origin; SE(3) when metric); in 3σ % = share within the chi-square "
-          "3-dof 99 % bound 11.345 (n/a: no tracking frame, e.g. a static or rotating camera); NEES v / w = "
-          "the same for the published twist (linear / angular velocity) against the ground truth's velocity, "
-          "with their share inside the same bound (in 3σ v / w %); "
-          "e2e fps = end-to-end replay frames/s.")
+    print(table)
+    print("\n" + LEGEND)
     print()
-    print(format_checks(checks, rows))
+    print(checked)
     if out is not None:
         try:
-            table = [{k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in r.__dict__.items()}
-                     for r in rows]  # n/a is null: strict JSON has no NaN
-            out.write_text(json.dumps(table, indent=2, allow_nan=False) + "\n")
+            out.write_text(json.dumps([row_dict(r) for r in rows], indent=2, allow_nan=False) + "\n")
         except OSError as exc:
             raise OutputError(f"cannot write {out}: {exc.strerror or exc}") from None
+    if record_dir is not None:
+        elapsed = time.perf_counter() - started
+        markdown = "\n\n".join([
+            header.markdown("epi-vo benchmark: the bundled bags and the KITTI clip",
+                            {"benchmark time": f"{elapsed:.0f} s", "load average at the end": load_now()}),
+            "```\n" + table + "\n```", LEGEND.replace("\n", "\n\n"), "```\n" + checked + "\n```"])
+        md, js = write_record(record_dir, "bundled", markdown,
+                              {"header": dataclasses.asdict(header), "benchmark_s": elapsed, "legend": LEGEND,
+                               "rows": [row_dict(r) for r in rows]}, header.date)
+        print(f"\nrecorded in {md} and {js}")
     return 0
