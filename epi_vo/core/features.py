@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from epi_vo.core.config import VoConfig
+from epi_vo.core.config import Frontend, VoConfig
 from epi_vo.core.decisions import Decision, Note, note
 
 F32 = NDArray[np.float32]
@@ -67,7 +67,7 @@ def min_image_side(cfg: VoConfig) -> int:
 
     KLT needs its window twice over (corner refinement and the LK search); ORB its descriptor border.
     """
-    if cfg.frontend == "orb":
+    if cfg.frontend is Frontend.ORB:
         return _ORB_MIN_SIDE_PX
     return 2 * cfg.klt_window_px + 2
 

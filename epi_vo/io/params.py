@@ -8,6 +8,7 @@ parameter name.
 
 from __future__ import annotations
 
+import enum
 from pathlib import Path
 from typing import Any
 
@@ -118,4 +119,6 @@ def _yaml_value(value: Any) -> str:
     """One YAML scalar or flow list (tuples as lists), without the document end marker."""
     if isinstance(value, tuple):
         value = list(value)
+    if isinstance(value, enum.Enum):  # a mode: its text
+        value = value.value
     return yaml.safe_dump(value, default_flow_style=True).strip().replace("\n...", "")

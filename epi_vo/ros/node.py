@@ -49,7 +49,7 @@ from std_srvs.srv import Trigger
 
 from epi_vo.core import covariance as covm
 from epi_vo.core.camera import CameraModelCache
-from epi_vo.core.config import VoConfig, live_advice
+from epi_vo.core.config import ScaleSourceKind, VoConfig, live_advice
 from epi_vo.core.debug_image import draw_matches
 from epi_vo.core.decisions import Decision
 from epi_vo.core.diagnostics import DiagnosticStatusRecord
@@ -61,7 +61,7 @@ from epi_vo.core.transforms import invert_T
 from epi_vo.io import msgconv
 from epi_vo.io.association import Ready
 from epi_vo.io.frame_queue import NO_CAMERA_INFO_WAIT_S, FrameQueue
-from epi_vo.io.node_options import NodeOptions, changed_names
+from epi_vo.io.node_options import ImageTransport, NodeOptions, QosReliability, changed_names
 from epi_vo.ros.node_diagnostics import NodeDiagnostics
 from epi_vo.ros.node_params import check_change, declare_all, effective_parameters_text, warn_undeclared_overrides
 from epi_vo.ros.node_run import bgr_image_msg, point_cloud_msg, run_node, stamp_msg, transform_msg
@@ -74,6 +74,8 @@ RAW_TOPIC, COMPRESSED_TOPIC = "camera/image_raw", "camera/image_raw/compressed"
 # Wheel messages waiting for the worker, which takes them at every frame and whenever woken: reached only
 # when it is stuck in one frame (100 s at 100 Hz); the oldest half is then dropped and counted.
 WHEEL_PENDING_MAX = 10000
+RELIABILITY_POLICIES = {QosReliability.BEST_EFFORT: ReliabilityPolicy.BEST_EFFORT,
+                        QosReliability.RELIABLE: ReliabilityPolicy.RELIABLE}
 
 
 class VoNodeBase(NodeDiagnostics):
@@ -134,18 +136,19 @@ class VoNodeBase(NodeDiagnostics):
         self._announce_change = announce  # told in the reason of the first frame after a change
 
         in_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=self.opts.qos_depth,
-                            reliability=ReliabilityPolicy.RELIABLE if self.opts.qos_reliability == "reliable"
-                            else ReliabilityPolicy.BEST_EFFORT)
-        self._image_subs: dict[str, Any] = {}
-        if self.opts.image_transport in ("auto", "raw"):
-            self._image_subs["raw"] = self.create_subscription(Image, RAW_TOPIC, self._on_image, in_qos)
-        if self.opts.image_transport in ("auto", "compressed"):
-            self._image_subs["compressed"] = self.create_subscription(CompressedImage, COMPRESSED_TOPIC,
-                                                                      self._on_image, in_qos)
+                            reliability=RELIABILITY_POLICIES[self.opts.qos_reliability])
+        self._image_subs: dict[ImageTransport, Any] = {}
+        if self.opts.image_transport in (ImageTransport.AUTO, ImageTransport.RAW):
+            self._image_subs[ImageTransport.RAW] = self.create_subscription(Image, RAW_TOPIC, self._on_image, in_qos)
+        if self.opts.image_transport in (ImageTransport.AUTO, ImageTransport.COMPRESSED):
+            self._image_subs[ImageTransport.COMPRESSED] = self.create_subscription(
+                CompressedImage, COMPRESSED_TOPIC, self._on_image, in_qos)
         self._image_topics = {k: sub.topic_name for k, sub in self._image_subs.items()}
-        self._transport = "" if self.opts.image_transport == "auto" else self.opts.image_transport
+        # The transport in use: None until the first image under AUTO
+        self._transport: ImageTransport | None = \
+            None if self.opts.image_transport is ImageTransport.AUTO else self.opts.image_transport
         self.create_subscription(CameraInfo, "camera/camera_info", self._on_camera_info, in_qos)
-        if self.cfg.scale_source == "wheel_odometry":
+        if self.cfg.scale_source is ScaleSourceKind.WHEEL_ODOMETRY:
             self.create_subscription(Odometry, self.cfg.wheel_odometry_topic, self._on_wheel_odometry,
                                      QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100))
             self.get_logger().info(f"metric scale from wheel odometry on {self.cfg.wheel_odometry_topic}")
@@ -259,8 +262,8 @@ class VoNodeBase(NodeDiagnostics):
             with self._lock:
                 self._n_ignored += 1
             return
-        transport = "compressed" if isinstance(msg, CompressedImage) else "raw"
-        if transport != self._transport and not self._choose_transport(transport):
+        transport = ImageTransport.COMPRESSED if isinstance(msg, CompressedImage) else ImageTransport.RAW
+        if transport is not self._transport and not self._choose_transport(transport):
             return
         stamp = msgconv.stamp_to_ns(msg.header.stamp)
         with self._cv:
@@ -269,12 +272,12 @@ class VoNodeBase(NodeDiagnostics):
             if self._frames.add_image(stamp, msg, len(msg.data), time.monotonic()):
                 self._cv.notify()
 
-    def _choose_transport(self, transport: str) -> bool:
+    def _choose_transport(self, transport: ImageTransport) -> bool:
         """image_transport auto: the first transport to deliver is kept, the other subscription dropped."""
-        if self._transport:  # already chosen: a message of the other one still in flight
+        if self._transport is not None:  # already chosen: a message of the other one still in flight
             return False
         self._transport = transport
-        other = "raw" if transport == "compressed" else "compressed"
+        other = ImageTransport.RAW if transport is ImageTransport.COMPRESSED else ImageTransport.COMPRESSED
         sub = self._image_subs.pop(other, None)
         if sub is not None:
             self.destroy_subscription(sub)

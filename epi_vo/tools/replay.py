@@ -34,11 +34,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from epi_vo.core.camera import CameraModel, CameraModelCache
-from epi_vo.core.config import VoConfig
+from epi_vo.core.config import ScaleSourceKind, VoConfig
 from epi_vo.core.errors import BagError, EpiVoError, Interrupted, OutputError
 from epi_vo.core.frame import FrameResult
 from epi_vo.core.odometry import OdometryConverter, OdometrySample, sample_status_pose, status_pose
 from epi_vo.core.pipeline import VoPipeline
+from epi_vo.core.scale import Units
 from epi_vo.core.status import frame_status
 from epi_vo.io import bagio, outbag, tum
 from epi_vo.io.msgconv import decode_frame
@@ -407,7 +408,7 @@ CALIBRATION_NOTE = "check the camera calibration"  # how the note on rotation-on
 
 
 def _wheel_topic(cfg: VoConfig) -> str | None:
-    return cfg.wheel_odometry_topic if cfg.scale_source == "wheel_odometry" else None
+    return cfg.wheel_odometry_topic if cfg.scale_source is ScaleSourceKind.WHEEL_ODOMETRY else None
 
 
 
@@ -636,7 +637,7 @@ def format_summary(s: ReplaySummary) -> str:
         f"  time          {s.ms_per_frame:.2f} ms/frame median (" +
         ", ".join(f"{k} {v:.2f}" for k, v in s.stage_ms.items() if k != "total") + ")",
         f"  end to end    {s.end_to_end_fps:.1f} frames/s ({s.wall_s:.2f} s: reading, decoding, VO, writing)",
-        f"  path length   {s.path_length:.3f} {'m' if s.units == 'm' else '(VO units)'}",
+        f"  path length   {s.path_length:.3f} {'m' if s.units == Units.METRES else '(VO units)'}",
         f"  scale         {s.scale_source}: " + (f"metric from frame {s.metric_from_frame}"
                                                   if s.metric_from_frame is not None else "VO units"),
     ]
@@ -647,7 +648,7 @@ def format_summary(s: ReplaySummary) -> str:
                      f"{_f(m['trans_direction_err_deg'])} deg  ({m['matched_poses']} poses"
                      + (f"; {s.poses_before_metric} held before metric scale not evaluated" if s.poses_before_metric
                         else "") + ")")
-        if s.units == "m":
+        if s.units == Units.METRES:
             lines.append(f"  metric        step scale {_f(m['step_scale_median'])} (estimate / GT, median)  ATE "
                          f"{_f(m['ate_se3_percent_of_path'])} % of path with SE(3) alignment only")
         line = format_consistency(m)
