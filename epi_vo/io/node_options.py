@@ -19,8 +19,11 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from numpy.typing import NDArray
+
 from epi_vo.core.config import PIPELINE_NAMES, VoConfig, choices_of, from_dict, shown
 from epi_vo.core.errors import ConfigError
+from epi_vo.core.odometry import T_base_cam_from_params
 
 
 class ImageTransport(enum.StrEnum):
@@ -75,6 +78,20 @@ class NodeOptions:
 
 
 _NODE_MODES: dict[str, type[enum.StrEnum]] = {"image_transport": ImageTransport, "qos_reliability": QosReliability}
+
+
+@dataclass(frozen=True)
+class CameraExtrinsic:
+    """A camera mounting declared by ``camera_xyz`` / ``camera_rpy`` (what vo_node takes when TF has none), for
+    the offline tools: the replay's odometry and floor search use it as the node does."""
+
+    camera_xyz: tuple[float, ...]
+    camera_rpy: tuple[float, ...]
+
+    @property
+    def T_base_cam(self) -> NDArray[Any]:
+        """4x4, camera optical frame -> base (the optical rotation appended)."""
+        return T_base_cam_from_params(self.camera_xyz, self.camera_rpy)
 
 
 NODE_DOCS: dict[str, str] = {

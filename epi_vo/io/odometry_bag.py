@@ -9,7 +9,7 @@ the odometry message carries the whole matrix as published, in its ``header.fram
 from __future__ import annotations
 
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -79,7 +79,7 @@ def read_odometry(path: str | Path, topic: str = VO_ODOMETRY_TOPIC) -> OdometryT
                 raise BagError(msg)
             connections = [c for c in reader.connections if c.topic == topic]
             for connection, _, raw in reader.messages(connections):
-                m = reader.deserialize(raw, connection.msgtype)
+                m: Any = reader.deserialize(raw, connection.msgtype)
                 stamps.append(stamp_to_ns(m.header.stamp))
                 frame_id, child = str(m.header.frame_id), str(m.child_frame_id)
                 pp, q = m.pose.pose.position, m.pose.pose.orientation

@@ -24,8 +24,6 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import IO, Any
 
-import numpy as np
-
 from epi_vo.core.errors import OutputError
 from epi_vo.io.msgconv import ns_to_ros_time
 from epi_vo.io.paths import find_overlap, special_file_kind
@@ -119,31 +117,3 @@ def tum_stamp(stamp_ns: int) -> str:
     """The stamp in seconds with 9 decimals, exact (a float would round large stamps)."""
     sec, nanosec = ns_to_ros_time(stamp_ns)
     return f"{sec}.{nanosec:09d}"
-
-
-class PathWindow:
-    """The last ``size`` poses of /vo/path (stamp, position, quat_xyzw) as contiguous arrays without a copy per
-    frame: rows are appended into a buffer twice the window, shifted back to the start when it is full."""
-
-    def __init__(self, size: int) -> None:
-        self._size = size
-        self._stamps = np.zeros(2 * size, dtype=np.int64)
-        self._poses = np.zeros((2 * size, 7))  # x y z, qx qy qz qw
-        self._end = 0
-
-    def append(self, stamp_ns: int, position: np.ndarray, quat_xyzw: np.ndarray) -> None:
-        if self._end == len(self._stamps):
-            keep = self._size - 1
-            self._stamps[:keep] = self._stamps[self._end - keep:self._end]
-            self._poses[:keep] = self._poses[self._end - keep:self._end]
-            self._end = keep
-        self._stamps[self._end] = stamp_ns
-        self._poses[self._end, :3] = position
-        self._poses[self._end, 3:] = quat_xyzw
-        self._end += 1
-
-    def window(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """stamps_ns (M,), positions (M, 3), quats_xyzw (M, 4) of the last M <= size poses (views)."""
-        start = max(self._end - self._size, 0)
-        poses = self._poses[start:self._end]
-        return self._stamps[start:self._end], poses[:, :3], poses[:, 3:]

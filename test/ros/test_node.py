@@ -116,6 +116,52 @@ def test_live_playback_equals_offline_replay(ros: RosSession, offline: dict[int,
         probe.close()
 
 
+MOUNT_XYZ, MOUNT_RPY = (0.2, -0.05, 0.4), (0.03, 0.26, -0.1)  # a camera pitched 15 deg down, off centre
+
+
+def test_live_playback_equals_offline_replay_with_a_mounted_camera(ros: RosSession, tmp_path: Path) -> None:
+    """A camera mounted off base_link, pitched down (``camera_xyz`` / ``camera_rpy``, as the node takes them
+    without TF): the replay given the same parameter file publishes the node's odometry, pose and twist,
+    and it is not the default mounting's."""
+    from epi_vo.cli import main
+    from epi_vo.io.odometry_bag import read_odometry
+
+    params = tmp_path / "mounted.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    tf_timeout_s: 0.0\n"
+                      f"    camera_xyz: {list(MOUNT_XYZ)}\n    camera_rpy: {list(MOUNT_RPY)}\n")
+    assert main(["replay", str(BAG), "--output", str(tmp_path / "mounted"), "--params", str(params),
+                 "--no-progress"]) == 0
+    assert main(["replay", str(BAG), "--output", str(tmp_path / "level"), "--no-progress"]) == 0
+    offline = {int(t): (p, q, v, w) for t, p, q, v, w in zip(*_odometry_rows(read_odometry(
+        tmp_path / "mounted" / "output.mcap")), strict=True)}
+    level = {int(t): (p, q, v, w) for t, p, q, v, w in zip(*_odometry_rows(read_odometry(
+        tmp_path / "level" / "output.mcap")), strict=True)}
+    n = bag_frame_count(BAG)
+    probe = Probe(ros, "probe_mounted")
+    try:
+        with NodeProcess(ros.env, *PLAYBACK_ARGS, "--params-file", str(params)) as node:
+            assert probe.wait_for_node(), node.proc.stderr
+            played = _play(ros.env, "--rate", "0")
+            assert played.returncode == 0, played.stderr
+            assert probe.spin_until(lambda: len(probe.odom) >= n), len(probe.odom)
+    finally:
+        probe.close()
+    assert len(probe.odom) == n == len(offline)
+    differs = 0
+    for msg in probe.odom:
+        stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+        p, q, v, w = offline[stamp]
+        np.testing.assert_allclose(odom_pose(msg), np.concatenate([p, q]), atol=1e-6)
+        lin, ang = msg.twist.twist.linear, msg.twist.twist.angular
+        np.testing.assert_allclose([lin.x, lin.y, lin.z, ang.x, ang.y, ang.z], np.concatenate([v, w]), atol=1e-6)
+        differs += not np.allclose(np.concatenate([p, q, v, w]), np.concatenate(level[stamp]), atol=1e-3)
+    assert differs >= n - 2  # the mounting moves every pose (bar the first, at the origin) and twist
+
+
+def _odometry_rows(odo: Any) -> tuple[Any, ...]:
+    return odo.stamps_ns, odo.positions, odo.quats_xyzw, odo.linear_velocity, odo.angular_velocity
+
+
 def _assert_points_in_front(probe: Probe) -> None:
     """Point clouds are finite and in front of the camera that triangulated them (camera z > 0)."""
     from epi_vo.core.odometry import default_T_base_cam
