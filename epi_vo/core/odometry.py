@@ -6,6 +6,9 @@ Frames (REP-103 / REP-105):
 - ``T_base_cam``: the extrinsic, camera optical frame -> base frame (default: the usual optical-frame
   rotation, zero offset). Then ``T_odom_base = T_base_cam @ T_w_c @ inv(T_base_cam)``, since at the
   first frame ``T_w_c = I`` and base sits where it was.
+- The anchor ``T_odom_anchor`` (identity unless moved) is put in front of that: a pose set from outside
+  (``set_pose``) or an extrinsic that changes while the robot drives moves it, so that the published
+  pose is the one given, or stays where it was, at that frame; later motion composes from there.
 Covariances are 6x6 over (x, y, z, rot_x, rot_y, rot_z), the ROS order. Numpy only; the node and the
 replay both use this module so that the same bag gives the same odometry live and offline.
 """
@@ -18,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from epi_vo.core import covariance as covm
 from epi_vo.core.frame import FrameResult
 from epi_vo.core.status import StatusPose
 from epi_vo.core.transforms import invert_T, make_T, quat_xyzw_from_rotation
@@ -78,6 +82,20 @@ class OdometrySample:
         return self.T_map_odom[:3, 3].copy(), quat_xyzw_from_rotation(self.T_map_odom[:3, :3])
 
 
+@dataclass(frozen=True)
+class PoseSet:
+    """A pose set from outside: base's pose ``T_odom_base`` in odom and its ``covariance`` (6x6, odom), at the
+    frame whose pipeline pose was ``T_w_c`` with covariance ``cov_w`` (w). A later frame's covariance is the
+    set one chained with the motion's since (``covariance.given`` of the pipeline's two, with the lever arm
+    of the set rotation's error, ``covariance.chain_world``): the pipeline's own uncertainty of where it
+    was when the pose was set is replaced by the one given."""
+
+    T_odom_base: F64
+    covariance: F64
+    T_w_c: F64
+    cov_w: F64
+
+
 class OdometryConverter:
     """Turns successive camera poses T_w_c (with covariance) into odom -> base odometry samples.
 
@@ -93,25 +111,74 @@ class OdometryConverter:
         self._T_cam_base = invert_T(self.T_base_cam)
         self._prev: tuple[int, F64, F64] | None = None  # stamp, T_odom_base, pose covariance
         self.continuous = continuous
-        self.T_map_odom = np.eye(4)
+        self._T_map_odom = np.eye(4)  # the corrections, in the frame the pipeline's odometry starts in
         self._T_odom_map = np.eye(4)
+        self._anchor = np.eye(4)  # T_odom_anchor: odom <- the frame the pipeline's odometry starts in
+        self._pose_set: PoseSet | None = None  # the last pose set, for the covariance of what followed
+        self._pending: PoseSet | None = None  # a pose to set at the next frame converted
+
+    @property
+    def T_map_odom(self) -> F64:
+        """map -> odom: the corrections so far, expressed in the anchored odom (identity without any)."""
+        return self._anchor @ self._T_map_odom @ invert_T(self._anchor)
 
     def reset_twist(self) -> None:
         """Forget the previous pose (after a time jump) so no twist is differentiated across it."""
         self._prev = None
 
-    def base_pose(self, T_w_c: F64) -> F64:
-        """The pose of base in odom (``continuous``: with the corrections so far taken out)."""
+    def _unanchored(self, T_w_c: F64) -> F64:
         return self._T_odom_map @ self.T_base_cam @ T_w_c @ self._T_cam_base
 
-    def odom_covariance(self, cov_w: F64) -> F64:
-        """A pose covariance of the pipeline's frame, in odom."""
-        return rotate_covariance(cov_w, self._T_odom_map[:3, :3] @ self.T_base_cam[:3, :3])
+    def _R_odom_w(self) -> F64:
+        return self._anchor[:3, :3] @ self._T_odom_map[:3, :3] @ self.T_base_cam[:3, :3]
+
+    def base_pose(self, T_w_c: F64) -> F64:
+        """The pose of base in odom (``continuous``: with the corrections so far taken out)."""
+        return self._anchor @ self._unanchored(T_w_c)
+
+    def odom_covariance(self, cov_w: F64, T_w_c: F64 | None = None) -> F64:
+        """A pose covariance of the pipeline's frame, in odom; with ``T_w_c`` (the pose it belongs to) and a
+        pose set before, the set pose's covariance chained with that of the motion since (``PoseSet``)."""
+        R = self._R_odom_w()
+        if self._pose_set is None or T_w_c is None:
+            return rotate_covariance(cov_w, R)
+        ps = self._pose_set
+        since = covm.given(cov_w, ps.cov_w, ps.T_w_c[:3, 3], T_w_c[:3, 3])  # the motion's, in w
+        return covm.floored(covm.chain_world(ps.covariance, ps.T_odom_base[:3, 3], self.base_pose(T_w_c)[:3, 3],
+                                             rotate_covariance(since, R)))
 
     def odom_points(self, points_w: F64) -> F64:
         """Points of the pipeline's frame (``FrameResult.points_w``, (N, 3)) in odom."""
-        T = self._T_odom_map @ self.T_base_cam
+        T = self._anchor @ self._T_odom_map @ self.T_base_cam
         return points_w @ T[:3, :3].T + T[:3, 3]
+
+    def set_mounting(self, T_base_cam: F64, T_w_c: F64) -> None:
+        """A new camera mounting while the odometry runs, at the pose ``T_w_c`` last converted: the anchor
+        moves so that base stays where it was published (REP-105's odom is continuous); later motion is
+        taken into base with the new mounting."""
+        before = self.base_pose(T_w_c)
+        self.T_base_cam = np.asarray(T_base_cam, np.float64)
+        self._T_cam_base = invert_T(self.T_base_cam)
+        self._anchor = before @ invert_T(self._unanchored(T_w_c))
+
+    def set_pose_next(self, T_odom_base: F64, covariance: F64) -> None:
+        """Base's pose in odom becomes ``T_odom_base`` (covariance 6x6, odom, position first) at the next
+        frame converted; the motion after it composes from it."""
+        self._pending = PoseSet(np.asarray(T_odom_base, np.float64), np.asarray(covariance, np.float64),
+                                np.eye(4), np.zeros((6, 6)))
+
+    def _apply_pending(self, T_w_c: F64, cov_w: F64) -> None:
+        """The pending pose set at this frame (pose ``T_w_c``, covariance ``cov_w`` in w): the anchor moves
+        so that base is at the given pose, and the previous pose moves with it, so the twist is the motion
+        measured, not the jump."""
+        assert self._pending is not None
+        moved = self._pending.T_odom_base @ invert_T(self.base_pose(T_w_c))
+        self._anchor = moved @ self._anchor
+        if self._prev is not None:
+            self._prev = (self._prev[0], moved @ self._prev[1], rotate_covariance(self._prev[2], moved[:3, :3]))
+        self._pose_set = PoseSet(self._pending.T_odom_base, self._pending.covariance, np.array(T_w_c, np.float64),
+                                 np.array(cov_w, np.float64))
+        self._pending = None
 
     def convert(self, stamp_ns: int, T_w_c: F64, cov_w: F64, has_pose: bool,
                 step_cov_w: F64 | None = None, correction_w: F64 | None = None) -> OdometrySample:
@@ -124,13 +191,16 @@ class OdometryConverter:
         if correction_w is not None:
             C = self.T_base_cam @ np.asarray(correction_w, np.float64) @ self._T_cam_base
             if self.continuous:  # the published poses stay; map -> odom takes the correction
-                self.T_map_odom = C @ self.T_map_odom
-                self._T_odom_map = invert_T(self.T_map_odom)
+                self._T_map_odom = C @ self._T_map_odom
+                self._T_odom_map = invert_T(self._T_map_odom)
             elif self._prev is not None:
+                C = self._anchor @ C @ invert_T(self._anchor)  # in the anchored odom
                 self._prev = (self._prev[0], C @ self._prev[1], self._prev[2])
+        if self._pending is not None:
+            self._apply_pending(T_w_c, cov_w)
         T_odom_base = self.base_pose(T_w_c)
         R_ob = T_odom_base[:3, :3]
-        cov_odom = self.odom_covariance(cov_w)
+        cov_odom = self.odom_covariance(cov_w, T_w_c)
         lin, ang = np.zeros(3), np.zeros(3)
         twist_cov = np.eye(6) * _UNKNOWN_TWIST_VARIANCE
         if has_pose and self._prev is not None and stamp_ns > self._prev[0]:
@@ -194,7 +264,7 @@ def status_pose(converter: OdometryConverter, result: FrameResult, frame: str, c
     """The frame's pose as vo/odometry carries it (``child_frame`` in ``frame``, odom -> base_link), for
     its diagnostics status: one frame convention in the node, the replay and every tool."""
     T_odom_base = converter.base_pose(result.T_w_c)
-    cov = converter.odom_covariance(result.covariance)
+    cov = converter.odom_covariance(result.covariance, result.T_w_c)
     return _status_pose(frame, child_frame, T_odom_base[:3, 3], quat_xyzw_from_rotation(T_odom_base[:3, :3]), cov)
 
 

@@ -13,10 +13,14 @@ Topics (relative names, so namespaces and remapping work):
        ``/diagnostics`` (``<fully qualified node name>: tracking`` per frame and from the watchdog, and a
        ``<...>: summary`` once a second), ``vo/debug_image`` (off by default); TF odom -> base_link when
        tf2_ros is importable.
-  srv: ``vo/reset`` (std_srvs/Trigger): restart tracking from the last pose.
+  in:  ``set_pose`` (PoseWithCovarianceStamped, reliable): base's pose in odom from the next frame on
+       (``epi_vo.ros.node_pose``)
+  srv: ``vo/reset`` (std_srvs/Trigger): restart tracking from the last pose; ``reset_pose``
+       (std_srvs/Trigger): base at the origin of odom from the next frame.
 
 Camera extrinsic: TF ``child_frame_id <- image frame_id`` when tf2_ros is importable, else the
-``camera_xyz`` / ``camera_rpy`` parameters (``epi_vo.ros.node_tf``). Parameters: declared from VoConfig and
+``camera_xyz`` / ``camera_rpy`` parameters; TF that arrives late or moves is followed, between two frames
+(``epi_vo.ros.node_tf``). Parameters: declared from VoConfig and
 NodeOptions (``epi_vo.ros.node_params``); a pipeline knob changed at runtime is validated as at start-up
 and applied at the next frame (a new map from the last pose), a parameter that needs a restart is
 read-only. Diagnostics: every DiagnosticArray is stamped with the node's clock (ROS time, simulated
@@ -59,6 +63,7 @@ from epi_vo.io.msgconv import WheelMessage
 from epi_vo.io.node_options import ImageTransport, NodeOptions, QosReliability, changed_names
 from epi_vo.ros.node_diagnostics import NodeDiagnostics
 from epi_vo.ros.node_params import check_change, declare_all, effective_parameters_text, warn_undeclared_overrides
+from epi_vo.ros.node_pose import PoseSetting, apply_pose_requests
 from epi_vo.ros.node_run import (
     bgr_image_msg,
     header_msg,
@@ -82,7 +87,7 @@ RELIABILITY_POLICIES = {QosReliability.BEST_EFFORT: ReliabilityPolicy.BEST_EFFOR
                         QosReliability.RELIABLE: ReliabilityPolicy.RELIABLE}
 
 
-class VoNodeBase(NodeDiagnostics):
+class VoNodeBase(NodeDiagnostics, PoseSetting):
     """The VO wiring shared by ``vo_node`` (:class:`VoNode`) and ``vo_lifecycle_node``
     (``epi_vo.ros.lifecycle_node``): mixed into an rclpy Node (it calls the node's own methods).
 
@@ -163,6 +168,7 @@ class VoNodeBase(NodeDiagnostics):
         self._pub_debug = self._create_output_publisher(Image, "vo/debug_image", 2) \
             if self.opts.publish_debug_image else None
         self.create_service(Trigger, "vo/reset", self._on_reset)
+        self._create_pose_inputs()
         self._tf = None
         if self.opts.publish_tf:
             self._tf, why = make_tf_broadcaster(self)
@@ -337,6 +343,7 @@ class VoNodeBase(NodeDiagnostics):
                     self._busy = True
                     reset, self._reset_reason = self._reset_reason, ""
                     wanted = self._cfg_wanted
+                    poses = self._take_pose_requests()
             if item is not None and wanted is not self.cfg:
                 self._apply_config(wanted)
             for stamp_ns, xyz in wheel:  # the pipeline is only touched by this thread
@@ -349,6 +356,8 @@ class VoNodeBase(NodeDiagnostics):
             self._arrived_s = item.arrived_s
             if reset:
                 self._handler.reset(reset)
+            self._follow_extrinsic()
+            apply_pose_requests(self._handler, poses)
             try:
                 self._process(item)
             except Exception as exc:  # never let one frame kill the node; say what happened
@@ -379,6 +388,16 @@ class VoNodeBase(NodeDiagnostics):
         self._handler.set_mounting(extrinsic.T_base_cam)  # the odometry, and the floor along the up it declares
         self._extrinsic = extrinsic
         (self.get_logger().warning if extrinsic.warn else self.get_logger().info)(extrinsic.text)
+
+    def _follow_extrinsic(self) -> None:
+        """Once per frame (worker thread, between two frames): a TF that arrived late or moved replaces the
+        extrinsic in use; said in the log, the next frame's record and the diagnostics."""
+        extrinsic = self._resolver.follow()
+        if extrinsic is None:
+            return
+        self._handler.set_mounting(extrinsic.T_base_cam, extrinsic.record())
+        self._extrinsic = extrinsic
+        self.get_logger().info(extrinsic.text)
 
     def _apply_config(self, cfg: VoConfig) -> None:
         """A runtime change, between two frames (worker thread): a new pipeline with the new config,
@@ -498,7 +517,8 @@ class VoNode(VoNodeBase, Node):
 HELP_TEXT = """usage: vo_node [--ros-args --params-file FILE -p NAME:=VALUE -r FROM:=TO ...]
 
 Monocular visual odometry node (epi_vo). Subscribes camera/image_raw (+ /compressed) and
-camera/camera_info; publishes vo/odometry, vo/points, vo/path, /diagnostics; service vo/reset.
+camera/camera_info (and set_pose); publishes vo/odometry, vo/points, vo/path, /diagnostics; services
+vo/reset and reset_pose.
 Its parameters, with their defaults (the same file as `epi-vo params` and config/epi_vo.yaml):
 
 """

@@ -127,6 +127,7 @@ class FrameHandler:
         self._ahead: _Ahead | None = None
         self._anchor: Anchor | None = None
         self._last = LastPose(np.eye(4), np.zeros((6, 6)), -1)
+        self._notes: dict[str, Any] = {}  # entries for the next frame's record (note)
         if announce:
             self._pipeline.reset(announce)
 
@@ -143,11 +144,25 @@ class FrameHandler:
     def last_pose(self) -> LastPose:
         return self._last
 
-    def set_mounting(self, T_base_cam: F64) -> None:
+    def set_mounting(self, T_base_cam: F64, note: dict[str, Any] | None = None) -> None:
         """The camera mounting (camera optical frame -> base): the odometry is made with it and the floor is
-        sought along the up it declares."""
-        self._outputs.set_mounting(T_base_cam)
+        sought along the up it declares. After frames went out, the odometry stays where it was at the
+        last one and the motion after it is taken into base with this mounting; ``note`` goes into the next
+        frame's record under ``extrinsic``."""
+        self._outputs.set_mounting(T_base_cam, self._last.T_w_c if self._last.index >= 0 else None)
         self._pipeline.set_mounting(self._outputs.T_base_cam)
+        if note is not None:
+            self._notes["extrinsic"] = note
+
+    def set_pose(self, T_odom_base: F64, covariance: F64, note: dict[str, Any]) -> None:
+        """Base's pose in odom becomes ``T_odom_base`` (``covariance`` 6x6 in odom, position first) at the next
+        frame that is not skipped; later motion composes from it (``OdometryConverter.set_pose_next``). That
+        frame's record says ``note`` under ``set_pose``."""
+        self._outputs.set_pose(T_odom_base, covariance, note)
+
+    def note(self, key: str, value: Any) -> None:
+        """An entry for the next frame's record (and status): what the runner did or refused in between."""
+        self._notes[key] = value
 
     def add_wheel_odometry(self, stamp_ns: int | None, position_xyz: F64) -> WheelSample:
         """One wheel odometry message, in arrival order (``VoPipeline.add_wheel_odometry``)."""
@@ -210,7 +225,9 @@ class FrameHandler:
         result = self._anchored(result)
         if not result.skipped:
             self._last = LastPose(result.T_w_c, result.covariance, result.index)
-        return HandledFrame(self._outputs.outputs(result, self.status_name, hardware_id), problem, gray, camera)
+        notes, self._notes = self._notes, {}
+        return HandledFrame(self._outputs.outputs(result, self.status_name, hardware_id, notes), problem, gray,
+                            camera)
 
     def _anchored(self, r: FrameResult) -> FrameResult:
         """A result of the current pipeline in the odometry's frame (after a runtime change)."""

@@ -131,6 +131,7 @@ class OutputMaker:
         self.frames = frames or OutputFrames()
         self._converter = OdometryConverter(T_base_cam, continuous=bool(self.frames.map_frame_id))
         self._path = PathWindow(path_max_length)
+        self._pose_note: dict[str, Any] | None = None  # the record entry of a pose set, until it is applied
 
     @property
     def T_base_cam(self) -> F64:
@@ -142,14 +143,26 @@ class OutputMaker:
         """map -> odom: the windowed adjustment's corrections so far (identity without ``map_frame_id``)."""
         return self._converter.T_map_odom
 
-    def set_mounting(self, T_base_cam: F64) -> None:
-        """A new camera mounting (the extrinsic, once resolved, before the first frame's outputs)."""
-        self._converter = OdometryConverter(T_base_cam, continuous=bool(self.frames.map_frame_id))
+    def set_mounting(self, T_base_cam: F64, T_w_c: F64 | None = None) -> None:
+        """A new camera mounting: before the first frame's outputs (``T_w_c`` None), or while the odometry
+        runs, at the pose ``T_w_c`` last output, where base stays (``OdometryConverter.set_mounting``)."""
+        if T_w_c is None:
+            self._converter = OdometryConverter(T_base_cam, continuous=bool(self.frames.map_frame_id))
+        else:
+            self._converter.set_mounting(T_base_cam, T_w_c)
 
-    def outputs(self, result: FrameResult, status_name: str, hardware_id: str) -> FrameOutputs:
+    def set_pose(self, T_odom_base: F64, covariance: F64, note: dict[str, Any]) -> None:
+        """Base's pose in odom becomes ``T_odom_base`` (``covariance``: 6x6 in odom) at the next frame that is
+        not skipped, whose record says ``note`` under ``set_pose``."""
+        self._converter.set_pose_next(T_odom_base, covariance)
+        self._pose_note = note
+
+    def outputs(self, result: FrameResult, status_name: str, hardware_id: str,
+                notes: dict[str, Any] | None = None) -> FrameOutputs:
         """The outputs of one frame; ``status_name`` / ``hardware_id`` name its status (``<status_name>:
-        tracking``)."""
+        tracking``); ``notes``: entries added to its record (what the runner did at this frame boundary)."""
         record = result.to_record()
+        record.update(notes or {})
         f = self.frames
         if result.skipped:  # its record and status, no pose: the converter does not see it
             pose = status_pose(self._converter, result, f.frame_id, f.child_frame_id)
@@ -157,6 +170,8 @@ class OutputMaker:
         if Decision.TIME_JUMPED_BACK in result.decisions:
             self._converter.reset_twist()  # no twist is differenced across the jump
         sample = self._converter.convert_result(result)
+        if self._pose_note is not None:  # the pose set is in this frame's sample
+            record["set_pose"], self._pose_note = self._pose_note, None
         status = frame_status(result, status_name, hardware_id,
                               sample_status_pose(sample, f.frame_id, f.child_frame_id), record)
         odometry = OdometryRecord(f.frame_id, f.child_frame_id, sample)
