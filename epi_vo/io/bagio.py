@@ -214,6 +214,17 @@ def _choose_topic(
     raise BagError(msg)
 
 
+def recorded_topic_name(name: str, node_name: str = "vo_node") -> str:
+    """The name a node's topic parameter has in a bag recorded from the root namespace: a relative name
+    resolves there ('odom' is '/odom'), a private one under the node ('~/odom' is '/vo_node/odom'), as rcl
+    expands them for a node ``node_name`` in '/'. A bag stores fully qualified names only."""
+    if name.startswith("/"):
+        return name
+    if name == "~" or name.startswith("~/"):
+        return f"/{node_name}{name[1:]}"
+    return f"/{name}"
+
+
 _GT_WORDS = ("gt", "groundtruth")
 
 

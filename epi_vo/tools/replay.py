@@ -406,7 +406,8 @@ CALIBRATION_NOTE = "check the camera calibration"  # how the note on rotation-on
 
 
 def _wheel_topic(cfg: VoConfig) -> str | None:
-    return cfg.wheel_odometry_topic if cfg.scale_source == "wheel_odometry" else None
+    """The bag topic of the wheel odometry: the node's parameter as a node in the root namespace resolves it."""
+    return bagio.recorded_topic_name(cfg.wheel_odometry_topic) if cfg.scale_source == "wheel_odometry" else None
 
 
 

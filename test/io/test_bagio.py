@@ -18,7 +18,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from epi_vo.core.diagnostics import DiagnosticLevel, DiagnosticStatusRecord
 from epi_vo.core.errors import BagError
-from epi_vo.io.bagio import BagFrame, is_ground_truth_name, open_camera_bag
+from epi_vo.io.bagio import BagFrame, is_ground_truth_name, open_camera_bag, recorded_topic_name
 from epi_vo.io.msgconv import image_to_gray, point_cloud2_fields, read_points_xyz
 from epi_vo.io.outbag import OutputBag
 from epi_vo.io.tum import read_tum, write_tum
@@ -432,6 +432,13 @@ def test_ground_truth_is_only_a_topic_named_so(tmp_path: Path) -> None:
     ("/lgtm/pose", False), ("/ground/pose", False), ("/truth", False)])
 def test_ground_truth_names(topic: str, named: bool) -> None:
     assert is_ground_truth_name(topic) is named
+
+
+@pytest.mark.parametrize(("name", "recorded"), [
+    ("odom", "/odom"), ("wheel/odom", "/wheel/odom"), ("/robot1/odom", "/robot1/odom"), ("~/odom", "/vo_node/odom"),
+    ("~", "/vo_node")])
+def test_a_node_topic_parameter_is_found_in_a_bag_as_the_root_namespace_resolves_it(name: str, recorded: str) -> None:
+    assert recorded_topic_name(name) == recorded
 
 
 def test_no_ground_truth(tmp_path: Path) -> None:

@@ -69,6 +69,31 @@ def test_ros_arguments_rcl_cannot_parse_exit_2_with_one_line(ros: RosSession, mo
     _one_line_exit_2(ros, module, args, line)
 
 
+def test_the_wheel_topic_is_relative_by_default_so_a_namespaced_node_reads_its_own(ros: RosSession) -> None:
+    """Two robots in one graph: vo_node in /robot7 with wheel odometry and the default topic subscribes to
+    /robot7/odom, not to a /odom every robot would share."""
+    from rclpy.node import NodeNameNonExistentError
+
+    probe = ProbeBase(ros, "probe_wheel_name")
+    subscribed: dict[str, list[str]] = {}
+
+    def has_wheel_subscription() -> bool:
+        try:
+            subscribed.update(probe.node.get_subscriber_names_and_types_by_node("vo_node", "/robot7"))
+        except NodeNameNonExistentError:  # not discovered yet
+            return False
+        return "/robot7/camera/camera_info" in subscribed and any(t.endswith("odom") for t in subscribed)
+
+    try:
+        with NodeProcess(ros.env, "-r", "__ns:=/robot7", "-p", "scale_source:=wheel_odometry") as node:
+            assert probe.spin_until(has_wheel_subscription, WAIT_S), (subscribed, node.proc.stderr)
+        assert "Traceback" not in node.stderr
+    finally:
+        probe.close()
+    assert subscribed["/robot7/odom"] == ["nav_msgs/msg/Odometry"]
+    assert "/odom" not in subscribed
+
+
 class Probe(ProbeBase):
     def __init__(self, ros: RosSession, name: str) -> None:
         from lifecycle_msgs.srv import ChangeState
