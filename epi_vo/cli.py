@@ -162,9 +162,10 @@ def _add_params(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_play(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("play", help="publish a bag's image and camera_info topics over ROS 2 (ros2 bag play stand-in)",
-                       description="Publish the image and camera_info topics of a bag (and /clock) in real time or "
-                                   "scaled, as recorded. DDS settings come from the environment (ROS_DOMAIN_ID, "
+    p = sub.add_parser("play", help="publish a bag's topics vo_node consumes over ROS 2 (ros2 bag play stand-in)",
+                       description="Publish the image and camera_info topics of a bag, its wheel odometry and /tf, "
+                                   "/tf_static when it has them (and /clock), in real time or scaled, in the bag's "
+                                   "order, as recorded. DDS settings come from the environment (ROS_DOMAIN_ID, "
                                    "ROS_AUTOMATIC_DISCOVERY_RANGE).")
     p.add_argument("bag", help="bag directory or .mcap file")
     p.add_argument("--rate", type=float, default=1.0,
@@ -175,6 +176,10 @@ def _add_play(sub: argparse._SubParsersAction) -> None:
                    help="published image topic (default camera/image_raw, or camera/image_raw/compressed)")
     p.add_argument("--remap-camera-info", metavar="TOPIC",
                    help="published camera_info topic (default camera/camera_info)")
+    p.add_argument("--wheel-topic", help="bag topic of the wheel odometry (default: the only nav_msgs/Odometry one "
+                                         "not named as ground truth)")
+    p.add_argument("--remap-wheel", metavar="TOPIC",
+                   help="published wheel odometry topic (default odom, vo_node's wheel_odometry_topic)")
     p.add_argument("--namespace", default="", help="namespace of the player node (applies to relative topics)")
     p.add_argument("--clock", action="store_true", help="publish /clock with the bag time before each message")
     p.add_argument("--qos-reliability", choices=("reliable", "best_effort"), default="reliable",
@@ -421,7 +426,8 @@ def _play(args: argparse.Namespace) -> int:
     from epi_vo.ros.play import PlayOptions, Reliability, format_summary, run_play
 
     options = PlayOptions(rate=args.rate, image_topic=args.image_topic, camera_info_topic=args.camera_info_topic,
-                          remap_image=args.remap_image, remap_camera_info=args.remap_camera_info, clock=args.clock,
+                          remap_image=args.remap_image, remap_camera_info=args.remap_camera_info,
+                          wheel_topic=args.wheel_topic, remap_wheel=args.remap_wheel, clock=args.clock,
                           qos_reliability=Reliability(args.qos_reliability), qos_depth=args.qos_depth,
                           start_delay_s=args.start_delay, loop=args.loop)
     print(format_summary(run_play(args.bag, options, namespace=args.namespace)))

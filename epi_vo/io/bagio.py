@@ -3,7 +3,7 @@
 ``open_camera_bag`` opens a rosbag2 directory (MCAP or sqlite3 storage) or a bare ``.mcap`` /
 ``.db3`` file, picks the image, camera_info and ground-truth topics, and yields ``BagFrame`` records
 in bag order. Messages are rosbags dataclasses; ``epi_vo.io.msgconv`` reads them by field name.
-``CameraTopicsBag`` gives the raw CDR bytes of the same topics (what ``epi-vo play`` republishes).
+``epi_vo.io.play_bag`` gives the raw CDR bytes of the topics the node consumes (what ``epi-vo play`` republishes).
 Writing results is ``epi_vo.io.outbag``; TUM trajectories ``epi_vo.io.tum``.
 
 Every failure to read as asked is a BagError with a one-line message naming the bag and the reason
@@ -582,86 +582,6 @@ class WheelOdometrySamples(NamedTuple):
     topic: str
     stamps_ns: NDArray[np.int64]
     positions: NDArray[np.float64]
-
-
-class BagMessage(NamedTuple):
-    """One recorded message: log time (ns), bag topic, raw CDR bytes as stored."""
-
-    log_time_ns: int
-    topic: str
-    rawdata: bytes
-
-
-class CameraTopicsBag:
-    """A rosbag2 bag opened for playing its image and camera_info topics: raw CDR bytes, no
-    deserialisation (``epi-vo play`` republishes them as they are).
-
-    Raises BagError (one line, naming the bag) for a missing path, a bag that cannot be opened, a
-    ROS 1 bag, and missing, empty or ambiguous topics.
-    """
-
-    def __init__(self, path: str | Path, image_topic: str | None = None,
-                 camera_info_topic: str | None = None) -> None:
-        self.path = check_bag_path(path)
-        try:
-            reader = AnyReader([self.path], default_typestore=_TYPESTORE)
-            reader.open()
-        except _READ_ERRORS as err:
-            msg = f"cannot open bag {self.path}: {err}"
-            raise BagError(msg) from err
-        self._reader: AnyReader | None = reader
-        try:
-            if not reader.is2:
-                msg = f"{self.path} is a ROS 1 bag; play publishes ROS 2 (rosbag2, CDR) bags only"
-                raise BagError(msg)
-            topic_types = {name: info.msgtype for name, info in reader.topics.items()}
-            self.image_topic = _required_topic(topic_types, _IMAGE_KIND, image_topic)
-            self.camera_info_topic = _required_topic(topic_types, _CAMERA_INFO_KIND, camera_info_topic,
-                                                     sibling_of=self.image_topic)
-            self.image_count = int(reader.topics[self.image_topic].msgcount)
-            if self.image_count == 0:
-                msg = f"image topic {self.image_topic} in bag {self.path} has no messages"
-                raise BagError(msg)
-            self.camera_info_count = int(reader.topics[self.camera_info_topic].msgcount)
-            self.image_msgtype = str(topic_types[self.image_topic])
-            self._connections = [c for c in reader.connections
-                                 if c.topic in (self.image_topic, self.camera_info_topic)]
-        except BaseException:
-            self.close()
-            raise
-
-    @property
-    def image_is_compressed(self) -> bool:
-        return self.image_msgtype == COMPRESSED_IMAGE_TYPE
-
-    def msgtype(self, topic: str) -> str:
-        """ROS type name ('sensor_msgs/msg/CameraInfo') of a chosen topic."""
-        return CAMERA_INFO_TYPE if topic == self.camera_info_topic else self.image_msgtype
-
-    def messages(self) -> Iterator[BagMessage]:
-        """Image and camera_info messages in bag (log time) order; each call starts from the beginning."""
-        if self._reader is None:
-            msg = f"bag {self.path} is closed"
-            raise BagError(msg)
-        try:
-            for connection, log_time_ns, rawdata in self._reader.messages(self._connections):
-                yield BagMessage(int(log_time_ns), connection.topic, bytes(rawdata))
-        except _READ_ERRORS as err:
-            msg = f"cannot read bag {self.path}: {err}"
-            raise BagError(msg) from err
-
-    def close(self) -> None:
-        """Close the reader; calling it again does nothing."""
-        reader, self._reader = self._reader, None
-        if reader is not None:
-            reader.close()
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc_val: BaseException | None,
-                 exc_tb: TracebackType | None) -> None:
-        self.close()
 
 
 def to_cdr(msg: Any) -> bytes:
