@@ -34,6 +34,7 @@ IMPORT_TO_ROSDEP: dict[str, str | None] = {
     "std_msgs": "std_msgs",
     "std_srvs": "std_srvs",
     "tf2_ros": "tf2_ros",
+    "tf2_msgs": "tf2_msgs",
     "numpy": "python3-numpy",
     "cv2": "python3-opencv",
     "yaml": "python3-yaml",

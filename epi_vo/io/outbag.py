@@ -22,18 +22,8 @@ from numpy.typing import ArrayLike, NDArray
 from rosbags.typesys import Stores, get_typestore
 
 from epi_vo.core.errors import BagError
-from epi_vo.io.bagio import (
-    DIAGNOSTIC_ARRAY_TYPE,
-    DIAGNOSTICS_TOPIC,
-    ODOMETRY_TOPIC,
-    ODOMETRY_TYPE,
-    PATH_TOPIC,
-    PATH_TYPE,
-    POINT_CLOUD2_TYPE,
-    POINTS_TOPIC,
-    TF_MESSAGE_TYPE,
-    TF_TOPIC,
-)
+from epi_vo.io.bag_topics import DIAGNOSTIC_ARRAY_TYPE, ODOMETRY_TYPE, PATH_TYPE, POINT_CLOUD2_TYPE, TF_MESSAGE_TYPE
+from epi_vo.io.bagio import DIAGNOSTICS_TOPIC, ODOMETRY_TOPIC, PATH_TOPIC, POINTS_TOPIC, TF_TOPIC
 from epi_vo.io.msgconv import (
     NS_PER_S,
     ROS_TIME_MAX_NS,

@@ -1,10 +1,10 @@
 """A rosbag2 bag opened for ``epi-vo play``: every topic ``vo_node`` consumes, as raw CDR bytes (no rclpy).
 
-The topics are chosen as ``epi-vo replay`` chooses them (:mod:`epi_vo.io.bagio`):
+The topics are chosen as ``epi-vo replay`` chooses them (:mod:`epi_vo.io.bag_topics`):
 
 - the image (sensor_msgs/Image or CompressedImage) and its camera_info: the only ones, or the named ones;
 - the wheel odometry (nav_msgs/Odometry): the named one, else the only Odometry topic not named as ground
-  truth (:func:`~epi_vo.io.bagio.is_ground_truth_name`), else none;
+  truth (:func:`~epi_vo.io.bag_topics.is_ground_truth_name`), else none;
 - ``/tf`` and ``/tf_static`` (tf2_msgs/TFMessage) when the bag has them: the camera extrinsic the node looks
   up (robot_state_publisher's static transforms, a moving camera mount).
 
@@ -19,20 +19,20 @@ from typing import TYPE_CHECKING, NamedTuple, Self
 from rosbags.highlevel import AnyReader
 
 from epi_vo.core.errors import BagError
-from epi_vo.io.bagio import (
-    _CAMERA_INFO_KIND,
-    _DECODE_ERRORS,
-    _IMAGE_KIND,
-    _READ_ERRORS,
-    _TYPESTORE,
+from epi_vo.io.bag_topics import (
+    CAMERA_INFO_KIND,
     CAMERA_INFO_TYPE,
     COMPRESSED_IMAGE_TYPE,
+    DECODE_ERRORS,
+    IMAGE_KIND,
     ODOMETRY_TYPE,
+    READ_ERRORS,
     TF_MESSAGE_TYPE,
-    _choose_topic,
-    _required_topic,
-    _TopicKind,
+    TYPESTORE,
+    TopicKind,
+    choose_topic,
     is_ground_truth_name,
+    required_topic,
 )
 from epi_vo.io.paths import check_bag_path
 
@@ -41,7 +41,7 @@ if TYPE_CHECKING:
     from types import TracebackType
 
 TF_TOPIC, TF_STATIC_TOPIC = "/tf", "/tf_static"
-_WHEEL_KIND = _TopicKind("nav_msgs/Odometry", frozenset({ODOMETRY_TYPE}), "--wheel-topic")
+_WHEEL_KIND = TopicKind("nav_msgs/Odometry", frozenset({ODOMETRY_TYPE}), "--wheel-topic")
 
 
 class BagMessage(NamedTuple):
@@ -55,9 +55,9 @@ class BagMessage(NamedTuple):
 def _wheel_topic(topic_types: dict[str, str | None], explicit: str | None) -> str | None:
     """The wheel odometry topic: ``explicit``, else the only Odometry topic not named as ground truth."""
     if explicit is not None:
-        return _choose_topic(topic_types, _WHEEL_KIND, explicit)
+        return choose_topic(topic_types, _WHEEL_KIND, explicit)
     own = {k: v for k, v in topic_types.items() if not is_ground_truth_name(k)}
-    return _choose_topic(own, _WHEEL_KIND, None)
+    return choose_topic(own, _WHEEL_KIND, None)
 
 
 class PlayBag:
@@ -73,9 +73,9 @@ class PlayBag:
                  wheel_topic: str | None = None) -> None:
         self.path = check_bag_path(path)
         try:
-            reader = AnyReader([self.path], default_typestore=_TYPESTORE)
+            reader = AnyReader([self.path], default_typestore=TYPESTORE)
             reader.open()
-        except _READ_ERRORS as err:
+        except READ_ERRORS as err:
             msg = f"cannot open bag {self.path}: {err}"
             raise BagError(msg) from err
         self._reader: AnyReader | None = reader
@@ -84,8 +84,8 @@ class PlayBag:
                 msg = f"{self.path} is a ROS 1 bag; play publishes ROS 2 (rosbag2, CDR) bags only"
                 raise BagError(msg)
             topic_types = {name: info.msgtype for name, info in reader.topics.items()}
-            self.image_topic = _required_topic(topic_types, _IMAGE_KIND, image_topic)
-            self.camera_info_topic = _required_topic(topic_types, _CAMERA_INFO_KIND, camera_info_topic,
+            self.image_topic = required_topic(topic_types, IMAGE_KIND, image_topic)
+            self.camera_info_topic = required_topic(topic_types, CAMERA_INFO_KIND, camera_info_topic,
                                                      sibling_of=self.image_topic)
             self.wheel_topic = _wheel_topic(topic_types, wheel_topic)
             self.tf_topics = tuple(t for t in (TF_TOPIC, TF_STATIC_TOPIC) if topic_types.get(t) == TF_MESSAGE_TYPE)
@@ -126,7 +126,7 @@ class PlayBag:
         try:
             for connection, log_time_ns, rawdata in self._reader.messages(self._connections):
                 yield BagMessage(int(log_time_ns), connection.topic, bytes(rawdata))
-        except _READ_ERRORS as err:
+        except READ_ERRORS as err:
             msg = f"cannot read bag {self.path}: {err}"
             raise BagError(msg) from err
 
@@ -135,8 +135,8 @@ class PlayBag:
         messages published as recorded bytes (TF: tf2_msgs has no PyPI wheel, so no rclpy class to decode
         into may exist)."""
         try:
-            _TYPESTORE.deserialize_cdr(message.rawdata, self.msgtype(message.topic))
-        except _DECODE_ERRORS as err:
+            TYPESTORE.deserialize_cdr(message.rawdata, self.msgtype(message.topic))
+        except DECODE_ERRORS as err:
             return f"{type(err).__name__}: {err}"
         return None
 

@@ -63,7 +63,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from epi_vo.core.errors import BagError, ConfigError
 from epi_vo.io import checks
-from epi_vo.io.bagio import CAMERA_INFO_TYPE, COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, ODOMETRY_TYPE
+from epi_vo.io.bag_topics import CAMERA_INFO_TYPE, COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, ODOMETRY_TYPE
 from epi_vo.io.play_bag import TF_STATIC_TOPIC, TF_TOPIC, BagMessage, PlayBag
 
 NODE_NAME = "epi_vo_player"

@@ -40,7 +40,7 @@ from epi_vo.core.frame import FrameResult
 from epi_vo.core.odometry import OdometryConverter, OdometrySample, sample_status_pose, status_pose
 from epi_vo.core.pipeline import VoPipeline
 from epi_vo.core.status import frame_status
-from epi_vo.io import bagio, outbag, tum
+from epi_vo.io import bag_topics, bagio, outbag, tum
 from epi_vo.io.msgconv import decode_frame
 from epi_vo.io.paths import check_bag_path, refuse_special_file
 from epi_vo.io.wheel_feed import WheelFeed
@@ -247,7 +247,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     puts the corrections into the ``map_frame_id -> odom`` transform on /tf (beside ``odom -> base_link``,
     written at every frame with a pose either way), as the node broadcasts them.
     Ground truth: ``gt_tum`` (a TUM file) when given, else the bag's ``gt_topic``, else its one topic named
-    as ground truth (:func:`epi_vo.io.bagio.is_ground_truth_name`); none with ``no_gt``. ``inputs``: other
+    as ground truth (:func:`epi_vo.io.bag_topics.is_ground_truth_name`); none with ``no_gt``. ``inputs``: other
     files the run reads (a parameter file), which no output may overwrite either.
 
     Raises:
@@ -407,7 +407,7 @@ CALIBRATION_NOTE = "check the camera calibration"  # how the note on rotation-on
 
 def _wheel_topic(cfg: VoConfig) -> str | None:
     """The bag topic of the wheel odometry: the node's parameter as a node in the root namespace resolves it."""
-    return bagio.recorded_topic_name(cfg.wheel_odometry_topic) if cfg.scale_source == "wheel_odometry" else None
+    return bag_topics.recorded_topic_name(cfg.wheel_odometry_topic) if cfg.scale_source == "wheel_odometry" else None
 
 
 

@@ -18,7 +18,8 @@ from rosbags.typesys import Stores, get_typestore
 
 from epi_vo.core.diagnostics import DiagnosticLevel, DiagnosticStatusRecord
 from epi_vo.core.errors import BagError
-from epi_vo.io.bagio import BagFrame, is_ground_truth_name, open_camera_bag, recorded_topic_name
+from epi_vo.io.bag_topics import is_ground_truth_name, recorded_topic_name
+from epi_vo.io.bagio import BagFrame, open_camera_bag
 from epi_vo.io.msgconv import image_to_gray, point_cloud2_fields, read_points_xyz
 from epi_vo.io.outbag import OutputBag
 from epi_vo.io.tum import read_tum, write_tum
