@@ -57,7 +57,7 @@ logger = logging.getLogger(__name__)
 ODOMETRY_TOPIC = "/vo/odometry"
 POINTS_TOPIC = "/vo/points"
 PATH_TOPIC = "/vo/path"
-DIAGNOSTICS_TOPIC = "/diagnostics"
+FRAME_STATUS_TOPIC = "/vo/frame_status"  # the per-frame statuses, as vo_node publishes them
 TF_TOPIC = "/tf"
 
 # --------------------------------------------------------------------------------------------------

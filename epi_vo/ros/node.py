@@ -9,8 +9,9 @@ Topics (relative names, so namespaces and remapping work):
        diagnostics), ``raw`` / ``compressed`` to one; ``camera/camera_info``
   out: ``vo/odometry`` (nav_msgs/Odometry, odom -> base_link, REP-105), ``vo/points`` (PointCloud2 of
        the points triangulated at keyframes, frame odom), ``vo/path`` (bounded nav_msgs/Path),
-       ``/diagnostics`` (``<fully qualified node name>: tracking`` per frame and from the watchdog, and a
-       ``<...>: summary`` once a second), ``vo/debug_image`` (off by default); TF odom -> base_link when
+       ``vo/frame_status`` (DiagnosticArray per frame: ``<fully qualified node name>: tracking``, the frame
+       record), ``/diagnostics`` (once a second: ``<node>: tracking``, ``input``, ``extrinsic``, ``scale``;
+       ``epi_vo.ros.node_diagnostics``), ``vo/debug_image`` (off by default); TF odom -> base_link when
        tf2_ros is importable.
   srv: ``vo/reset`` (std_srvs/Trigger): restart tracking from the last pose.
 
@@ -20,7 +21,7 @@ NodeOptions (``epi_vo.ros.node_params``); a pipeline knob changed at runtime is 
 and applied at the next frame (a new map from the last pose), a parameter that needs a restart is
 read-only. Diagnostics: every DiagnosticArray is stamped with the node's clock (ROS time, simulated
 under use_sim_time); ages (image staleness, the watchdog) are measured on the steady clock, and the
-watchdog and summary timers run on it, so they keep reporting when a simulated clock stops.
+watchdog and /diagnostics timers run on it, so they keep reporting when a simulated clock stops.
 
 The wiring is :class:`VoNodeBase`, shared with the managed variant ``vo_lifecycle_node``
 (``epi_vo.ros.lifecycle_node``), which runs the same session between configure and cleanup.
@@ -54,6 +55,7 @@ from epi_vo.core.debug_image import draw_matches
 from epi_vo.core.diagnostics import DiagnosticStatusRecord
 from epi_vo.core.errors import CameraModelError, EpiVoError, clipped
 from epi_vo.core.frame import FrameResult
+from epi_vo.core.health import TrackingHealth
 from epi_vo.core.odometry import OdometryConverter, T_base_cam_from_params, status_pose
 from epi_vo.core.pipeline import VoPipeline
 from epi_vo.core.status import frame_status
@@ -125,7 +127,8 @@ class VoNodeBase(NodeDiagnostics):
         self._wheel_pending: list[tuple[int | None, np.ndarray]] = []
         self._wheel_received = self._wheel_lost = 0  # wheel messages, and those the worker never took (stalled)
         self._camera_frame = ""  # header.frame_id of the first image
-        self._last_frame_status: DiagnosticStatusRecord | None = None
+        self._tracking = TrackingHealth()  # the frames since /diagnostics was last published
+        self._wheel_topic_name = ""
         # After a runtime change the pipeline is a new one, anchored at the pose the old one had reached.
         self._anchor: tuple[np.ndarray, np.ndarray, int] | None = None  # T_w_a, cov_w_a, index offset
         self._last_pose = (np.eye(4), np.zeros((6, 6)), -1)  # the last published T_w_c, covariance, index
@@ -145,12 +148,14 @@ class VoNodeBase(NodeDiagnostics):
         self._transport = "" if self.opts.image_transport == "auto" else self.opts.image_transport
         self.create_subscription(CameraInfo, "camera/camera_info", self._on_camera_info, in_qos)
         if self.cfg.scale_source == "wheel_odometry":
-            self.create_subscription(Odometry, self.cfg.wheel_odometry_topic, self._on_wheel_odometry,
-                                     QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100))
-            self.get_logger().info(f"metric scale from wheel odometry on {self.cfg.wheel_odometry_topic}")
+            wheel_sub = self.create_subscription(Odometry, self.cfg.wheel_odometry_topic, self._on_wheel_odometry,
+                                                 QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100))
+            self._wheel_topic_name = wheel_sub.topic_name
+            self.get_logger().info(f"metric scale from wheel odometry on {self._wheel_topic_name}")
         self._pub_odom = self._create_output_publisher(Odometry, "vo/odometry", 10)
         self._pub_points = self._create_output_publisher(PointCloud2, "vo/points", 10)
         self._pub_path = self._create_output_publisher(Path, "vo/path", 10)
+        self._pub_frame_status = self._create_output_publisher(DiagnosticArray, "vo/frame_status", 10)
         if getattr(self, "_pub_diag", None) is None:  # the managed node has one of its own, for every state
             self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._pub_debug = self._create_output_publisher(Image, "vo/debug_image", 2) \
@@ -171,7 +176,7 @@ class VoNodeBase(NodeDiagnostics):
         # Both timers on the steady clock: with use_sim_time a ROS-time timer stops with the simulated clock.
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(0.5, self._watchdog, clock=steady)
-        self.create_timer(1.0, self._publish_summary, clock=steady)
+        self.create_timer(1.0, self._publish_diagnostics, clock=steady)
         self._worker = threading.Thread(target=self._work, name="vo_worker", daemon=True)
         self._worker.start()
 
@@ -455,7 +460,7 @@ class VoNodeBase(NodeDiagnostics):
         self._n_processed += 1
         if result.skipped:
             self.get_logger().warning(f"{result.reason} ({stamp * 1e-9:.6f} s)", throttle_duration_sec=5.0)
-            self._publish_status(self._frame_status(result), self._diagnostics_stamp())
+            self._publish_frame(result)
             return
         if "time jumped backwards" in result.reason:
             self.get_logger().warning(result.reason)
@@ -470,9 +475,7 @@ class VoNodeBase(NodeDiagnostics):
     def _frame_status(self, r: FrameResult) -> DiagnosticStatusRecord:
         """The frame's status; its pose is the odometry's (odom -> base_link), named by position_frame."""
         pose = status_pose(self._converter, r, self.opts.frame_id, self.opts.child_frame_id)
-        status = frame_status(r, self._status_name, self._hardware_id(), pose)
-        self._last_frame_status = status
-        return status
+        return frame_status(r, self._status_name, self._hardware_id(), pose)
 
     def _publish(self, r: FrameResult, stamp_msg: Any, gray: np.ndarray | None) -> None:
         s = self._converter.convert_result(r)
@@ -514,7 +517,7 @@ class VoNodeBase(NodeDiagnostics):
                 self._tf.sendTransform(transforms)
         if r.points_w.shape[0]:
             self._pub_points.publish(point_cloud_msg(odom.header, self._converter.odom_points(r.points_w)))
-        self._publish_status(self._frame_status(r), self._diagnostics_stamp())
+        self._publish_frame(r)
         if self._pub_debug is not None and gray is not None:
             self._pub_debug.publish(bgr_image_msg(odom.header, draw_matches(r, gray)))
 
@@ -542,7 +545,7 @@ class VoNode(VoNodeBase, Node):
 HELP_TEXT = """usage: vo_node [--ros-args --params-file FILE -p NAME:=VALUE -r FROM:=TO ...]
 
 Monocular visual odometry node (epi_vo). Subscribes camera/image_raw (+ /compressed) and
-camera/camera_info; publishes vo/odometry, vo/points, vo/path, /diagnostics; service vo/reset.
+camera/camera_info; publishes vo/odometry, vo/points, vo/path, vo/frame_status, /diagnostics; service vo/reset.
 Its parameters, with their defaults (the same file as `epi-vo params` and config/epi_vo.yaml):
 
 """

@@ -4,7 +4,7 @@ Writes into the output directory:
 - ``trajectory.tum``: ``stamp tx ty tz qx qy qz qw`` per frame that has a pose, the camera optical
   frame relative to the first frame (the pipeline's ``T_w_c``), stamp = image header stamp in seconds;
 - ``frames.jsonl``: one JSON object per input frame (:meth:`FrameResult.to_record`), flushed per line;
-- ``output.mcap``: /vo/odometry, /vo/points, /vo/path, /diagnostics stamped with the image stamps;
+- ``output.mcap``: /vo/odometry, /vo/points, /vo/path, /vo/frame_status stamped with the image stamps;
 - ``stats.json``: run totals, per-stage median times and, with ground truth, evo metrics;
 - ``groundtruth.tum``: the ground truth used (when there is one), in the same TUM form.
 

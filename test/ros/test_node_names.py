@@ -110,7 +110,7 @@ class Probe(ProbeBase):
         return bool(call_service(self.executor, self.change_client, request, WAIT_S).success)
 
     def summaries(self) -> list[Any]:
-        return [s for a in self.diag for s in a.status if s.name.endswith(": summary")]
+        return [s for a in self.diag for s in a.status if s.name.endswith(": lifecycle")]
 
 
 def test_a_bad_topic_fails_every_configure_with_the_reason_and_makes_nothing(ros: RosSession) -> None:
@@ -125,8 +125,9 @@ def test_a_bad_topic_fails_every_configure_with_the_reason_and_makes_nothing(ros
             assert probe.spin_until(lambda: len(probe.summaries()) >= n + 2)
             last = probe.summaries()[-1]
             level = last.level[0] if isinstance(last.level, bytes) else int(last.level)
-            assert level == 2 and last.message == f"unconfigured: configure failed: invalid vo_node parameters: " \
-                                                  f"{BAD_TOPIC_LINE}"
+            assert level == 2 and last.message == "unconfigured: configure failed"
+            assert {kv.key: kv.value for kv in last.values}["configure_error"] == \
+                f"invalid vo_node parameters: {BAD_TOPIC_LINE}"
             for topic in ("/camera/camera_info", "/camera/image_raw", "/camera/image_raw/compressed"):
                 assert probe.node.count_subscribers(topic) == 0, topic
             assert probe.node.count_publishers("/vo/odometry") == 0
@@ -157,8 +158,6 @@ def test_a_configure_that_fails_half_way_undoes_what_it_made_and_a_later_one_wor
         raise RuntimeError("injected: the TF broadcaster cannot be made")
 
     node = VoLifecycleNode(context=ros.context, parameter_overrides=[Parameter("image_transport", value="compressed")])
-    published: list[Any] = []
-    node._publish_status = lambda status, stamp: published.append(status)  # type: ignore[method-assign]
     try:
         before = _entities(node)
         monkeypatch.setattr(node_module, "make_tf_broadcaster", no_broadcaster)
@@ -166,11 +165,10 @@ def test_a_configure_that_fails_half_way_undoes_what_it_made_and_a_later_one_wor
             assert node.trigger_configure() == TransitionCallbackReturn.FAILURE
             assert node._state_machine.current_state[0] == State.PRIMARY_STATE_UNCONFIGURED
             assert _entities(node) == before
-        node._publish_state_summary()
-        summary = published[-1]
-        assert summary.level == DiagnosticLevel.ERROR
-        assert summary.message == ("unconfigured: configure failed: the session could not be started: RuntimeError: "
-                                   "injected: the TF broadcaster cannot be made")
+        summary = node._lifecycle_status()
+        assert summary.level == DiagnosticLevel.ERROR and summary.message == "unconfigured: configure failed"
+        assert dict(summary.values)["configure_error"] == ("the session could not be started: RuntimeError: "
+                                                           "injected: the TF broadcaster cannot be made")
         monkeypatch.undo()
         assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
         assert node._state_machine.current_state[0] == State.PRIMARY_STATE_INACTIVE
