@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from epi_vo.core import geometry as geo
-from epi_vo.core import pipeline as pl
+from epi_vo.core import keyframing as kfm
 from epi_vo.core import scale as sc
 from epi_vo.core.transforms import rotation_from_quat_xyzw
 from epi_vo.io import bagio
@@ -65,26 +65,27 @@ def main(argv: list[str]) -> int:
 
     pairs: dict[int, dict[str, Any]] = {}
     floors: list[dict[str, Any]] = []
-    keyframe_map = pl.keyframe_map
+    keyframe_map = kfm.keyframe_map
     measure = sc.GroundPlaneScale.measure
 
-    def kept_keyframe_map(cfg_: Any, motion: Any, kf: Any, rows: Any, xn_cur: Any, stamp_ns: int, st: Any) -> Any:
-        X = keyframe_map(cfg_, motion, kf, rows, xn_cur, stamp_ns, st)
-        if X is not None:
+    def kept_keyframe_map(cfg_: Any, motion: Any, kf: Any, rows: Any, xn_cur: Any, stamp_ns: int, *args: Any) -> Any:
+        mapped = keyframe_map(cfg_, motion, kf, rows, xn_cur, stamp_ns, *args)
+        if mapped.X_cur is not None:
             pairs[stamp_ns] = {"R": motion.R_cur_kf.copy(), "t": motion.t_cur_kf.copy(), "xn_kf": kf.xn[rows].copy(),
                                "xn_cur": xn_cur.copy(), "K": kf.camera.K.copy()}
-        return X
+        return mapped
 
-    def kept_measure(self: sc.GroundPlaneScale, step: sc.KeyframeStep) -> tuple[float, float] | None:
-        out = measure(self, step)
-        if out is not None and self.plane is not None:
-            plane = self.plane  # its inliers: within the source's band of the measured floor
+    def kept_measure(self: sc.GroundPlaneScale, step: sc.KeyframeStep, wheel: Any
+                     ) -> tuple[sc.GroundPlaneScale, tuple[float, float] | None]:
+        src, out = measure(self, step, wheel)
+        if out is not None and src.plane is not None:
+            plane = src.plane  # its inliers: within the source's band of the measured floor
             with np.errstate(invalid="ignore"):
-                rows = np.abs(step.X_cur @ plane.normal_up + plane.height) < self.inlier_ratio * plane.height
+                rows = np.abs(step.X_cur @ plane.normal_up + plane.height) < src.inlier_ratio * plane.height
             floors.append({"step": step, "plane": plane, "rows": rows})
-        return out
+        return src, out
 
-    pl.keyframe_map = kept_keyframe_map  # type: ignore[assignment]
+    kfm.keyframe_map = kept_keyframe_map  # type: ignore[assignment]
     sc.GroundPlaneScale.measure = kept_measure  # type: ignore[method-assign]
     with tempfile.TemporaryDirectory() as tmp:
         run_replay(args.bag, args.output or tmp, cfg)

@@ -1,10 +1,12 @@
 """The layers are visible and kept: what each folder of ``epi_vo`` may import, no import circle, no
 private name taken from another module, no module over 700 lines.
 
-    cli.py  ->  ros/  ->  io/  ->  core/
-            ->  tools/ ->  io/  ->  core/
+    cli.py  ->  ros/  ->  io/, runner/  ->  core/
+            ->  tools/ ->  io/, runner/  ->  core/
 
-* core/: numpy, cv2 and the standard library only (plus the optimiser the metric-scale work adds);
+* core/: numpy, cv2 and the standard library only (plus the optimiser the metric-scale work adds); no
+  threads, processes or their queues: the per-frame step computes, a runner decides what runs where;
+* runner/: core and the standard library's threads and processes (what runs ahead of and beside the step);
 * io/: core, rosbags, mcap, yaml; never rclpy;
 * ros/: core, io, rclpy and ROS message packages (and rich for the monitor); never tools;
 * tools/: core, io, evo, matplotlib, tqdm; never rclpy, never ros;
@@ -20,16 +22,20 @@ from pathlib import Path
 import pytest
 
 PKG = Path(__file__).resolve().parents[1] / "epi_vo"
-LAYERS = ("core", "io", "ros", "tools")
+LAYERS = ("core", "io", "runner", "ros", "tools")
 ROS_PACKAGES = {"rclpy", "builtin_interfaces", "diagnostic_msgs", "geometry_msgs", "nav_msgs", "rcl_interfaces",
                 "rosgraph_msgs", "sensor_msgs", "std_msgs", "std_srvs", "tf2_msgs", "tf2_ros", "lifecycle_msgs"}
 THIRD_PARTY = {
     "core": {"numpy", "cv2", "gtsam", "scipy"},
     "io": {"numpy", "cv2", "rosbags", "mcap", "yaml"},
+    "runner": {"numpy", "cv2"},
     "ros": {"numpy", "cv2", "rich"} | ROS_PACKAGES,  # rich: the monitor's terminal view
     "tools": {"numpy", "cv2", "evo", "matplotlib", "tqdm", "rosbags", "mcap", "yaml"},
 }
-MAY_IMPORT = {"core": {"core"}, "io": {"core", "io"}, "ros": {"core", "io", "ros"}, "tools": {"core", "io", "tools"}}
+MAY_IMPORT = {"core": {"core"}, "io": {"core", "io"}, "runner": {"core", "runner"},
+              "ros": {"core", "io", "runner", "ros"}, "tools": {"core", "io", "runner", "tools"}}
+# What runs where is the runner's: the core computes in the calling thread.
+CORE_REFUSES = {"threading", "concurrent", "subprocess", "multiprocessing", "queue", "pickle", "asyncio"}
 MAX_LINES = 700
 
 
@@ -71,7 +77,7 @@ def _layer(module: str) -> str | None:
 
 def test_every_module_is_in_a_layer() -> None:
     loose = [m for m in MODULES if m not in ("epi_vo", "epi_vo.cli") and _layer(m) is None]
-    assert not loose, f"modules outside core/ io/ ros/ tools/: {loose}"
+    assert not loose, f"modules outside core/ io/ runner/ ros/ tools/: {loose}"
     assert {_layer(m) for m in MODULES} >= set(LAYERS)
 
 
@@ -87,6 +93,8 @@ def test_imports_point_one_way(module: str) -> None:
             target = _layer(imported) or ("cli" if imported == "epi_vo.cli" else "epi_vo")
             if target not in MAY_IMPORT[layer]:
                 bad.append(f"line {line}: {imported} ({layer} may import {sorted(MAY_IMPORT[layer])})")
+        elif layer == "core" and top in CORE_REFUSES:
+            bad.append(f"line {line}: {imported} (threads and processes belong to epi_vo.runner)")
         elif top not in stdlib and top not in THIRD_PARTY[layer]:
             bad.append(f"line {line}: {imported} (third-party packages of {layer}: {sorted(THIRD_PARTY[layer])})")
     assert not bad, f"{module}: " + "; ".join(bad)
@@ -147,3 +155,27 @@ def test_core_runs_without_ros_and_io_libraries() -> None:
             "print(','.join(bad))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
     assert out.stdout.strip() == "", f"the core pulled in: {out.stdout.strip()}"
+
+
+def _reads_reason_text(node: ast.AST) -> bool:
+    """``x.reason`` (or ``x["reason"]``) searched or compared: ``... in r.reason``, ``r.reason == ...``,
+    ``r.reason.startswith(...)``."""
+    def is_reason(n: ast.AST) -> bool:
+        return (isinstance(n, ast.Attribute) and n.attr == "reason") or (
+            isinstance(n, ast.Subscript) and isinstance(n.slice, ast.Constant) and n.slice.value == "reason")
+
+    if isinstance(node, ast.Compare):
+        return (any(isinstance(op, (ast.In, ast.NotIn)) for op in node.ops) and is_reason(node.comparators[-1])) or (
+            any(isinstance(op, (ast.Eq, ast.NotEq)) for op in node.ops)
+            and any(is_reason(n) and isinstance(o, ast.Constant) for n in (node.left, *node.comparators)
+                    for o in (node.left, *node.comparators)))
+    return (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and is_reason(node.func.value)
+            and node.func.attr in ("startswith", "endswith", "find", "index", "count"))
+
+
+def test_no_code_branches_on_a_reason_text() -> None:
+    """Decisions are values (``FrameResult.decisions``, ``epi_vo.core.decisions``): no module of epi_vo searches
+    or compares a ``reason`` sentence, which is rendered for people (``epi_vo.core.reasons``)."""
+    bad = [f"{module}:{node.lineno}" for module, path in MODULES.items()
+           for node in ast.walk(ast.parse(path.read_text(), str(path))) if _reads_reason_text(node)]
+    assert not bad, bad

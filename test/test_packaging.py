@@ -202,3 +202,17 @@ def test_the_jazzy_requirements_differ_from_the_pinned_ones_in_the_system_librar
     assert differ == {"opencv-python-headless": (pinned["opencv-python-headless"], "4.6.0.66"),
                       "numpy": (pinned["numpy"], "1.26.4"), "scipy": (pinned["scipy"], "1.11.4")}
     assert "bash scripts/test_system_libs.sh" in (REPO / ".ci" / "run").read_text()
+
+
+def test_the_type_checker_runs_strict_on_the_core_right_after_the_linter() -> None:
+    """CI runs scripts/test.sh: ruff, then mypy (pinned) strict on epi_vo/core as setup.cfg configures it."""
+    import configparser
+
+    cfg = configparser.ConfigParser()
+    cfg.read(REPO / "setup.cfg")
+    assert cfg.getboolean("mypy", "strict") and cfg.get("mypy", "files").split() == ["epi_vo/core"]
+    lines = [ln.split("#")[0].strip() for ln in (REPO / "scripts" / "test.sh").read_text().splitlines()]
+    lines = [ln for ln in lines if ln]
+    ruff = next(i for i, ln in enumerate(lines) if ln.startswith(".venv/bin/ruff check"))
+    assert lines[ruff + 1] == ".venv/bin/mypy"
+    assert "mypy" in _pins(REPO / "requirements.txt")

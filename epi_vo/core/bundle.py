@@ -31,9 +31,8 @@ The model
       other fixed keyframes relative to it), so its height, roll and pitch above the floor are the
       plane's three unknowns, and the result is moved back so that keyframe 0 is where it was given.
       The same optimum as a plane variable with a factor per floor point (tested), in native GTSAM
-      factors: until 2026-11-27 the plane was an ``OrientedPlane3`` with Python ``CustomFactor``
-      objects, 190 ms per ground-robot floor window against 106 now (same poses to 2e-6 of the
-      window's extent).
+      factors: an ``OrientedPlane3`` with Python ``CustomFactor`` objects takes 190 ms per floor window
+      of the ground-robot render against 106 (same poses to 2e-6 of the window's extent).
 
 The procedure
     1. Observations with non-finite coordinates, of a non-finite point, or of a point at or behind
@@ -65,7 +64,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, replace
-from typing import NamedTuple
+from typing import Any, NamedTuple, cast
 
 import gtsam
 import numpy as np
@@ -90,7 +89,7 @@ MIN_POINTS = 8  # fewer adjusted points: the window is unusable
 MIN_OBS_PER_KF = 6  # fewer observations on an adjusted (not fixed) keyframe: the window is unusable
 MAX_PASSES = 2  # robust pass, then one pass on the gated observations
 ROTATION_TOL = 1e-6  # max |R^T R - I| of an input pose
-MIN_PLANE_POINTS = 3
+MIN_PLANE_POINTS = 3  # three points fix a plane: fewer floor points leave the plane prior unconstrained
 
 
 class DistancePrior(NamedTuple):
@@ -331,7 +330,7 @@ def _validated(window: Window, max_iterations: int, huber_k: float) -> _Problem 
 
 def _distance_prior(prior: object, n_kf: int) -> DistancePrior:
     try:
-        i, j, distance, sigma = prior  # type: ignore[misc]
+        i, j, distance, sigma = cast(tuple[Any, Any, Any, Any], prior)
     except (TypeError, ValueError) as exc:
         msg = f"a distance prior must be (i, j, distance, sigma), got {prior!r}"
         raise ValueError(msg) from exc
@@ -402,7 +401,8 @@ def _initial_active(p: _Problem) -> BoolArray:
         z, _ = _depths_and_residuals(p, p.T_w_kf, points_w, usable)
         usable[np.flatnonzero(usable)[z <= MIN_DEPTH]] = False
         usable &= ~_low_parallax(p, p.T_w_kf, points_w, usable)[p.obs_pt]
-    return usable & _two_view_points(p, usable)[p.obs_pt]
+    out: BoolArray = usable & _two_view_points(p, usable)[p.obs_pt]
+    return out
 
 
 def _gate(p: _Problem, T_w_kf: F64, points_w: F64, active: BoolArray) -> BoolArray:
@@ -524,9 +524,9 @@ def _graph(p: _Problem, active: BoolArray, robust: bool,
                                                        L(int(p.obs_pt[m])), K))
     if p.plane is not None:
         on_floor = maybe_robust(gtsam.noiseModel.Diagonal.Sigmas(np.array([free, free, p.plane.sigma_plane])))
-        for j in np.flatnonzero(_two_view_points(p, active) & p.floor):
-            x, y = p.points_w[j, :2]  # the initial position along the floor (free)
-            graph.add(gtsam.PriorFactorPoint3(L(int(j)), np.array([x, y, 0.0]), on_floor))
+        for pt in np.flatnonzero(_two_view_points(p, active) & p.floor):
+            x, y = p.points_w[pt, :2]  # the initial position along the floor (free)
+            graph.add(gtsam.PriorFactorPoint3(L(int(pt)), np.array([x, y, 0.0]), on_floor))
         height = gtsam.noiseModel.Diagonal.Sigmas(np.array([free, free, p.plane.sigma_height]))
         for k in range(p.n_kf):
             x, y = p.T_rigid[k, :2, 3]

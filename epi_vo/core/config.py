@@ -180,11 +180,21 @@ class VoConfig:
     wheel_odometry_timeout_s: float = _knob(
         0.5, "wheel messages further than this from an image stamp are stale: the last scale is held (s)", 0.01,
         60.0)
+    wheel_odometry_noise_m: float = _knob(
+        0.01, "the wheels' random distance error over one scale measurement (m, 1 sigma: encoder resolution, slip, "
+        "stamp jitter); it averages out over keyframes, their calibration error (wheel_odometry_rel_sigma) does not",
+        0.0001, 1.0)
+    wheel_odometry_window_m: float = _knob(
+        0.5, "each scale measurement spans the last keyframe steps until the wheels covered this distance (m): "
+        "longer steps drown the wheel noise and the camera's lever arm in turns", 0.01, 100.0)
     ground_max_tilt_deg: float = _knob(35.0, "floor normals further than this from the camera's up axis are no "
                                        "floor (deg)", 1.0, 89.0)
     ground_inlier_ratio: float = _knob(0.04, "floor inliers lie within this fraction of the camera height", 0.001,
                                        0.5)
     ground_min_points: int = _knob(8, "map points on the floor needed to measure the scale", 3, 10000)
+    ground_fit_min_rel_sigma: float = _knob(
+        0.005, "the least relative uncertainty (1 sigma) one floor measurement of the camera height is given: the "
+        "floor's unevenness under the fit (the fits' spread raises it)", 0.0001, 0.5)
 
     # --- covariance ----------------------------------------------------------------------------
     scale_drift_per_keyframe: float = _knob(

@@ -147,15 +147,15 @@ def tracked_since_keyframe(cov_rel: F64, scale_part: F64, noise_sq: float, *, on
 
     KLT tracks carry their error from frame to frame, a random walk: what a keyframe step adds to the
     chain is the noise of its own frames, not a whole ``pixel_noise_px`` whatever their number. With one
-    ``pixel_noise_px`` per step, ground_robot (a keyframe every 2.3 frames) claimed 3.5x its rotation
-    error in variance (NEES 0.29) while the bags with a keyframe every 6-10 frames were consistent
-    (2026-11-25).
+    ``pixel_noise_px`` per step, a floor-facing camera with a keyframe every 2.3 frames claims 3.5x its
+    rotation error in variance (NEES 0.29) while sequences with a keyframe every 6-10 frames are
+    consistent.
 
     ``one_image``: ``cov_rel`` is E's, computed for ``pixel_noise_px`` in both images, while the tracks'
     error is in the current image only (they start at the keyframe's features): ``ONE_IMAGE_SHARE`` of
-    it (Monte Carlo in test/core/test_uncertainty.py). Without it (until 2026-11-27) the frames posed
-    by E claimed 4-10x their rotation error relative to the keyframe in variance (ground_robot NEES 0.23,
-    the held-out loop 0.10), and ground_robot's rotation NEES was 0.76, with the scale sources 0.51-0.57.
+    it (Monte Carlo in test/core/test_uncertainty.py). Without it the frames posed by E claim 4-10x their
+    rotation error relative to the keyframe in variance (NEES 0.23 on the ground-robot render, 0.10 on the
+    held-out loop).
     ``residual_sq``: the noise E's own residuals show (``geometry.sampson_rms``, as a share of
     ``pixel_noise_px``, squared); the image noise part is at least that. The tracks' noise predicted
     frame by frame misses a frame whose tracks are worse than their forward-backward check says (the
@@ -201,7 +201,8 @@ def cover(a: F64, b: F64) -> F64:
     Li = np.linalg.inv(L)
     w, V = np.linalg.eigh(Li @ (0.5 * (b + b.T)) @ Li.T)
     out = L @ (V * np.maximum(w, 1.0)) @ V.T @ L.T
-    return 0.5 * (out + out.T)
+    covered: F64 = 0.5 * (out + out.T)
+    return covered
 
 
 def is_finite(*arrays: F64) -> bool:

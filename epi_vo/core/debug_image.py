@@ -9,6 +9,8 @@ otherwise.
 
 from __future__ import annotations
 
+from typing import cast
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -71,4 +73,4 @@ def draw_matches(result: FrameResult, gray: NDArray[np.uint8], n_epilines: int =
     text = (f"{result.state.value} {result.model.value} RH {result.rh:.2f} inl {result.n_inliers}/"
             f"{result.n_tracked} par {result.median_parallax_deg:.2f}deg")
     cv2.putText(img, text, (8, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, _WHITE, 1, cv2.LINE_AA)
-    return img
+    return cast(NDArray[np.uint8], img)

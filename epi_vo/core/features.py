@@ -7,16 +7,16 @@ float32 pixel coordinates of the raw image (before undistortion), as OpenCV's tr
 from __future__ import annotations
 
 import math
-import time
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from epi_vo.core.config import VoConfig
+from epi_vo.core.decisions import Decision, Note, note
 
 F32 = NDArray[np.float32]
 Mask = NDArray[np.bool_]
@@ -97,16 +97,16 @@ def detect_corners(gray: NDArray[np.uint8], existing: F32, cfg: VoConfig) -> F32
     radius = max(1, round(cfg.min_feature_distance_px / 2))
     for x, y in ((existing - 0.5) / 2).astype(np.int32):
         cv2.circle(mask, (int(x), int(y)), radius, 0, -1)
-    corners = cv2.goodFeaturesToTrack(half, maxCorners=3 * cfg.max_features, qualityLevel=cfg.corner_quality,
-                                      minDistance=cfg.min_feature_distance_px / 2, mask=mask, blockSize=3)
-    if corners is None:
+    found = cv2.goodFeaturesToTrack(half, maxCorners=3 * cfg.max_features, qualityLevel=cfg.corner_quality,
+                                    minDistance=cfg.min_feature_distance_px / 2, mask=mask, blockSize=3)
+    if found is None:
         return np.zeros((0, 2), np.float32)
-    corners = (corners.reshape(-1, 2) * 2.0 + 0.5).astype(np.float32)
+    corners: F32 = (found.reshape(-1, 2) * 2.0 + 0.5).astype(np.float32)
     # goodFeaturesToTrack returns corners by decreasing quality: keep that order.
     corners = corners[bucket_select(corners, None, existing, w, h, cfg)]
     if corners.shape[0]:
         # Back to full-resolution corner positions (a 5x5 gradient fit per corner, ~0.2 ms for 200).
-        corners = cv2.cornerSubPix(gray, corners.reshape(-1, 1, 2), (2, 2), (-1, -1), _SUBPIX_CRITERIA)
+        corners = cast(F32, cv2.cornerSubPix(gray, corners.reshape(-1, 1, 2), (2, 2), (-1, -1), _SUBPIX_CRITERIA))
     return corners.reshape(-1, 2)
 
 
@@ -148,7 +148,8 @@ def track_klt(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_pre
     (OpenCV's Python binding does not accept prebuilt pyramids, so each call builds its own.)
 
     The exposure is judged on the leading ``EXPOSURE_MAX_TRACKS`` rows only, so that a call on more
-    rows decides as one on those rows alone did (``KltAhead``); ``gain`` applies that earlier decision
+    rows decides as one on those rows alone did (tracking done ahead: ``epi_vo.runner``); ``gain`` applies
+    that earlier decision
     (1.0: none) without judging again.
 
     Returns the tracked points (N, 2), a mask of tracks that converged both ways, came back within
@@ -160,7 +161,7 @@ def track_klt(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_pre
         return KltTracks(np.zeros((0, 2), np.float32), np.zeros(0, bool), 1.0 if gain is None else gain,
                          np.zeros(0, np.float32))
     if gain is not None:
-        img = gray_cur if gain == 1.0 else cv2.convertScaleAbs(gray_cur, alpha=gain, beta=0.0)
+        img = gray_cur if gain == 1.0 else cast(NDArray[np.uint8], cv2.convertScaleAbs(gray_cur, alpha=gain, beta=0.0))
         p1, ok, fb = _klt_both_ways(gray_prev, img, pts_prev, cfg)
         return KltTracks(p1, ok, gain, fb)
     p1, ok, fb = _klt_both_ways(gray_prev, gray_cur, pts_prev, cfg)
@@ -168,7 +169,7 @@ def track_klt(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_pre
     lead_ok = ok[lead]
     measured = exposure_change(gray_prev, gray_cur, pts_prev[lead][lead_ok], p1[lead][lead_ok])
     if measured is not None:
-        mapped = cv2.convertScaleAbs(gray_cur, alpha=measured, beta=0.0)
+        mapped = cast(NDArray[np.uint8], cv2.convertScaleAbs(gray_cur, alpha=measured, beta=0.0))
         p1_m, ok_m, fb_m = _klt_both_ways(gray_prev, mapped, pts_prev, cfg)
         if np.count_nonzero(ok_m[lead]) >= np.count_nonzero(lead_ok):
             return KltTracks(p1_m, ok_m, measured, fb_m)
@@ -182,7 +183,8 @@ def _patch_means(gray: NDArray[np.uint8], pts: F32, r: int = 2) -> NDArray[np.fl
     y = np.clip(np.rint(pts[:, 1]).astype(np.int64), r, h - 1 - r)
     d = np.arange(-r, r + 1)
     offsets = (d[:, None] * w + d[None, :]).ravel()
-    return np.ascontiguousarray(gray).ravel()[(y * w + x)[:, None] + offsets].mean(axis=1)
+    means: NDArray[np.float64] = np.ascontiguousarray(gray).ravel()[(y * w + x)[:, None] + offsets].mean(axis=1)
+    return means
 
 
 def exposure_change(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_prev: F32, pts_cur: F32
@@ -220,7 +222,8 @@ def _klt_both_ways(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pt
                    cfg: VoConfig) -> tuple[F32, Mask, NDArray[np.float32]]:
     win = (cfg.klt_window_px, cfg.klt_window_px)
     p0 = pts_prev.reshape(-1, 1, 2).astype(np.float32)
-    p1, st1, _ = cv2.calcOpticalFlowPyrLK(gray_prev, gray_cur, p0, None, winSize=win, maxLevel=cfg.klt_levels,
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(gray_prev, gray_cur, p0, None, winSize=win,  # type: ignore[call-overload]
+                                          maxLevel=cfg.klt_levels,
                                           criteria=_LK_CRITERIA)
     # Backward pass seeded with the start points: a good track converges there at once, so the
     # full-resolution level alone suffices (0.9 ms instead of 1.6 with two levels, 200 points); a bad
@@ -245,7 +248,7 @@ class OrbFeatures:
 
 
 def make_orb(cfg: VoConfig) -> cv2.ORB:
-    return cv2.ORB_create(nfeatures=cfg.orb_features)
+    return cv2.ORB.create(nfeatures=cfg.orb_features)
 
 
 def detect_orb(orb: cv2.ORB, gray: NDArray[np.uint8], cfg: VoConfig) -> OrbFeatures:
@@ -257,7 +260,7 @@ def detect_orb(orb: cv2.ORB, gray: NDArray[np.uint8], cfg: VoConfig) -> OrbFeatu
     resp = np.array([k.response for k in kps], dtype=np.float64)
     h, w = gray.shape
     keep = bucket_select(pts, resp, np.zeros((0, 2), np.float32), w, h, cfg)
-    return OrbFeatures(pts[keep], desc[keep])
+    return OrbFeatures(pts[keep], cast(NDArray[np.uint8], desc)[keep])
 
 
 def match_orb(desc_ref: NDArray[np.uint8], desc_cur: NDArray[np.uint8], ratio: float
@@ -286,81 +289,47 @@ def match_orb(desc_ref: NDArray[np.uint8], desc_cur: NDArray[np.uint8], ratio: f
     return np.asarray(i_ref, np.int64), np.asarray(i_cur, np.int64)
 
 
-def _timed_klt(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_prev: F32, cfg: VoConfig
-               ) -> tuple[KltTracks, float]:
-    t0 = time.perf_counter()
-    tracks = track_klt(gray_prev, gray_cur, pts_prev, cfg)
-    return tracks, (time.perf_counter() - t0) * 1e3
+KltTracker = Callable[[NDArray[np.uint8], NDArray[np.uint8], F32, VoConfig], tuple[KltTracks, float]]
 
 
-class KltAhead:
-    """KLT into the next image, started while the current one is still being processed.
+def track_klt_now(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_prev: F32, cfg: VoConfig
+                  ) -> tuple[KltTracks, float]:
+    """``track_klt`` computed now (no time spent ahead)."""
+    return track_klt(gray_prev, gray_cur, pts_prev, cfg), 0.0
 
-    Replay knows the next image before it processes the current one. Tracking the current frame's
-    points into it on a worker thread overlaps OpenCV's KLT (it releases the GIL) with the current
-    frame's model selection and pose. Pyramidal LK tracks each point on its own, and the exposure is
-    judged on the leading rows (``track_klt``), so the result is the one tracking at the next frame
-    would give: it is used only for the points it tracked from the same image, which are the first rows
-    of the points to track then (a keyframe appends its new corners after the tracked ones; those are
-    tracked when the frame comes, with the job's exposure gain). When the job covered fewer rows than
-    the exposure is judged on, and rows were appended, it is dropped: the judgement could differ.
-    Anything else (a restart, another image) drops it too. ``key`` is the caller's next image object:
-    the job is for that image only.
-    """
 
-    def __init__(self, pool: ThreadPoolExecutor | None = None) -> None:
-        self._pool = pool  # one worker (shared: a job queues behind what was submitted before), or its own
-        self._job: tuple[object, NDArray[np.uint8], F32, Future[tuple[KltTracks, float]]] | None = None
+@dataclass(frozen=True)
+class Tracked:
+    """The features stage's result: the correspondences keyframe -> current image and what tracking saw."""
 
-    def start(self, key: object, gray_from: NDArray[np.uint8], gray_to: NDArray[np.uint8], pts: F32,
-              cfg: VoConfig) -> None:
-        if self._pool is None:
-            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="epi_vo_klt_ahead")
-        self._job = (key, gray_from, pts, self._pool.submit(_timed_klt, gray_from, gray_to, pts, cfg))
+    pts: F32  # (N, 2) current raw pixels
+    rows: NDArray[np.int64]  # (N,) keyframe row of each
+    orb: OrbFeatures | None  # this image's ORB features (frontend 'orb')
+    ahead_ms: float  # KLT done ahead of this call (ms; 0: now)
+    gain: float  # the exposure gain the image was tracked with (1.0: unchanged)
+    noise_px: float  # the tracking noise the kept tracks' forward-backward errors show (``fb_noise_px``)
 
-    def take(self, key: object, gray_from: NDArray[np.uint8], gray_to: NDArray[np.uint8], pts_prev: F32,
-             cfg: VoConfig) -> tuple[KltTracks, float] | None:
-        """``track_klt(gray_from, gray_to, pts_prev)`` and the milliseconds the worker spent on it, when
-        the started job covers it (None: track now)."""
-        job, self._job = self._job, None
-        if job is None:
-            return None
-        j_key, j_from, j_pts, future = job
-        n = j_pts.shape[0]
-        if j_key is not key or j_from is not gray_from or pts_prev.shape[0] < n \
-                or not np.array_equal(pts_prev[:n], j_pts) \
-                or (n < EXPOSURE_MAX_TRACKS and pts_prev.shape[0] > n):
-            future.cancel()
-            return None
-        tracks, ms = future.result()  # an OpenCV error is raised here, at the frame it belongs to
-        if pts_prev.shape[0] > n:
-            t0 = time.perf_counter()
-            more = track_klt(gray_from, gray_to, pts_prev[n:], cfg, gain=tracks.gain)
-            tracks = KltTracks(np.vstack([tracks.pts, more.pts]), np.concatenate([tracks.ok, more.ok]), tracks.gain,
-                               np.concatenate([tracks.fb, more.fb]))
-            ms += (time.perf_counter() - t0) * 1e3
-        return tracks, ms
+    @property
+    def notes(self) -> tuple[Note, ...]:
+        """The stage's decision: an image scaled onto the previous exposure to be tracked."""
+        return (note(Decision.EXPOSURE_CHANGED, gain=self.gain),) if self.gain != 1.0 else ()
 
 
 def track(gray: NDArray[np.uint8], cfg: VoConfig, orb: cv2.ORB | None, gray_prev: NDArray[np.uint8] | None,
           pts_prev: F32, rows_prev: NDArray[np.int64], kf_descriptors: NDArray[np.uint8] | None,
-          ahead: tuple[KltAhead, object] | None = None
-          ) -> tuple[F32, NDArray[np.int64], OrbFeatures | None, float, float, float]:
-    """Correspondences keyframe -> current image: (current raw pixels, keyframe rows, ORB features, ms of
-    KLT done ahead on the worker thread, the exposure gain the image was tracked with (1.0: unchanged),
-    the tracking noise the kept tracks' forward-backward errors show (``fb_noise_px``; NaN for ORB)).
+          klt: KltTracker = track_klt_now) -> Tracked:
+    """Correspondences keyframe -> current image (``Tracked``; the tracking noise is NaN for ORB).
 
     KLT (``orb`` None) follows the previous frame's points ``pts_prev`` (keyframe rows ``rows_prev``)
-    into ``gray``, taking what ``ahead`` (the tracker and this image's key) started for it; ORB detects
-    in ``gray`` and matches against the keyframe's descriptors.
+    into ``gray`` through ``klt`` (``track_klt``, possibly computed ahead: ``epi_vo.core.workers``); ORB
+    detects in ``gray`` and matches against the keyframe's descriptors.
     """
     if orb is None:
         assert gray_prev is not None
-        got = ahead[0].take(ahead[1], gray_prev, gray, pts_prev, cfg) if ahead is not None else None
-        tracks, ms = got if got is not None else (track_klt(gray_prev, gray, pts_prev, cfg), 0.0)
+        tracks, ms = klt(gray_prev, gray, pts_prev, cfg)
         ok = tracks.ok
-        return tracks.pts[ok], rows_prev[ok], None, ms, tracks.gain, fb_noise_px(tracks.fb[ok])
+        return Tracked(tracks.pts[ok], rows_prev[ok], None, ms, tracks.gain, fb_noise_px(tracks.fb[ok]))
     feats = detect_orb(orb, gray, cfg)
     assert kf_descriptors is not None
     i_kf, i_cur = match_orb(kf_descriptors, feats.descriptors, cfg.orb_ratio)
-    return feats.pts[i_cur], i_kf, OrbFeatures(feats.pts, feats.descriptors), 0.0, 1.0, math.nan
+    return Tracked(feats.pts[i_cur], i_kf, OrbFeatures(feats.pts, feats.descriptors), 0.0, 1.0, math.nan)

@@ -1,21 +1,21 @@
-"""The frame record: what one input frame yields, and the per-frame scratch the stages fill in.
+"""The frame record: what one input frame yields.
 
-``FrameResult`` is the immutable record every front door (replay, node) turns into outputs;
-``FrameStats`` is the mutable scratch the stages write their measurements and reasons into while a
-frame is processed.
+``FrameResult`` is the immutable record every front door (replay, node) turns into outputs; the step
+(``epi_vo.core.step``) builds it once per frame from the stages' own frozen results (``publish``).
 """
 
 from __future__ import annotations
 
 import enum
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from fractions import Fraction
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from epi_vo.core.decisions import Decision, Note
 from epi_vo.core.scale import ScaleStatus
 from epi_vo.core.transforms import quat_xyzw_from_rotation, rotation_angle_deg
 
@@ -140,7 +140,7 @@ class FrameResult:
     # calibration's made it look like parallax (the reason says "check the camera calibration"); else NaN
     focal_ratio: float = math.nan
     # The image noise the KLT tracks show this frame: per-axis RMS of their forward-backward errors (px;
-    # NaN with ORB or without tracks). It sets the twist's uncertainty (``VoPipeline._step_covariance``)
+    # NaN with ORB or without tracks). It sets the twist's uncertainty (``step._step_covariance``)
     track_noise_px: float = math.nan
     # KLT tracks moved onto their first image's patch this frame (``klt_patch_refine_px``); None: refinement off
     n_refined: int | None = None
@@ -151,6 +151,14 @@ class FrameResult:
     # before it move with it (T_new = correction @ T_old), so the motion since the previous frame, the
     # twist, is this frame's pose against correction @ the previous pose, not the jump; None: no correction
     correction: F64 | None = None
+    # What the stages decided, in order, with their details: ``reason`` is their sentences
+    # (``epi_vo.core.reasons.render``); code asks these, never the text
+    notes: tuple[Note, ...] = ()
+
+    @property
+    def decisions(self) -> tuple[Decision, ...]:
+        """The decisions of ``notes``, in order (``Decision.TIME_JUMPED_BACK in result.decisions``)."""
+        return tuple(n.decision for n in self.notes)
 
     @property
     def rejected(self) -> bool:
@@ -238,32 +246,3 @@ class FrameResult:
 
 STAT_FIELDS = ("rh", "inlier_ratio", "median_parallax_deg", "positive_depth_ratio", "median_reproj_err_px",
                 "relative_scale", "focal_ratio", "track_noise_px")
-
-
-@dataclass
-class FrameStats:
-    """Mutable scratch of one frame: every stage fills in what it measured; ``FrameResult`` freezes it."""
-
-    stamp_ns: int = 0
-    model: Model = Model.NONE
-    rh: float = math.nan
-    n_tracked: int = 0
-    n_inliers: int = 0
-    median_parallax_deg: float = math.nan
-    n_triangulated: int = 0
-    positive_depth_ratio: float = math.nan
-    median_reproj_err_px: float = math.nan
-    relative_scale: float = math.nan
-    static_score: float = math.nan
-    focal_ratio: float = math.nan
-    track_noise_px: float = math.nan
-    n_refined: int | None = None
-    n_moving: int = 0
-    moving_region: tuple[int, int, int, int] | None = None
-    points_w: F64 = field(default_factory=lambda: np.zeros((0, 3)))
-    correction: F64 | None = None  # FrameResult.correction
-    matches: Matches = field(default_factory=Matches.empty)
-    F: F64 = field(default_factory=lambda: np.zeros((3, 3)))
-    H: F64 = field(default_factory=lambda: np.zeros((3, 3)))
-    reasons: list[str] = field(default_factory=list)
-    timings: dict[str, float] = field(default_factory=dict)

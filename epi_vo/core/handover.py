@@ -21,6 +21,7 @@ a new map then needs to initialise both count.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -51,25 +52,32 @@ def bounded_motion_var(last_rate: float, max_rate: float, max_accel: float, gap_
     return b * b / 3.0
 
 
+@dataclass(frozen=True)
 class Handover:
-    """Keeps the good pose and the rates there; gives the covariance a new map starts from."""
+    """The good pose and the rates there; gives the covariance a new map starts from. Frozen: ``booked``
+    returns the hand-over after a pose."""
 
-    def __init__(self, cfg: VoConfig) -> None:
-        self.speed_limits = (cfg.max_speed_mps, cfg.max_accel_mps2)
-        self.turn_limits = (math.radians(cfg.max_turn_rate_deg_s), math.radians(cfg.max_turn_accel_deg_s2))
-        self.lost_position_variance = cfg.lost_position_variance
-        self.good: GoodPose | None = None
-        self.rates = (0.0, 0.0)  # (map units / s, rad / s) between the last two good poses
+    speed_limits: tuple[float, float]  # (max speed m/s, max acceleration m/s^2)
+    turn_limits: tuple[float, float]  # (max turn rate rad/s, max angular acceleration rad/s^2)
+    lost_position_variance: float
+    good: GoodPose | None = None
+    rates: tuple[float, float] = (0.0, 0.0)  # (map units / s, rad / s) between the last two good poses
 
-    def book(self, stamp_ns: int, T_w_c: F64, cov_w_c: F64) -> None:
-        """This frame's pose has a map behind it: remember it (and the camera's rates) for a hand-over."""
-        good = self.good
+    @staticmethod
+    def from_config(cfg: VoConfig) -> Handover:
+        return Handover((cfg.max_speed_mps, cfg.max_accel_mps2),
+                        (math.radians(cfg.max_turn_rate_deg_s), math.radians(cfg.max_turn_accel_deg_s2)),
+                        cfg.lost_position_variance)
+
+    def booked(self, stamp_ns: int, T_w_c: F64, cov_w_c: F64) -> Handover:
+        """This frame's pose has a map behind it: the hand-over remembering it (and the camera's rates)."""
+        good, rates = self.good, self.rates
         if good is not None and stamp_ns > good.stamp_ns:
             dt = (stamp_ns - good.stamp_ns) * 1e-9
             step = float(np.linalg.norm(T_w_c[:3, 3] - good.T_w_c[:3, 3]))
             turn = math.radians(rotation_angle_deg(good.T_w_c[:3, :3].T @ T_w_c[:3, :3]))
-            self.rates = (step / dt, turn / dt)
-        self.good = GoodPose(int(stamp_ns), T_w_c.copy(), cov_w_c.copy())
+            rates = (step / dt, turn / dt)
+        return dataclasses.replace(self, good=GoodPose(int(stamp_ns), T_w_c.copy(), cov_w_c.copy()), rates=rates)
 
     def covariance(self, stamp_ns: int, metric: bool, scale_cov: F64 | None = None) -> F64 | None:
         """Covariance of the held pose a new map starts from at ``stamp_ns``: the good pose's, its map's

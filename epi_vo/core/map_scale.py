@@ -14,12 +14,15 @@ moves the published position, depends on whether a scale source established metr
 The calibration's principal point error turns every step's direction alike; ``DirectionOffset`` carries
 that coherent part (``principal_point_sigma_px``; 0, an exact calibration, by default).
 
-``VoPipeline`` owns one ``MapScaleCovariance`` and tells it where each map starts (``set_origin``).
+The tracking state holds one ``MapScaleCovariance`` and one ``DirectionOffset`` (frozen values, replaced
+as keyframes come); each map's start is given by ``with_origin``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -30,53 +33,60 @@ from epi_vo.core.scale import ScaleSource
 F64 = NDArray[np.float64]
 
 
+def _zeros3() -> F64:
+    return np.zeros(3)
+
+
+def _zeros6() -> F64:
+    return np.zeros((6, 6))
+
+
+@dataclass(frozen=True)
 class MapScaleCovariance:
-    """The scale part of the pose covariance of the current map (see module doc)."""
+    """The scale part of the pose covariance of the current map (see module doc); frozen: what learns
+    returns the value after it."""
 
-    def __init__(self, drift_per_keyframe: float) -> None:
-        self.q = drift_per_keyframe**2
-        self.origin_w = np.zeros(3)  # where the current map was initialised (odometry frame)
-        self.origin_cov = np.zeros((6, 6))  # and the pose covariance it started from
-        self.var = 0.0  # VO units: the map's log-scale variance ...
-        self.cov_ps = np.zeros(3)  # ... and its covariance with the position
+    drift_per_keyframe: float
+    origin_w: F64 = field(default_factory=_zeros3)  # where the current map was initialised (odometry frame)
+    origin_cov: F64 = field(default_factory=_zeros6)  # and the pose covariance it started from
+    var: float = 0.0  # VO units: the map's log-scale variance ...
+    cov_ps: F64 = field(default_factory=_zeros3)  # ... and its covariance with the position
 
-    def set_origin(self, origin_w: F64, origin_cov: F64) -> None:
+    @property
+    def q(self) -> float:
+        return self.drift_per_keyframe**2
+
+    def with_origin(self, origin_w: F64, origin_cov: F64) -> MapScaleCovariance:
         """A map starts at ``origin_w`` with the pose covariance ``origin_cov``."""
-        self.origin_w = np.array(origin_w, dtype=np.float64)
-        self.origin_cov = np.array(origin_cov, dtype=np.float64)
+        return dataclasses.replace(self, origin_w=np.array(origin_w, dtype=np.float64),
+                                   origin_cov=np.array(origin_cov, dtype=np.float64))
 
     def step_rel_std(self, scale: ScaleSource) -> float:
         """Relative standard deviation of one step's length through the map's scale (the twist's): the
         scale source's once metric (its systematic error included), else one keyframe's scale transfer.
 
-        In VO units a step is measured in the current map's units, which differ from the last
-        keyframe's by one transfer; the drift accumulated since the first map is the position's (it is
-        in the pose covariance, ``keyframe_cov``), not the velocity's. Until 2026-11-25 the accumulated
-        drift was used: ground_robot's ~130 keyframes claimed an 11 % step-length error where its step
-        lengths against the ground truth spread by 1.7 % (10-frame windows), linear twist NEES 0.73 ->
-        2.4 (KITTI 1.8 -> 2.9, general_motion 0.79 -> 0.84, whose steps carry little scale error)."""
+        In VO units a step is measured in the current map's units, which differ from the last keyframe's
+        by one transfer; the drift accumulated since the first map is the position's (it is in the pose
+        covariance, ``keyframe_cov``), not the velocity's: a step's length is as uncertain after a hundred
+        keyframes as after one."""
         if scale.established:
             return scale.rel_std
         return math.sqrt(self.q)
 
-    def keyframe_cov(self, scale: ScaleSource, new_map: bool, d: F64) -> F64:
-        """Position covariance a keyframe step ``d`` (odometry frame, map units) adds
-        through the map's scale error. Metric: the scale filter's relative standard deviation times the
-        step, along the step (a scale error lengthens a step, it does not turn it; until 2026-11-27 the
-        term was isotropic, which widened the lateral and vertical position too: ground_robot's metric
-        rows' position NEES 0.88 / 0.78, now 2.53 / 2.63). VO units: var_p += d d^T var_s + c d^T + d c^T,
-        c += d var_s, var_s += q; on a new map the first baseline's length (E's covariance along it) is the
-        map's scale error itself."""
+    def keyframe_cov(self, scale: ScaleSource, new_map: bool, d: F64) -> tuple[MapScaleCovariance, F64]:
+        """The position covariance a keyframe step ``d`` (odometry frame, map units) adds through the map's
+        scale error, and the value after the step. Metric: the scale filter's relative standard deviation
+        times the step, along the step (a scale error lengthens a step, it does not turn it). VO units:
+        var_p += d d^T var_s + c d^T + d c^T, c += d var_s, var_s += q; on a new map the first baseline's
+        length (E's covariance along it) is the map's scale error itself."""
         q = self.q
         if scale.established:
-            return np.outer(d, d) * scale.filter.rel_std ** 2
+            return self, np.outer(d, d) * scale.filter.rel_std ** 2
         if new_map:
-            self.var, self.cov_ps = q, d * q
-            return np.zeros((3, 3))
+            return dataclasses.replace(self, var=q, cov_ps=d * q), np.zeros((3, 3))
         vs, c = self.var, self.cov_ps
-        self.cov_ps = c + d * vs
-        self.var = vs + q
-        return np.outer(d, d) * vs + np.outer(c, d) + np.outer(d, c)
+        after = dataclasses.replace(self, cov_ps=c + d * vs, var=vs + q)
+        return after, np.outer(d, d) * vs + np.outer(c, d) + np.outer(d, c)
 
     def metric_covariance(self, scale: ScaleSource, cov_w_c: F64, factor: float, d: F64) -> F64:
         """The pose covariance when the map's VO units become metres: what the map added since its origin
@@ -96,6 +106,11 @@ class MapScaleCovariance:
         return np.outer(d, d) * scale.systematic_rel**2
 
 
+def _zeros32() -> F64:
+    return np.zeros((3, 2))
+
+
+@dataclass(frozen=True)
 class DirectionOffset:
     """The calibration's constant offset of the steps' directions, in the pose covariance.
 
@@ -105,24 +120,24 @@ class DirectionOffset:
     independent. Its position error is J phi, phi the two angles (1 sigma ``sigma_px`` / fx each) and J the
     sum over the steps d (odometry frame) of -[d]x R_w_c[:, :2]: it grows with the path, coherently, as the
     scale source's systematic error does (``MapScaleCovariance.systematic``). The rotation is not affected
-    (to first order)."""
+    (to first order). Frozen: a step returns the offset after it."""
 
-    def __init__(self, sigma_px: float) -> None:
-        self.sigma_px = sigma_px
-        self.J = np.zeros((3, 2))  # sum over the keyframe steps so far, with sigma / fx in it
+    sigma_px: float
+    J: F64 = field(default_factory=_zeros32)  # sum over the keyframe steps so far, with sigma / fx in it
 
     def _step(self, d: F64, R_w_c: F64, fx: float) -> F64:
         return -skew(d) @ R_w_c[:, :2] * (self.sigma_px / fx)
 
-    def add_step(self, d: F64, R_w_c: F64, fx: float) -> None:
-        """A keyframe step ``d`` (odometry frame) taken from a keyframe with orientation ``R_w_c`` (a
+    def with_step(self, d: F64, R_w_c: F64, fx: float) -> DirectionOffset:
+        """After a keyframe step ``d`` (odometry frame) taken from a keyframe with orientation ``R_w_c`` (a
         non-finite one is not taken: the published covariance stays finite)."""
         if self.sigma_px > 0.0 and np.all(np.isfinite(d)) and np.all(np.isfinite(R_w_c)):
-            self.J += self._step(d, R_w_c, fx)
+            return dataclasses.replace(self, J=self.J + self._step(d, R_w_c, fx))
+        return self
 
-    def rescale(self, factor: float) -> None:
+    def rescaled(self, factor: float) -> DirectionOffset:
         """The path was scaled by ``factor`` (metric scale established)."""
-        self.J *= factor
+        return dataclasses.replace(self, J=self.J * factor)
 
     def cov(self, d: F64, R_w_c: F64, fx: float) -> F64:
         """Position covariance of the offset at a pose ``d`` past the keyframe (orientation ``R_w_c``)."""

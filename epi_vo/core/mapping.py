@@ -10,12 +10,16 @@ windowed map (points observed over several keyframes) and its optimisation.
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import NDArray
 
 from epi_vo.core import geometry as geo
 from epi_vo.core.config import VoConfig
-from epi_vo.core.frame import FrameStats, TrackingState
+from epi_vo.core.decisions import Decision, Note, note
+from epi_vo.core.frame import TrackingState
 from epi_vo.core.keyframe import Keyframe
 from epi_vo.core.motion import Motion
 
@@ -23,52 +27,63 @@ F64 = NDArray[np.float64]
 THIN_MAP_FACTOR = 2  # a keyframe when fewer map points than this many times min_scale_points are tracked
 
 
+@dataclass(frozen=True)
+class KeyframeMap:
+    """The mapping stage's decision for a frame: no new keyframe (``X_cur`` None), or the map points of its
+    tracked features; with what a fresh triangulation measured and the decision's notes."""
+
+    X_cur: F64 | None = None  # (N, 3) map points in the current camera frame of the N tracked features, NaN: none
+    triangulated: bool = False  # a fresh triangulation of the keyframe pair (the statistics below are its)
+    n_triangulated: int = 0
+    positive_depth_ratio: float = math.nan
+    median_reproj_err_px: float = math.nan
+    notes: tuple[Note, ...] = ()
+
+
 def keyframe_map(cfg: VoConfig, motion: Motion, kf: Keyframe, rows: NDArray[np.int64], xn_cur: F64,
-                 stamp_ns: int, st: FrameStats) -> F64 | None:
+                 stamp_ns: int, n_inliers: int, median_parallax_deg: float) -> KeyframeMap:
     """Decide whether this frame becomes a keyframe; if so, the map points of its tracked features.
 
-    Returns None (no new keyframe) or the (N, 3) map points in the current camera frame of the N
-    tracked features (NaN: no depth): fresh triangulations of the keyframe pair where they pass the
-    gates, old map points carried over otherwise.
+    ``X_cur`` None: no new keyframe. Otherwise the (N, 3) map points in the current camera frame of the N
+    tracked features (NaN: no depth): fresh triangulations of the keyframe pair where they pass the gates,
+    old map points carried over otherwise. ``n_inliers`` and ``median_parallax_deg`` are the motion's.
     """
-    tracked_ratio = rows.shape[0] / max(kf.n_features, 1)
+    n_tracked = rows.shape[0]
+    tracked_ratio = n_tracked / max(kf.n_features, 1)
     too_old = (stamp_ns - kf.stamp_ns) * 1e-9 > cfg.kf_max_interval_s
-    weak = tracked_ratio < cfg.kf_min_tracked_ratio or st.n_inliers < cfg.kf_min_inliers
+    weak = tracked_ratio < cfg.kf_min_tracked_ratio or n_inliers < cfg.kf_min_inliers
     if motion.state is TrackingState.TRACKING and motion.new_map is None and kf.n_map_points >= cfg.min_scale_points:
         # The map thinning out while tracking: a new keyframe before too few of its points are left to
-        # carry the scale (moving_mover replayed from frame 3: a first map of 55 points, no keyframe at
-        # < 1 deg parallax until 7 remained and tracking was lost for 3 frames).
+        # carry the scale (at low parallax no keyframe would come until tracking was lost).
         held = np.isfinite(kf.X_kf[rows][:, 0]) & motion.inliers
         weak = weak or int(np.count_nonzero(held)) < THIN_MAP_FACTOR * cfg.min_scale_points
-    parallax = st.median_parallax_deg >= cfg.kf_min_parallax_deg
+    parallax = median_parallax_deg >= cfg.kf_min_parallax_deg
     R, t = motion.R_cur_kf, motion.t_cur_kf
-    X_cur: F64 | None = None
     if motion.new_map is not None:
         X_cur = motion.new_map.X_ref @ R.T + t
         X_cur[~motion.new_map.good] = np.nan
-    elif motion.state is TrackingState.TRACKING and (parallax or weak or too_old):
+        return KeyframeMap(X_cur)
+    if motion.state is TrackingState.TRACKING and (parallax or weak or too_old):
         idx = np.flatnonzero(motion.inliers)
         tri = geo.triangulate(R, t, kf.xn[rows[idx]], xn_cur[idx], kf.camera.K,
                               cfg.max_reprojection_error_px, cfg.min_triangulation_angle_deg)
-        st.n_triangulated = int(np.count_nonzero(tri.good))
-        st.positive_depth_ratio = tri.positive_depth_ratio
-        st.median_reproj_err_px = tri.median_reproj_err_px
+        n_triangulated = int(np.count_nonzero(tri.good))
         # Old map points still tracked carry over (moved into the new keyframe); fresh triangulations
         # from this pair replace them where they pass the gates.
         X_cur = kf.X_kf[rows] @ R.T + t
         X_cur[~motion.inliers] = np.nan
-        new = np.full((rows.shape[0], 3), np.nan)
+        new = np.full((n_tracked, 3), np.nan)
         new[idx] = tri.X_ref @ R.T + t
-        good = np.zeros(rows.shape[0], bool)
+        good = np.zeros(n_tracked, bool)
         good[idx] = tri.good
         X_cur[good] = new[good]
-        if not parallax and st.n_triangulated == 0:
-            st.reasons.append("keyframe without parallax: no new depth")
-    elif (motion.state is TrackingState.ROTATION_ONLY and (weak or too_old)) or (
+        notes = (note(Decision.KEYFRAME_WITHOUT_DEPTH),) if not parallax and n_triangulated == 0 else ()
+        return KeyframeMap(X_cur, True, n_triangulated, tri.positive_depth_ratio, tri.median_reproj_err_px, notes)
+    if (motion.state is TrackingState.ROTATION_ONLY and (weak or too_old)) or (
             motion.state in (TrackingState.INITIALIZING, TrackingState.STATIC)
-            and (too_old or st.n_tracked < 2 * cfg.min_inliers)):
+            and (too_old or n_tracked < 2 * cfg.min_inliers)):
         # While initialising the keyframe is kept as long as enough features survive: re-anchoring
         # on the tracked ratio alone (ORB matches ~half the keyframe) would reset the parallax.
         # Re-anchor without triangulating: under rotation the existing depths stay valid (t = 0).
-        X_cur = kf.X_kf[rows] @ R.T
-    return X_cur
+        return KeyframeMap(kf.X_kf[rows] @ R.T)
+    return KeyframeMap()

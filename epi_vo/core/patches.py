@@ -5,9 +5,10 @@ camera moves, a patch scales and shears; LK then locks onto a slightly different
 the errors add up along the track. Measured on ground_robot against the renderer's depth (corners of
 four keyframes, followed 12 frames): the chained position drifts 0.12, 0.28, 0.41, 0.55, 0.64, 0.72 px
 (median) after 1, 3, 5, 7, 10, 12 frames, with a lag-1 autocorrelation of 0.8 along a track, so the
-windowed adjustment's observations do not average out (README, "Why it does not pay").
+windowed adjustment's observations do not average out.
 
-``PatchTemplates`` keeps every track's template from its first image and, each frame, moves the KLT
+``PatchTemplates`` (a frozen value the tracking state holds) keeps every track's template from its first
+image and, each frame, moves the KLT
 position to where an affine warp of that template fits best (inverse-compositional Gauss-Newton,
 Baker & Matthews 2004, with a bias and gain per patch and Gaussian weights, on all tracks at once: one
 ``cv2.remap`` per iteration). The same measurement with 15 px patches and two iterations: 0.06, 0.08,
@@ -17,6 +18,9 @@ whose patch has grown or shrunk by a third (the template's pixels no longer stan
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -28,11 +32,17 @@ F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
 
 REFINE_ITERATIONS = 2  # Gauss-Newton steps (seeded by KLT and the last warp; four gave 0.002-0.02 px less drift)
-REFINE_STOP_PX = 0.02  # all updates below this: converged
+REFINE_STOP_PX = 0.02  # all updates below this: converged (a tenth of the drift the refinement removes per frame)
 REFINE_MAX_SHIFT_PX = 2.0  # a fit farther than this from the KLT position is not the same point
-REFINE_MIN_NCC = 0.8  # normalised cross-correlation of the fitted patch with its template
-REFINE_SCALE_RANGE = (0.75, 1.33)  # sqrt(det A) outside: the template is taken again from this image
-REFINE_MAX_ANISOTROPY = 2.0  # ratio of the warp's singular values
+# The fitted patch must correlate this well with its template (normalised cross-correlation, gain and bias
+# taken out): below, the patch no longer shows the template's texture (occlusion, a specular change).
+REFINE_MIN_NCC = 0.8
+# sqrt(det A) outside this range: the patch grew or shrank by a third, its template's pixels no longer stand
+# for the view's, and the template is taken again from this image.
+REFINE_SCALE_RANGE = (0.75, 1.33)
+# The warp's singular values this far apart: a patch seen this obliquely is a different texture, not the
+# template affinely moved.
+REFINE_MAX_ANISOTROPY = 2.0
 
 
 def _grid(patch_px: int, margin: int = 0) -> tuple[F32, F32]:
@@ -47,7 +57,7 @@ def _sample(img: F32, t: F64, A: F64, ox: F32, oy: F32) -> F32:
     tf, Af = t.astype(np.float32), A.astype(np.float32)
     mx = tf[:, 0, None] + Af[:, 0, 0, None] * ox + Af[:, 0, 1, None] * oy
     my = tf[:, 1, None] + Af[:, 1, 0, None] * ox + Af[:, 1, 1, None] * oy
-    return cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return cast(F32, cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
 
 
 def _singular_values(A: F64) -> tuple[F64, F64]:
@@ -59,25 +69,52 @@ def _singular_values(A: F64) -> tuple[F64, F64]:
     return np.sqrt(half + disc), np.sqrt(np.maximum(half - disc, 0.0))
 
 
-class PatchTemplates:
-    """Templates of the live tracks (by track id) and the affine warp of each into the latest image."""
+@dataclass(frozen=True)
+class PatchGrid:
+    """The sampling grid of one patch size: offsets, Gaussian weights, and the grid with a margin."""
 
-    def __init__(self, patch_px: int) -> None:
+    patch_px: int
+    ox: F32
+    oy: F32
+    w: F32
+    mx: F32  # with a 1 px margin for the template's gradient
+    my: F32
+
+    @staticmethod
+    def of(patch_px: int) -> PatchGrid:
         if patch_px < 5 or patch_px % 2 == 0:
             raise ValueError(f"patch_px={patch_px}: must be odd and at least 5")
-        self.patch_px = patch_px
-        self._ox, self._oy = _grid(patch_px)
-        r = patch_px // 2
-        sigma = r / 1.5
-        self._w = np.exp(-(self._ox ** 2 + self._oy ** 2) / (2.0 * sigma * sigma)).astype(np.float32)
-        self._mx, self._my = _grid(patch_px, 1)  # with a 1 px margin for the template's gradient
+        ox, oy = _grid(patch_px)
+        sigma = (patch_px // 2) / 1.5
+        w = np.exp(-(ox**2 + oy**2) / (2.0 * sigma * sigma)).astype(np.float32)
+        mx, my = _grid(patch_px, 1)
+        return PatchGrid(patch_px, ox, oy, w, mx, my)
+
+
+@dataclass(frozen=True)
+class PatchTemplates:
+    """Templates of the live tracks (by track id) and the affine warp of each into the latest image.
+
+    Frozen: ``anchored`` and ``refined`` return the templates after the keyframe or the frame."""
+
+    grid: PatchGrid
+    ids: NDArray[np.int64]  # sorted
+    tm: F32  # (n, m) zero-mean template
+    tss: F32  # its sum of squares
+    sdw: F32  # (n, 6, m) weighted steepest-descent images
+    hinv: F32  # (n, 6, 6)
+    A: F64  # (n, 2, 2) warp of each template into the latest image
+
+    @staticmethod
+    def empty(patch_px: int) -> PatchTemplates:
+        grid = PatchGrid.of(patch_px)
         m = patch_px * patch_px
-        self.ids = np.zeros(0, np.int64)  # sorted
-        self._tm = np.zeros((0, m), np.float32)  # zero-mean template
-        self._tss = np.zeros(0, np.float32)  # its sum of squares
-        self._sdw = np.zeros((0, 6, m), np.float32)  # weighted steepest-descent images
-        self._hinv = np.zeros((0, 6, 6), np.float32)
-        self.A = np.zeros((0, 2, 2))  # warp of each template into the latest image
+        return PatchTemplates(grid, np.zeros(0, np.int64), np.zeros((0, m), np.float32), np.zeros(0, np.float32),
+                              np.zeros((0, 6, m), np.float32), np.zeros((0, 6, 6), np.float32), np.zeros((0, 2, 2)))
+
+    @property
+    def patch_px(self) -> int:
+        return self.grid.patch_px
 
     def __len__(self) -> int:
         return int(self.ids.shape[0])
@@ -88,63 +125,70 @@ class PatchTemplates:
         return (t[:, 0] >= reach) & (t[:, 0] <= w - 1 - reach) & (t[:, 1] >= reach) & (t[:, 1] <= h - 1 - reach)
 
     def _templates(self, img: F32, pts: F64) -> tuple[F32, F32, F32, F32]:
-        n, p = pts.shape[0], self.patch_px
+        n, p, g = pts.shape[0], self.patch_px, self.grid
         eye = np.broadcast_to(np.eye(2), (n, 2, 2))
-        big = _sample(img, pts, eye, self._mx, self._my).reshape(n, p + 2, p + 2)
+        big = _sample(img, pts, eye, g.mx, g.my).reshape(n, p + 2, p + 2)
         t = big[:, 1:-1, 1:-1].reshape(n, -1)
         gx = (0.5 * (big[:, 1:-1, 2:] - big[:, 1:-1, :-2])).reshape(n, -1)
         gy = (0.5 * (big[:, 2:, 1:-1] - big[:, :-2, 1:-1])).reshape(n, -1)
         tm = t - t.mean(axis=1, keepdims=True)
-        ox, oy = self._ox, self._oy
+        ox, oy = g.ox, g.oy
         sd = np.stack([gx, gy, gx * ox, gx * oy, gy * ox, gy * oy], axis=1)  # (n, 6, m)
-        sdw = sd * self._w
+        sdw = sd * g.w
         h = (sdw @ sd.transpose(0, 2, 1)).astype(np.float64) + 1e-6 * np.eye(6)
         return tm, np.maximum((tm * tm).sum(axis=1), 1e-6), sdw, np.linalg.inv(h).astype(np.float32)
 
-    def _keep(self, rows: NDArray[np.bool_]) -> None:
-        self.ids, self._tm, self._tss = self.ids[rows], self._tm[rows], self._tss[rows]
-        self._sdw, self._hinv, self.A = self._sdw[rows], self._hinv[rows], self.A[rows]
+    def _kept(self, rows: NDArray[np.bool_]) -> PatchTemplates:
+        return PatchTemplates(self.grid, self.ids[rows], self.tm[rows], self.tss[rows], self.sdw[rows],
+                              self.hinv[rows], self.A[rows])
 
-    def _set(self, img: F32, pts: F64, ids: NDArray[np.int64]) -> None:
-        """Templates for ``ids`` (unique) from ``img`` at ``pts``, replacing those already held (in place:
-        a few per frame); a point whose patch leaves the image loses its template."""
+    def _set(self, img: F32, pts: F64, ids: NDArray[np.int64]) -> PatchTemplates:
+        """Templates for ``ids`` (unique) from ``img`` at ``pts``, replacing those already held; a point whose
+        patch leaves the image loses its template."""
         ok = self._inside(img.shape, pts)
         pos = np.minimum(np.searchsorted(self.ids, ids), max(len(self) - 1, 0))
         held = self.ids[pos] == ids if len(self) else np.zeros(ids.shape[0], bool)
+        out = self
         if ok.any():
             tm, tss, sdw, hinv = self._templates(img, pts[ok])
             at = pos[ok]
             replace = held[ok]
             k = at[replace]
-            self._tm[k], self._tss[k] = tm[replace], tss[replace]
-            self._sdw[k], self._hinv[k] = sdw[replace], hinv[replace]
-            self.A[k] = np.eye(2)
+            new_tm, new_tss, new_sdw, new_hinv = self.tm.copy(), self.tss.copy(), self.sdw.copy(), self.hinv.copy()
+            new_A = self.A.copy()
+            new_tm[k], new_tss[k] = tm[replace], tss[replace]
+            new_sdw[k], new_hinv[k] = sdw[replace], hinv[replace]
+            new_A[k] = np.eye(2)
+            new_ids = self.ids
             add = ~replace
             if add.any():
-                order = np.argsort(np.concatenate([self.ids, ids[ok][add]]), kind="stable")
-                self.ids = np.concatenate([self.ids, ids[ok][add]])[order]
-                self._tm = np.concatenate([self._tm, tm[add]])[order]
-                self._tss = np.concatenate([self._tss, tss[add]])[order]
-                self._sdw = np.concatenate([self._sdw, sdw[add]])[order]
-                self._hinv = np.concatenate([self._hinv, hinv[add]])[order]
-                self.A = np.concatenate([self.A, np.broadcast_to(np.eye(2), (int(add.sum()), 2, 2))])[order]
+                order = np.argsort(np.concatenate([new_ids, ids[ok][add]]), kind="stable")
+                new_ids = np.concatenate([new_ids, ids[ok][add]])[order]
+                new_tm = np.concatenate([new_tm, tm[add]])[order]
+                new_tss = np.concatenate([new_tss, tss[add]])[order]
+                new_sdw = np.concatenate([new_sdw, sdw[add]])[order]
+                new_hinv = np.concatenate([new_hinv, hinv[add]])[order]
+                new_A = np.concatenate([new_A, np.broadcast_to(np.eye(2), (int(add.sum()), 2, 2))])[order]
+            out = PatchTemplates(self.grid, new_ids, new_tm, new_tss, new_sdw, new_hinv, new_A)
         if (held & ~ok).any():
-            self._keep(~np.isin(self.ids, ids[held & ~ok]))
+            out = out._kept(~np.isin(out.ids, ids[held & ~ok]))
+        return out
 
-    def anchor(self, gray: NDArray[np.uint8], pts: F32, ids: NDArray[np.int64]) -> None:
+    def anchored(self, gray: NDArray[np.uint8], pts: F32, ids: NDArray[np.int64]) -> PatchTemplates:
         """At a keyframe: templates for the tracks new in it (from ``gray``), and only its tracks kept."""
-        self._keep(np.isin(self.ids, ids))
-        new = ~np.isin(ids, self.ids)
+        out = self._kept(np.isin(self.ids, ids))
+        new = ~np.isin(ids, out.ids)
         if new.any():
-            self._set(gray.astype(np.float32), pts[new].astype(np.float64), ids[new])
+            out = out._set(gray.astype(np.float32), pts[new].astype(np.float64), ids[new])
+        return out
 
-    def refine(self, gray: NDArray[np.uint8], pts: F32, ids: NDArray[np.int64]) -> tuple[F32, int]:
-        """The tracked points ``pts`` (N, 2) of tracks ``ids`` moved to their templates' affine fit in
-        ``gray``, and how many were moved. Tracks without a template, or whose fit fails, keep their
-        position (a failed one's template is taken again from ``gray`` there)."""
+    def refined(self, gray: NDArray[np.uint8], pts: F32, ids: NDArray[np.int64]) -> tuple[PatchTemplates, F32, int]:
+        """The templates after this frame, the tracked points ``pts`` (N, 2) of tracks ``ids`` moved to their
+        templates' affine fit in ``gray``, and how many were moved. Tracks without a template, or whose fit
+        fails, keep their position (a failed one's template is taken again from ``gray`` there)."""
         out = pts.astype(np.float64)
         if pts.shape[0] == 0 or len(self) == 0:
-            return pts, 0
+            return self, pts, 0
         img = gray.astype(np.float32)
         pos = np.minimum(np.searchsorted(self.ids, ids), len(self) - 1)
         have = self.ids[pos] == ids
@@ -153,12 +197,13 @@ class PatchTemplates:
         inside = self._inside(gray.shape, out[rows], self.A[k])
         rows, k = rows[inside], k[inside]
         if rows.size == 0:
-            return pts, 0
+            return self, pts, 0
+        g = self.grid
         t, A = out[rows], self.A[k]  # fancy indexing copies
-        tm, tss, sdw, hinv = self._tm[k], self._tss[k], self._sdw[k], self._hinv[k]
+        tm, tss, sdw, hinv = self.tm[k], self.tss[k], self.sdw[k], self.hinv[k]
         ncc = np.zeros(rows.size, np.float32)
         for _ in range(REFINE_ITERATIONS):
-            iw = _sample(img, t, A, self._ox, self._oy)
+            iw = _sample(img, t, A, g.ox, g.oy)
             e = iw - iw.mean(axis=1, keepdims=True)
             cross = (e * tm).sum(axis=1)
             # the fit's correlation with its template, before this step (the step only improves it)
@@ -183,13 +228,15 @@ class PatchTemplates:
                 & (ncc >= REFINE_MIN_NCC) & (sv_max <= REFINE_MAX_ANISOTROPY * sv_min)
                 & self._inside(gray.shape, t, A))
         out[rows[good]] = t[good]
-        self.A[k[good]] = A[good]
+        warps = self.A.copy()
+        warps[k[good]] = A[good]
+        after = PatchTemplates(self.grid, self.ids, self.tm, self.tss, self.sdw, self.hinv, warps)
         again = ~good | (scale < REFINE_SCALE_RANGE[0]) | (scale > REFINE_SCALE_RANGE[1])
         if again.any():
-            self._set(img, out[rows[again]], ids[rows[again]])
-        return out.astype(np.float32), int(np.count_nonzero(good))
+            after = after._set(img, out[rows[again]], ids[rows[again]])
+        return after, out.astype(np.float32), int(np.count_nonzero(good))
 
 
 def patch_templates(cfg: VoConfig) -> PatchTemplates | None:
     """The refinement ``cfg`` asks for: None when ``klt_patch_refine_px`` is 0 or the frontend is not KLT."""
-    return PatchTemplates(cfg.klt_patch_refine_px) if cfg.klt_patch_refine_px and cfg.frontend == "klt" else None
+    return PatchTemplates.empty(cfg.klt_patch_refine_px) if cfg.klt_patch_refine_px and cfg.frontend == "klt" else None

@@ -8,7 +8,7 @@ chooses where the length comes from:
     continues the old units by assuming the last keyframe speed. Nothing is metric.
 ``ground_plane`` (:class:`GroundPlaneScale`)
     The floor among each keyframe's map points (robust plane fit restricted to plausible floor
-    normals, :func:`fit_ground_plane`) gives the camera's height in map units; ``camera_height_m`` over
+    normals, ``epi_vo.core.floor``) gives the camera's height in map units; ``camera_height_m`` over
     it is a measurement of the map's scale error. The camera's pitch and roll to the floor come with it.
 ``wheel_odometry`` (:class:`WheelOdometryScale`)
     The distance the wheels travelled between two keyframes (positions interpolated at the image
@@ -19,7 +19,11 @@ Both metric sources feed the same filter (:class:`ScaleFilter`): a 1-D Kalman fi
 the map's scale error, with the VO's scale drift per keyframe as process noise; the window of recent
 measurements judges outliers and says how noisy the measurements are. At a keyframe the pipeline asks
 :meth:`ScaleSource.correction` for the factor that takes the step from the last keyframe, and the new
-keyframe's map, into metres; without a measurement the factor is 1 and the uncertainty grows. Metric
+keyframe's map, into metres; without a measurement the factor is 1 and the uncertainty grows.
+
+A source and what it remembers (the filter, the last speed, the floor normals seen, the wheel steps) is
+one frozen value: every call that learns something returns the source after it, which the pipeline's
+state takes in place of the old one. Metric
 scale is established once enough measurements agree: until then the pipeline publishes the position
 held where the map started, with a covariance that says the scale is unknown.
 """
@@ -28,13 +32,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import ClassVar, Self
 
 import numpy as np
 from numpy.typing import NDArray
 
 from epi_vo.core.config import VoConfig
+from epi_vo.core.floor import LEVEL_UP, GroundPlane, find_floor
 
 # re-exported: callers name the wheel buffer through the scale stage
 from epi_vo.core.wheel_odometry import WheelInputCounts as WheelInputCounts
@@ -43,30 +48,23 @@ from epi_vo.core.wheel_odometry import WheelSample as WheelSample
 
 F64 = NDArray[np.float64]
 
-SCALE_SOURCES = ("none", "ground_plane", "wheel_odometry")
 # Measurements the scale filter's window keeps. Consecutive keyframes measure the floor on many of the
-# same map points, so their errors are shared: a short window sees few independent maps, its spread
-# understates the noise and its median carries their common error (KITTI 06 with ground_plane, window
-# 7 -> 15: the early maps' 7 % too high scale is corrected sooner, Sim(3) ATE 0.60 -> 0.43 %; the
-# ground-robot bag's figures are unchanged).
+# same map points, so their errors are shared: the window must span enough keyframes to hold several
+# independent maps, or its spread understates the noise and its median carries their common error.
 SCALE_WINDOW = 15
-SMALL_WINDOW = 7  # fewer measurements than this: their sample variance bounds their noise from below
-# The least noise one floor measurement is given (relative, 1 sigma): the window's spread of the fits says
-# how noisy they are; below this it is not trusted. Until 2026-11-27 this was 2 %, which set the filter's
-# noise on the renders, where the fits spread by 0.37 % (the window's MAD, median over ground_robot's 129
-# measurements; the scale's error after a measurement 0.22 %): it claimed 1.25 % for the scale,
-# `ground_plane` position NEES 0.27. KITTI's fits spread by 5-9 %, so the window sets its noise either way.
-GROUND_FIT_MIN_REL_STD = 0.005
-# Two floor fits establish metric scale only when their normals agree within this (deg): the camera's
-# mounting does not change between keyframes, a wrong plane's normal does. KITTI 06 replayed from frame 5:
-# the first fit leaned 24 deg (pitch 23.9 against 0.7-2.2 after it), the second established the scale with
-# it at 0.41 of the truth, and the filter needed 25 frames to recover (step scale 0.58, SE(3)-only ATE 10 %).
-FLOOR_AGREE_DEG = 10.0
-# The wheels' random error over one scale measurement (m, 1 sigma): the noise that averages out over
-# keyframes. Their calibration error (tyre radius), which does not, is ``wheel_odometry_rel_sigma`` and is
-# carried once, as the source's systematic error (``ScaleSource.systematic_rel``).
-WHEEL_NOISE_M = 0.01
-
+# Fewer measurements than this: their MAD is no estimate of their spread, their sample variance bounds the
+# noise from below (``ScaleFilter.updated``).
+SMALL_WINDOW = 7
+# A floor seen from one mounting keeps its normal between keyframes within this (deg), a wrong plane's does
+# not: two fits establish metric scale only when their normals agree within it, and once FLOOR_STEADY_FITS
+# fits are in, a new fit is sought within it of their median normal.
+FLOOR_STEADY_DEG = 10.0
+FLOOR_STEADY_FITS = 3
+FLOOR_HISTORY = 7  # floor normals remembered (their median is the floor seen so far)
+WHEEL_STEPS = 500  # keyframe steps remembered for the wheel measurement (it needs the last few)
+# A map rebuilt after a loss takes its baseline from the last keyframe speed over the time since its
+# keyframe: its scale is that uncertain (relative, 1 sigma) until a scale source measures it.
+NEW_MAP_REL_STD = 0.3
 
 
 @dataclass(frozen=True)
@@ -106,129 +104,6 @@ class KeyframeStep:
 
 
 @dataclass(frozen=True)
-class GroundPlane:
-    """The floor in a camera frame: points X on it satisfy ``normal_up . X = -height``."""
-
-    normal_up: F64  # unit normal pointing from the floor towards the camera (camera frame)
-    height: float  # camera centre above the floor, map units
-    n_inliers: int
-    rel_std: float  # relative standard deviation of ``height``
-
-    @property
-    def pitch_deg(self) -> float:
-        """Angle of the optical axis below the floor's horizon (positive: looking down)."""
-        n = self.normal_up
-        return math.degrees(math.atan2(-n[2], math.hypot(n[0], n[1])))
-
-    @property
-    def roll_deg(self) -> float:
-        """Rotation about the optical axis relative to the floor, right-handed about z (x towards y):
-        positive when the image's right side is lower than its left."""
-        n = self.normal_up
-        return math.degrees(math.atan2(-n[0], -n[1]))
-
-
-@dataclass(frozen=True)
-class FloorSearch:
-    """What :func:`find_floor` found: the floor, or why there is none.
-
-    ``n_candidates`` planes had a normal within the tilt of ``up`` with the camera on their upper side;
-    ``n_unsupported`` of them had at least as many map points well beneath them as on them, and
-    ``best_unsupported`` is the (on, beneath) count of the one with most points on it ((0, 0): none).
-    """
-
-    plane: GroundPlane | None
-    n_points: int
-    n_candidates: int = 0
-    n_unsupported: int = 0
-    best_unsupported: tuple[int, int] = (0, 0)
-
-
-# A map point is beneath a floor candidate when it lies further than this fraction of the candidate's
-# height through it: the floor's own points scatter within ``ground_inlier_ratio`` (a few %) of it.
-BENEATH_FLOOR = 0.2
-LEVEL_UP = np.array([0.0, -1.0, 0.0])  # a level camera's up axis in its optical frame (y down)
-LEVEL_UP.setflags(write=False)
-
-
-def find_floor(X: F64, *, max_tilt_deg: float, inlier_ratio: float, min_points: int,
-               up: F64 | None = None, iterations: int = 200) -> FloorSearch:
-    """The floor among map points ``X`` (camera frame, x right, y down, z forward), and why not.
-
-    Deterministic RANSAC over 3-point planes whose upward normal is within ``max_tilt_deg`` of ``up``
-    (a unit vector in the camera frame: the declared mounting's up, default a level camera's -y) and
-    that lie below the camera; inliers are within ``inlier_ratio`` of the candidate's height.
-
-    The floor carries the scene: every surface the camera sees stands on it, so map points beneath it
-    are errors and few. A candidate with at least as many points well beneath it (``BENEATH_FLOOR``) as
-    on it is no floor: a plane through objects (a table, a car's roof, a wall's foot), or, when the
-    camera is not mounted as declared (upside down, the floor above), whatever surface lies on the
-    declared floor's side. Among the others, points beneath count against a candidate twice. The best
-    plane is refit by least squares on its inliers; its height is the median inlier height and its
-    relative spread that of a median (1.25 MAD / sqrt(n)).
-    """
-    X = X[np.all(np.isfinite(X), axis=1)]
-    n_pts = X.shape[0]
-    if n_pts < max(min_points, 3):
-        return FloorSearch(None, n_pts)
-    up = LEVEL_UP if up is None else up
-    cos_tilt = math.cos(math.radians(max_tilt_deg))
-    rng = np.random.default_rng(12345)  # fixed: replay stays deterministic
-    idx = rng.integers(0, n_pts, size=(iterations, 3))
-    A, B, C = X[idx[:, 0]], X[idx[:, 1]], X[idx[:, 2]]
-    N = np.cross(B - A, C - A)
-    norm = np.linalg.norm(N, axis=1)
-    ok = norm > 1e-12
-    N = N[ok] / norm[ok, None]
-    A = A[ok]
-    N *= np.where(N @ up < 0, -1.0, 1.0)[:, None]
-    h = -np.einsum("ij,ij->i", N, A)
-    ok = (N @ up >= cos_tilt) & (h > 0)
-    if not np.any(ok):
-        return FloorSearch(None, n_pts)
-    N, h = N[ok], h[ok]
-    # einsum, not BLAS: OpenBLAS's worker threads keep spinning after a call and slow the next
-    # frame's OpenCV work on a small CPU (measured: KLT +2 ms per frame on 2 cores).
-    D = np.einsum("ij,kj->ik", X, N) + h  # signed distances, positive towards the camera
-    inliers = np.abs(D) < inlier_ratio * h
-    n_on, n_beneath = inliers.sum(axis=0), (D < -BENEATH_FLOOR * h).sum(axis=0)
-    carried = n_beneath < n_on
-    search = FloorSearch(None, n_pts, int(N.shape[0]), int(np.count_nonzero(~carried)))
-    if not np.all(carried):
-        most = int(np.argmax(np.where(carried, -1, n_on)))
-        search = dataclasses.replace(search, best_unsupported=(int(n_on[most]), int(n_beneath[most])))
-    if not np.any(carried):
-        return search
-    score = np.where(carried, n_on - 2 * n_beneath, np.iinfo(np.int64).min)
-    best = int(np.argmax(score))
-    if int(n_on[best]) < min_points:
-        return search
-    P = X[inliers[:, best]]
-    centroid = P.mean(axis=0)
-    Q = P - centroid
-    _, vecs = np.linalg.eigh(np.einsum("ij,ik->jk", Q, Q))  # 3x3 scatter: no BLAS threads
-    n = vecs[:, 0]  # smallest eigenvalue: the plane's normal
-    if n @ up < 0:
-        n = -n
-    if n @ up < cos_tilt:
-        return search
-    heights = -(P @ n)
-    h_med = float(np.median(heights))
-    if not h_med > 0:
-        return search
-    mad = float(np.median(np.abs(heights - h_med)))
-    rel_std = 1.253 * 1.4826 * mad / h_med / math.sqrt(P.shape[0])
-    return dataclasses.replace(search, plane=GroundPlane(n, h_med, int(P.shape[0]), rel_std))
-
-
-def fit_ground_plane(X: F64, *, max_tilt_deg: float, inlier_ratio: float, min_points: int,
-                     up: F64 | None = None, iterations: int = 200) -> GroundPlane | None:
-    """The floor among map points ``X`` (:func:`find_floor`), or None."""
-    return find_floor(X, max_tilt_deg=max_tilt_deg, inlier_ratio=inlier_ratio, min_points=min_points, up=up,
-                      iterations=iterations).plane
-
-
-@dataclass(frozen=True)
 class WindowAnchor:
     """A keyframe's metric anchor for the windowed bundle adjustment: the wheel odometry position at its
     stamp with the relative sigma of wheel distances (``wheel_odometry``). The floor gives none: the scale
@@ -238,10 +113,11 @@ class WindowAnchor:
     wheel_rel_sigma: float = math.nan
 
 
+@dataclass(frozen=True)
 class ScaleFilter:
-    """Robust filter of the current map's scale error, in log space.
+    """Robust filter of the current map's scale error, in log space (frozen: each call returns the filter after it).
 
-    Each keyframe's measurement z = log(true / map) goes into a window of the last ``window`` ones (kept
+    Each keyframe's measurement z = log(true / map) goes into a window of the last ``maxlen`` ones (kept
     relative to the map as it is now: a correction applied shifts them all). The window's median and
     MAD judge the newest (beyond 3 sigma: an outlier, not applied) and give the measurement noise; a
     1-D Kalman filter whose process noise is the VO's scale drift per keyframe takes each measurement
@@ -249,13 +125,17 @@ class ScaleFilter:
     correction is their median.
     """
 
-    def __init__(self, drift_per_keyframe: float, window: int = SCALE_WINDOW, min_count: int = 2) -> None:
-        self.q = drift_per_keyframe**2
-        self.window: deque[tuple[float, float]] = deque(maxlen=window)  # (z, its variance)
-        self.min_count = min_count
-        self.var = math.inf
-        self.total = 1.0  # product of every correction: metres per VO unit of the first map
-        self.outlier = False  # the last measurement was judged an outlier by the window
+    drift_per_keyframe: float
+    maxlen: int = SCALE_WINDOW
+    min_count: int = 2
+    window: tuple[tuple[float, float], ...] = ()  # (z, its variance), oldest first
+    var: float = math.inf
+    total: float = 1.0  # product of every correction: metres per VO unit of the first map
+    outlier: bool = False  # the last measurement was judged an outlier by the window
+
+    @property
+    def q(self) -> float:
+        return self.drift_per_keyframe**2
 
     @property
     def established(self) -> bool:
@@ -265,78 +145,77 @@ class ScaleFilter:
     def rel_std(self) -> float:
         return math.sqrt(self.var) if self.established else math.nan
 
-    def predict(self) -> None:
-        if self.established:
-            self.var += self.q
+    def predicted(self) -> ScaleFilter:
+        """One keyframe later: the scale drifted by ``drift_per_keyframe`` more."""
+        return dataclasses.replace(self, var=self.var + self.q) if self.established else self
 
-    def inflate(self, rel_std: float) -> None:
+    def inflated(self, rel_std: float) -> ScaleFilter:
         """The map's scale became uncertain by ``rel_std`` (1 sigma) more: a map rebuilt after a loss."""
-        if self.established:
-            self.var += rel_std**2
-        self.window.clear()
+        return dataclasses.replace(self, var=self.var + rel_std**2 if self.established else self.var, window=())
 
-    def update(self, z: float, r: float) -> float:
-        """Fold in one measurement; the correction factor to apply to the map (1.0 while not established).
+    def updated(self, z: float, r: float) -> tuple[ScaleFilter, float]:
+        """Fold in one measurement: the filter after it, and the correction factor to apply to the map
+        (1.0 while not established).
 
         The window's median and MAD judge the new measurement (an outlier is dropped) and say how noisy
         the measurements really are; the filter then takes this one measurement with that noise, so a
         measurement counts once however long it stays in the window.
         """
-        self.window.append((z, r))
-        self.outlier = False
-        if len(self.window) < self.min_count:
-            return 1.0
-        zs = np.array([w[0] for w in self.window])
+        window = (*self.window, (z, r))[-self.maxlen:]
+        f = dataclasses.replace(self, window=window, outlier=False)
+        if len(window) < self.min_count:
+            return f, 1.0
+        zs = np.array([w[0] for w in window])
         med = float(np.median(zs))
         n = zs.size
         mad_var = (1.4826 * float(np.median(np.abs(zs - med)))) ** 2
         r_eff = max(mad_var, r)
         if n < SMALL_WINDOW:
-            # A few measurements' MAD is no estimate of their spread: with 3, two that agree by chance
-            # gave KITTI's floor 4 % where its fits scatter by 10-20 %, and the map ran 7 % long for 20
-            # frames (Sim(3) ATE 0.36 %, now 0.11 %). Their sample variance is the floor.
-            # Without the newest: a wild one (a wall taken for the floor) must not widen its own gate.
+            # A few measurements' MAD is no estimate of their spread (two may agree by chance where the fits
+            # scatter widely): their sample variance is the floor. Without the newest: a wild one (a wall
+            # taken for the floor) must not widen its own gate.
             r_eff = max(r_eff, float(np.var(zs[:-1] if n > 2 else zs, ddof=1)))
         if not self.established:
-            self.var = 1.57 * r_eff / n
+            var = 1.57 * r_eff / n  # the variance of a median of n
             log_c = med
         else:
             if n >= 3 and (z - med) ** 2 > 9.0 * r_eff:
-                self.outlier = True  # kept in the window (it may be the start of a change), not applied
-                return 1.0
+                # kept in the window (it may be the start of a change), not applied
+                return dataclasses.replace(f, outlier=True), 1.0
             gain = self.var / (self.var + r_eff)
-            self.var = (1.0 - gain) * self.var
+            var = (1.0 - gain) * self.var
             log_c = gain * z
-        self.window = deque(((x - log_c, v) for x, v in self.window), maxlen=self.window.maxlen)
         factor = math.exp(log_c)
-        self.total *= factor
-        return factor
+        return dataclasses.replace(f, window=tuple((x - log_c, v) for x, v in window), var=var,
+                                   total=self.total * factor), factor
 
 
+@dataclass(frozen=True, kw_only=True)
 class ScaleSource:
-    """Common interface of the scale sources; ``VoUnitsScale`` is the plain one."""
+    """A scale source and what it remembers between keyframes, frozen: every call that learns returns the
+    source after it (``VoUnitsScale`` is the plain one)."""
 
-    name = "none"
-    metric_source = False
+    name: ClassVar[str] = "none"
+    metric_source: ClassVar[bool] = False
 
-    def __init__(self, drift_per_keyframe: float = 0.02) -> None:
-        self.speed: float | None = None  # map units per second at the last keyframe
-        self.filter = ScaleFilter(drift_per_keyframe)
-        self.reason = ""
-        self.plane: GroundPlane | None = None
-        # The source's own error common to all its measurements (a calibration): it does not average
-        # out over keyframes; an error of the scale it gives runs along the whole metric path.
-        self.systematic_rel = 0.0
-        self.up = LEVEL_UP  # the declared mounting's up in the camera frame (``set_mounting_up``)
+    filter: ScaleFilter
+    speed: float | None = None  # map units per second at the last keyframe
+    reason: str = ""  # why the last keyframe gave no measurement ("" when it did)
+    plane: GroundPlane | None = None  # the floor measured last (ground_plane)
+    # The source's own error common to all its measurements (a calibration): it does not average out over
+    # keyframes; an error of the scale it gives runs along the whole metric path.
+    systematic_rel: float = 0.0
+    up: F64 = field(default_factory=lambda: LEVEL_UP)  # the declared mounting's up, camera frame (``with_mounting_up``)
 
-    def set_mounting_up(self, up: F64) -> None:
+    def with_mounting_up(self, up: F64) -> Self:
         """The declared mounting's up direction in the camera optical frame (the floor's normal when the
-        robot stands level); default a level camera's -y. Only the floor uses it."""
+        robot stands level); default a level camera's -y. Only the floor uses it. Raises ValueError when it
+        is no direction."""
         up = np.asarray(up, dtype=np.float64).reshape(3)
         norm = float(np.linalg.norm(up))
         if not (math.isfinite(norm) and norm > 0):
             raise ValueError(f"the mounting's up direction must be a finite non-zero vector, got {up}")
-        self.up = up / norm
+        return dataclasses.replace(self, up=up / norm)
 
     @property
     def rel_std(self) -> float:
@@ -354,21 +233,22 @@ class ScaleSource:
         """What happens to the scale while the source gives no measurement (for the reason)."""
         return "last scale held" if self.filter.established else "scale unknown (VO units)"
 
-    def status(self) -> ScaleStatus:
+    def status(self, wheel: WheelOdometry | None = None) -> ScaleStatus:
+        """What the records say about scale; ``wheel``: the wheel odometry buffer (``wheel_odometry`` reports
+        what became of its messages)."""
         plane = self.plane
         return ScaleStatus(self.name, self.established, self.filter.total, self.rel_std,
                            plane.pitch_deg if plane is not None else math.nan,
                            plane.roll_deg if plane is not None else math.nan, self.reason)
 
-    def on_new_map(self) -> None:
+    def on_new_map(self) -> Self:
         """A map was (re)built: after a loss its baseline came from the last speed, so its scale is
-        uncertain again (30 %, 1 sigma)."""
-        self.filter.inflate(0.3)
+        uncertain again (``NEW_MAP_REL_STD``)."""
+        return dataclasses.replace(self, filter=self.filter.inflated(NEW_MAP_REL_STD))
 
-    def on_keyframe(self, step_length: float, dt_s: float) -> None:
+    def on_keyframe(self, step_length: float, dt_s: float) -> Self:
         """A keyframe step of ``step_length`` map units over ``dt_s`` seconds was taken."""
-        if dt_s > 0:
-            self.speed = step_length / dt_s
+        return dataclasses.replace(self, speed=step_length / dt_s) if dt_s > 0 else self
 
     def initial_baseline(self, dt_s: float) -> float:
         """Length given to the first keyframe baseline of a new map, ``dt_s`` after its keyframe."""
@@ -376,138 +256,135 @@ class ScaleSource:
             return 1.0
         return self.speed * dt_s
 
-    def correction(self, step: KeyframeStep) -> float:
-        """The factor taking this keyframe step and its map into metres (1.0: no measurement)."""
-        self.filter.predict()
-        measured = self.measure(step)
+    def correction(self, step: KeyframeStep, wheel: WheelOdometry) -> tuple[Self, float]:
+        """The source after this keyframe step, and the factor taking the step and its map into metres
+        (1.0: no measurement)."""
+        src = dataclasses.replace(self, filter=self.filter.predicted())
+        src, measured = src.measure(step, wheel)
         if measured is None:
-            return 1.0
-        z, r = measured
-        factor = self.filter.update(z, r)
-        self.on_corrected(factor)
-        if not self.filter.established:
-            self.reason = (f"{len(self.filter.window)} of {self.filter.min_count} scale measurements needed to "
-                           "establish metric scale: VO units")
-        return factor
+            return src, 1.0
+        f, factor = src.filter.updated(*measured)
+        src = dataclasses.replace(src, filter=f).on_corrected(factor)
+        if not f.established:
+            src = dataclasses.replace(src, reason=f"{len(f.window)} of {f.min_count} scale measurements needed to "
+                                                  "establish metric scale: VO units")
+        return src, factor
 
-    def measure(self, step: KeyframeStep) -> tuple[float, float] | None:
-        """(log(true / map) scale, its variance) at this keyframe, or None with ``self.reason`` set."""
-        return None
+    def measure(self, step: KeyframeStep, wheel: WheelOdometry) -> tuple[Self, tuple[float, float] | None]:
+        """(log(true / map) scale, its variance) at this keyframe, or None with ``reason`` set."""
+        return self, None
 
-    def on_corrected(self, factor: float) -> None:
+    def on_corrected(self, factor: float) -> Self:
         """The map was just scaled by ``factor`` (1.0: unchanged)."""
+        return self
 
-    def anchor(self, step: KeyframeStep) -> WindowAnchor | None:
+    def anchor(self, step: KeyframeStep, wheel: WheelOdometry) -> WindowAnchor | None:
         """What this source knows in metres about the keyframe of ``step`` (after its correction), for
         the windowed bundle adjustment's scale priors; None: nothing (or no metric scale yet)."""
         return None
 
 
+@dataclass(frozen=True, kw_only=True)
 class VoUnitsScale(ScaleSource):
     """Scale in VO units: baseline 1 for the first map, then the last keyframe speed carries it on."""
 
 
+@dataclass(frozen=True, kw_only=True)
 class GroundPlaneScale(ScaleSource):
     """Metric scale from the floor: ``camera_height_m`` over the floor's distance in map units."""
 
-    name = "ground_plane"
-    metric_source = True
+    name: ClassVar[str] = "ground_plane"
+    metric_source: ClassVar[bool] = True
 
-    def __init__(self, camera_height_m: float, drift_per_keyframe: float, *, max_tilt_deg: float,
-                 inlier_ratio: float, min_points: int, height_rel_sigma: float = 0.0) -> None:
-        super().__init__(drift_per_keyframe)
-        self.camera_height_m = camera_height_m
-        self.systematic_rel = height_rel_sigma
-        self.max_tilt_deg = max_tilt_deg
-        self.inlier_ratio = inlier_ratio
-        self.min_points = min_points
-        self.reason = "ground plane not seen yet: scale unknown (VO units)"
-        self._normals: deque[F64] = deque(maxlen=7)
-        self._waiting: list[tuple[F64, float, float]] = []  # fits before metric scale: (normal, z, r)
+    camera_height_m: float
+    max_tilt_deg: float
+    inlier_ratio: float
+    min_points: int
+    # The least noise one floor measurement is given (relative, 1 sigma, ``ground_fit_min_rel_sigma``): the
+    # window's spread of the fits says how noisy they are; below this it is not trusted.
+    fit_min_rel_std: float = 0.005
+    reason: str = "ground plane not seen yet: scale unknown (VO units)"
+    normals: tuple[F64, ...] = ()  # the floor normals of the last FLOOR_HISTORY fits
+    waiting: tuple[tuple[F64, float, float], ...] = ()  # fits before metric scale: (normal, z, r)
 
-    def on_new_map(self) -> None:
-        super().on_new_map()
-        self._waiting.clear()
+    def on_new_map(self) -> Self:
+        return dataclasses.replace(super().on_new_map(), waiting=())
 
-    def correction(self, step: KeyframeStep) -> float:
+    def correction(self, step: KeyframeStep, wheel: WheelOdometry) -> tuple[Self, float]:
         """As ``ScaleSource.correction``, but before metric scale is established a fit waits until another
-        fit's normal agrees with its own (``FLOOR_AGREE_DEG``); fits that agree with none are dropped then."""
+        fit's normal agrees with its own (``FLOOR_STEADY_DEG``); fits that agree with none are dropped then."""
         if self.filter.established:
-            return super().correction(step)
-        measured = self.measure(step)
+            return super().correction(step, wheel)
+        src, measured = self.measure(step, wheel)
         if measured is None:
-            return 1.0
-        normal = self._normals[-1]
-        cos = math.cos(math.radians(FLOOR_AGREE_DEG))
-        agree = [w for w in self._waiting if float(w[0] @ normal) >= cos]
+            return src, 1.0
+        normal = src.normals[-1]
+        cos = math.cos(math.radians(FLOOR_STEADY_DEG))
+        agree = [w for w in src.waiting if float(w[0] @ normal) >= cos]
         if not agree:
-            self._waiting.append((normal, *measured))
-            self.reason = (f"{len(self._waiting)} floor fit(s), no two with normals within {FLOOR_AGREE_DEG:g} deg: "
-                           "metric scale waits for two that agree (VO units)")
-            return 1.0
-        self._waiting.clear()
-        self._normals = deque([w[0] for w in agree] + [normal], maxlen=self._normals.maxlen)
-        factor = 1.0
+            waiting = (*src.waiting, (normal, *measured))
+            return dataclasses.replace(src, waiting=waiting, reason=(
+                f"{len(waiting)} floor fit(s), no two with normals within {FLOOR_STEADY_DEG:g} deg: metric scale "
+                "waits for two that agree (VO units)")), 1.0
+        f, factor = src.filter, 1.0
         for _, z, r in [*agree, (normal, *measured)]:
-            factor *= self.filter.update(z, r)
-        self.on_corrected(factor)
-        return factor
+            f, k = f.updated(z, r)
+            factor *= k
+        src = dataclasses.replace(src, waiting=(), normals=(*(w[0] for w in agree), normal)[-FLOOR_HISTORY:],
+                                  filter=f)
+        return src.on_corrected(factor), factor
 
-    def set_mounting_up(self, up: F64) -> None:
+    def with_mounting_up(self, up: F64) -> Self:
         """The floor's normal the declared mounting implies (unit vector, camera optical frame): the camera's
         up when the robot stands level. The fits seen so far were judged against another: forgotten."""
-        super().set_mounting_up(up)
-        self._normals.clear()
-        self._waiting.clear()
+        return dataclasses.replace(super().with_mounting_up(up), normals=(), waiting=())
 
     def _expected_up(self) -> tuple[F64, float]:
         """The floor normal seen over the last keyframes (the camera's mounting changes little), and how
-        far a new fit may lie from it; before three fits, the declared up and ``max_tilt_deg``."""
-        if len(self._normals) < 3:
+        far a new fit may lie from it; before ``FLOOR_STEADY_FITS`` fits, the declared up and
+        ``max_tilt_deg``."""
+        if len(self.normals) < FLOOR_STEADY_FITS:
             return self.up, self.max_tilt_deg
-        n = np.median(np.array(self._normals), axis=0)
-        return n / np.linalg.norm(n), min(10.0, self.max_tilt_deg)
+        n = np.median(np.array(self.normals), axis=0)
+        return n / np.linalg.norm(n), min(FLOOR_STEADY_DEG, self.max_tilt_deg)
 
-    def measure(self, step: KeyframeStep) -> tuple[float, float] | None:
+    def measure(self, step: KeyframeStep, wheel: WheelOdometry) -> tuple[Self, tuple[float, float] | None]:
         up, tilt = self._expected_up()
         search = find_floor(step.X_cur, max_tilt_deg=tilt, inlier_ratio=self.inlier_ratio,
                             min_points=self.min_points, up=up)
         plane = search.plane
         if plane is not None and float(plane.normal_up @ self.up) < math.cos(math.radians(self.max_tilt_deg)):
-            self.reason = (f"the floor seen so far leans more than {self.max_tilt_deg:g} deg from the declared "
-                           f"mounting's up: no floor, {self.held}")
-            return None
+            return dataclasses.replace(self, reason=(
+                f"the floor seen so far leans more than {self.max_tilt_deg:g} deg from the declared mounting's up: "
+                f"no floor, {self.held}")), None
         if plane is None:
-            where = "of the mounting's up" if len(self._normals) < 3 else "of the floor seen so far"
-            self.reason = f"no floor plane among {search.n_points} map points"
+            where = "of the mounting's up" if len(self.normals) < FLOOR_STEADY_FITS else "of the floor seen so far"
+            reason = f"no floor plane among {search.n_points} map points"
             on, beneath = search.best_unsupported
             if on >= self.min_points:
-                self.reason += (f": the largest plane within {tilt:g} deg {where} and below the camera holds {on} "
-                                f"and has {beneath} well beneath it; the floor carries the scene (is the camera "
-                                "mounted as declared?)")
+                reason += (f": the largest plane within {tilt:g} deg {where} and below the camera holds {on} and "
+                           f"has {beneath} well beneath it; the floor carries the scene (is the camera mounted as "
+                           "declared?)")
             else:
-                self.reason += f" (need {self.min_points} within {tilt:g} deg {where})"
-            self.reason += f": {self.held}"
-            return None
-        from_history = len(self._normals) >= 3
-        self._normals.append(plane.normal_up)
+                reason += f" (need {self.min_points} within {tilt:g} deg {where})"
+            return dataclasses.replace(self, reason=f"{reason}: {self.held}"), None
+        from_history = len(self.normals) >= FLOOR_STEADY_FITS
+        src = dataclasses.replace(self, normals=(*self.normals, plane.normal_up)[-FLOOR_HISTORY:])
         if from_history:
             # The floor's direction is known better from the last keyframes than from this one's few
             # points: measure the height of this fit's inliers along it.
             X = step.X_cur[np.all(np.isfinite(step.X_cur), axis=1)]
-            on = np.abs(X @ plane.normal_up + plane.height) < self.inlier_ratio * plane.height
-            plane = GroundPlane(up, float(np.median(-(X[on] @ up))), plane.n_inliers, plane.rel_std)
+            on_plane = np.abs(X @ plane.normal_up + plane.height) < self.inlier_ratio * plane.height
+            plane = GroundPlane(up, float(np.median(-(X[on_plane] @ up))), plane.n_inliers, plane.rel_std)
             if not plane.height > 0:
-                self.reason = "floor plane above the camera: ignored"
-                return None
-        self.plane = plane
-        self.reason = ""
-        # The fit's own standard error, at least GROUND_FIT_MIN_REL_STD; the filter's window raises it to
-        # the fits' spread.
-        r = plane.rel_std**2 + GROUND_FIT_MIN_REL_STD**2
-        return math.log(self.camera_height_m / plane.height), r
+                return dataclasses.replace(src, reason="floor plane above the camera: ignored"), None
+        # The fit's own standard error, at least fit_min_rel_std; the filter's window raises it to the fits'
+        # spread.
+        r = plane.rel_std**2 + self.fit_min_rel_std**2
+        return dataclasses.replace(src, plane=plane, reason=""), (math.log(self.camera_height_m / plane.height), r)
 
 
+@dataclass(frozen=True, kw_only=True)
 class WheelOdometryScale(ScaleSource):
     """Metric scale from the distance the wheels travelled over the last keyframe steps.
 
@@ -517,44 +394,43 @@ class WheelOdometryScale(ScaleSource):
     the sum of their VO step lengths (kept in the current map's units as corrections are applied).
     """
 
-    name = "wheel_odometry"
-    metric_source = True
+    name: ClassVar[str] = "wheel_odometry"
+    metric_source: ClassVar[bool] = True
 
-    def __init__(self, wheel: WheelOdometry, drift_per_keyframe: float, *, rel_sigma: float,
-                 timeout_s: float, window_m: float = 0.5) -> None:
-        super().__init__(drift_per_keyframe)
-        self.wheel = wheel
-        self.rel_sigma = rel_sigma
-        self.systematic_rel = rel_sigma
-        self.timeout_ns = int(timeout_s * 1e9)
-        self.window_m = window_m
-        self._steps: deque[list[float]] = deque(maxlen=500)  # [kf stamp, stamp, VO step length]
-        self.reason = "no keyframe step measured by the wheels yet: scale unknown (VO units)"
+    rel_sigma: float
+    timeout_ns: int
+    window_m: float = 0.5  # ``wheel_odometry_window_m``
+    # The wheels' random error over one scale measurement (m, 1 sigma, ``wheel_odometry_noise_m``): the noise
+    # that averages out over keyframes. Their calibration error (tyre radius), which does not, is
+    # ``rel_sigma``, carried once as the source's systematic error (``ScaleSource.systematic_rel``).
+    noise_m: float = 0.01
+    reason: str = "no keyframe step measured by the wheels yet: scale unknown (VO units)"
+    steps: tuple[tuple[int, int, float], ...] = ()  # the last WHEEL_STEPS: (kf stamp, stamp, VO step length)
 
-    def on_corrected(self, factor: float) -> None:
-        for step in self._steps:
-            step[2] *= factor
+    def on_corrected(self, factor: float) -> Self:
+        return dataclasses.replace(self, steps=tuple((a, b, length * factor) for a, b, length in self.steps))
 
-    def status(self) -> ScaleStatus:
-        return dataclasses.replace(super().status(), wheel=self.wheel.counts)
+    def status(self, wheel: WheelOdometry | None = None) -> ScaleStatus:
+        status = super().status(wheel)
+        return status if wheel is None else dataclasses.replace(status, wheel=wheel.counts)
 
-    def anchor(self, step: KeyframeStep) -> WindowAnchor | None:
+    def anchor(self, step: KeyframeStep, wheel: WheelOdometry) -> WindowAnchor | None:
         if not self.established:
             return None
-        xyz, _ = self.wheel.position_at(step.stamp_ns, self.timeout_ns)
+        xyz, _ = wheel.position_at(step.stamp_ns, self.timeout_ns)
         return None if xyz is None else WindowAnchor(wheel_xyz=xyz, wheel_rel_sigma=self.rel_sigma)
 
-    def measure(self, step: KeyframeStep) -> tuple[float, float] | None:
-        self._steps.append([step.kf_stamp_ns, step.stamp_ns, step.step_length])
+    def measure(self, step: KeyframeStep, wheel: WheelOdometry) -> tuple[Self, tuple[float, float] | None]:
+        src = dataclasses.replace(self, steps=(*self.steps, (step.kf_stamp_ns, step.stamp_ns,
+                                                             step.step_length))[-WHEEL_STEPS:])
         d_wheel = d_vo = 0.0
         n = 0
-        for t0, t1, length in reversed(self._steps):
-            p0, why0 = self.wheel.position_at(int(t0), self.timeout_ns)
-            p1, why1 = self.wheel.position_at(int(t1), self.timeout_ns)
+        for t0, t1, length in reversed(src.steps):
+            p0, why0 = wheel.position_at(int(t0), self.timeout_ns)
+            p1, why1 = wheel.position_at(int(t1), self.timeout_ns)
             if p0 is None or p1 is None:
                 if n == 0:
-                    self.reason = f"{why0 or why1}: {self.held}"
-                    return None
+                    return dataclasses.replace(src, reason=f"{why0 or why1}: {self.held}"), None
                 break
             d_wheel += float(np.linalg.norm(p1 - p0))
             d_vo += length
@@ -562,25 +438,26 @@ class WheelOdometryScale(ScaleSource):
             if d_wheel >= self.window_m:
                 break
         if d_wheel < self.window_m or not d_vo > 0:
-            self.reason = (f"wheels moved {d_wheel:.3f} m over the last {n} keyframe step(s) (< {self.window_m} m): "
-                           f"{self.held}")
-            return None
-        self.reason = ""
+            return dataclasses.replace(src, reason=(
+                f"wheels moved {d_wheel:.3f} m over the last {n} keyframe step(s) (< {self.window_m} m): "
+                f"{self.held}")), None
         # Only the wheels' random part: their calibration error is common to every measurement, the
-        # source's systematic error (counted in both until 2026-11-27: `wheel_odometry` position NEES
-        # 0.55, now 0.77; Sim(3) ATE 0.031 -> 0.029 %).
-        r = (WHEEL_NOISE_M / d_wheel) ** 2
-        return math.log(d_wheel / d_vo), r
+        # source's systematic error (``systematic_rel``).
+        r = (self.noise_m / d_wheel) ** 2
+        return dataclasses.replace(src, reason=""), (math.log(d_wheel / d_vo), r)
 
 
-def source_from_config(cfg: VoConfig, wheel: WheelOdometry) -> ScaleSource:
-    """The scale source ``cfg.scale_source`` names."""
-    drift = cfg.scale_drift_per_keyframe
+def source_from_config(cfg: VoConfig) -> ScaleSource:
+    """The scale source ``cfg.scale_source`` names, before any keyframe."""
+    f = ScaleFilter(cfg.scale_drift_per_keyframe)
     if cfg.scale_source == "ground_plane":
-        return GroundPlaneScale(cfg.camera_height_m, drift, max_tilt_deg=cfg.ground_max_tilt_deg,
+        return GroundPlaneScale(filter=f, camera_height_m=cfg.camera_height_m, max_tilt_deg=cfg.ground_max_tilt_deg,
                                 inlier_ratio=cfg.ground_inlier_ratio, min_points=cfg.ground_min_points,
-                                height_rel_sigma=cfg.camera_height_rel_sigma)
+                                systematic_rel=cfg.camera_height_rel_sigma,
+                                fit_min_rel_std=cfg.ground_fit_min_rel_sigma)
     if cfg.scale_source == "wheel_odometry":
-        return WheelOdometryScale(wheel, drift, rel_sigma=cfg.wheel_odometry_rel_sigma,
-                                  timeout_s=cfg.wheel_odometry_timeout_s)
-    return VoUnitsScale(drift)
+        return WheelOdometryScale(filter=f, rel_sigma=cfg.wheel_odometry_rel_sigma,
+                                  systematic_rel=cfg.wheel_odometry_rel_sigma,
+                                  timeout_ns=int(cfg.wheel_odometry_timeout_s * 1e9),
+                                  window_m=cfg.wheel_odometry_window_m, noise_m=cfg.wheel_odometry_noise_m)
+    return VoUnitsScale(filter=f)

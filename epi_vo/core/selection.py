@@ -10,7 +10,6 @@ before a map exists (a static camera must not build a map from something moving 
 from __future__ import annotations
 
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,22 +38,20 @@ class ModelSelection:
     inliers_static: Mask | None = None  # features that did not move
 
 
-def select_model(uv_kf: F64, uv_cur: F64, K: F64, cfg: VoConfig, pool: ThreadPoolExecutor | None = None,
-                 then: Callable[[], None] | None = None) -> ModelSelection:
+HomographyScored = tuple[F64 | None, tuple[float, Mask | None]]  # H and its (score, inliers)
+
+
+def select_model(uv_kf: F64, uv_cur: F64, K: F64, cfg: VoConfig,
+                 homography: Callable[[], HomographyScored] | None = None) -> ModelSelection:
     """Estimate and score E and H on (N, 2) undistorted pixel correspondences keyframe -> current.
 
-    With ``pool``, H is estimated and scored on its worker while E is estimated here: both OpenCV
-    estimators release the GIL and are seeded the same on any thread, so the result is identical.
-    ``then`` is called once H is on its way (before E): work it queues on the same worker runs after H.
+    ``homography``: H and its score for these correspondences (``homography_scored``) when it is being
+    computed elsewhere (a runner estimates it on another thread while E is estimated here: both OpenCV
+    estimators are seeded the same on any thread, so the result is identical); asked for once E is done.
     """
-    h_job: Future[tuple[F64 | None, tuple[float, Mask | None]]] | None = None
-    if pool is not None:
-        h_job = pool.submit(_homography, uv_kf, uv_cur, cfg)
-    if then is not None:
-        then()
     E, _ = geo.estimate_essential(uv_kf, uv_cur, K, cfg.essential_method, cfg.ransac_threshold_px,
                                   cfg.ransac_confidence, cfg.ransac_max_iters)
-    H, (s_h, in_h) = h_job.result() if h_job is not None else _homography(uv_kf, uv_cur, cfg)
+    H, (s_h, in_h) = homography() if homography is not None else homography_scored(uv_kf, uv_cur, cfg)
     F = geo.fundamental_from_essential(E, K) if E is not None else None
     s_e, in_e = geo.score_fundamental(F, uv_kf, uv_cur, cfg.score_sigma_px) if F is not None else (0.0, None)
     s_0, in_0 = geo.score_static(uv_kf, uv_cur, cfg.score_sigma_px)
@@ -68,23 +65,8 @@ def select_model(uv_kf: F64, uv_cur: F64, K: F64, cfg: VoConfig, pool: ThreadPoo
     return ModelSelection(model, rh, E, H, F, in_e, in_h, s_0, in_0)
 
 
-def _homography(uv_kf: F64, uv_cur: F64, cfg: VoConfig) -> tuple[F64 | None, tuple[float, Mask | None]]:
-    """H and its (score, inliers)."""
+def homography_scored(uv_kf: F64, uv_cur: F64, cfg: VoConfig) -> HomographyScored:
+    """H from ``findHomography`` and its (score, inliers) under the chi-square gate."""
     H, _ = geo.estimate_homography(uv_kf, uv_cur, cfg.homography_method, cfg.ransac_threshold_px,
                                    cfg.ransac_confidence, cfg.ransac_max_iters)
     return H, (geo.score_homography(H, uv_kf, uv_cur, cfg.score_sigma_px) if H is not None else (0.0, None))
-
-
-class ModelSelector:
-    """``select_model`` with a worker thread for H (E and H overlap on two cores: ~0.6 ms a frame less at
-    200 points on this project's machine): ``pool`` (one worker, shared with other jobs that should queue
-    behind H), or its own, started with the first call."""
-
-    def __init__(self, pool: ThreadPoolExecutor | None = None) -> None:
-        self._pool = pool
-
-    def __call__(self, uv_kf: F64, uv_cur: F64, K: F64, cfg: VoConfig, then: Callable[[], None] | None = None
-                 ) -> ModelSelection:
-        if self._pool is None:
-            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="epi_vo_models")
-        return select_model(uv_kf, uv_cur, K, cfg, self._pool, then)

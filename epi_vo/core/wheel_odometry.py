@@ -1,18 +1,25 @@
 """Wheel odometry as it arrives: one rule for which messages are used (the node and the replay share it),
-the count of every message dropped and why, and positions interpolated at image stamps."""
+the count of every message dropped and why, and positions interpolated at image stamps.
+
+The buffer is a frozen value: ``add`` returns the buffer with the message taken (or counted), which the
+tracking state holds in place of the one before.
+"""
 
 from __future__ import annotations
 
-import bisect
 import dataclasses
 import enum
-from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 
 F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+# Samples older than this behind the newest are dropped: a scale measurement spans the last keyframe steps
+# until the wheels covered ``WheelOdometryScale.window_m``, seconds at any robot speed.
+HORIZON_S = 60.0
 
 class WheelSample(enum.Enum):
     """What became of one wheel odometry message handed to :meth:`WheelOdometry.add`."""
@@ -63,8 +70,17 @@ WHY_DROPPED = {
 }
 
 
+def _empty_stamps() -> I64:
+    return np.zeros(0, np.int64)
+
+
+def _empty_xyz() -> F64:
+    return np.zeros((0, 3))
+
+
+@dataclass(frozen=True)
 class WheelOdometry:
-    """Wheel odometry positions by stamp (the last ``horizon_s`` seconds), interpolated at image stamps.
+    """Wheel odometry positions by stamp (the last ``HORIZON_S`` seconds), interpolated at image stamps.
 
     One rule for the node and the replay: messages are taken in the order they arrived (a bag's
     order), and a message is used only when it is stamped after every message used before it. A
@@ -74,72 +90,66 @@ class WheelOdometry:
     (:attr:`counts`), and the frame records, diagnostics and replay summary say so.
     """
 
-    def __init__(self, horizon_s: float = 60.0) -> None:
-        self.horizon_ns = int(horizon_s * 1e9)
-        self._stamps: deque[int] = deque()
-        self._xyz: deque[F64] = deque()
-        self._counts: dict[str, int] = dict.fromkeys(WheelInputCounts().record(), 0)
-        self._newest_ns: int | None = None  # the newest stamp used (also once pruned from the horizon)
+    stamps_ns: I64 = field(default_factory=_empty_stamps)  # increasing
+    xyz: F64 = field(default_factory=_empty_xyz)  # (N, 3) positions (any fixed odom frame, metres)
+    counts: WheelInputCounts = field(default_factory=WheelInputCounts)
+    newest_ns: int | None = None  # the newest stamp used (also once pruned from the horizon)
+    horizon_ns: int = int(HORIZON_S * 1e9)
 
     def __len__(self) -> int:
-        return len(self._stamps)
-
-    @property
-    def counts(self) -> WheelInputCounts:
-        return WheelInputCounts(**self._counts)
+        return int(self.stamps_ns.shape[0])
 
     @property
     def ignored(self) -> int:
         """Messages not used (every reason)."""
         return self.counts.dropped
 
-    def add(self, stamp_ns: int | None, xyz: F64) -> WheelSample:
-        """Take one message, in arrival order: ``stamp_ns`` None when its header stamp is no ROS time.
-        The sample is used (``WheelSample.USED``) or dropped and counted (the other values)."""
+    def add(self, stamp_ns: int | None, xyz: F64) -> tuple[WheelOdometry, WheelSample]:
+        """Take one message, in arrival order (``stamp_ns`` None when its header stamp is no ROS time): the
+        buffer after it, and whether the sample is used (``WheelSample.USED``) or dropped and counted."""
         xyz = np.asarray(xyz, dtype=np.float64).reshape(3)
-        self._counts["received"] += 1
         if stamp_ns is None:
             verdict = WheelSample.INVALID_STAMP
         elif not np.all(np.isfinite(xyz)):
             verdict = WheelSample.NON_FINITE
-        elif self._newest_ns is not None and stamp_ns < self._newest_ns:
+        elif self.newest_ns is not None and stamp_ns < self.newest_ns:
             verdict = WheelSample.OUT_OF_ORDER
-        elif stamp_ns == self._newest_ns:
+        elif stamp_ns == self.newest_ns:
             verdict = WheelSample.DUPLICATE_STAMP
         else:
             verdict = WheelSample.USED
-        self._counts[verdict.value] += 1
+        c = self.counts
+        counts = dataclasses.replace(c, received=c.received + 1, **{verdict.value: getattr(c, verdict.value) + 1})
         if verdict is not WheelSample.USED:
-            return verdict
-        self._newest_ns = int(stamp_ns)
-        self._stamps.append(int(stamp_ns))
-        self._xyz.append(xyz)
-        while self._stamps and self._stamps[-1] - self._stamps[0] > self.horizon_ns:
-            self._stamps.popleft()
-            self._xyz.popleft()
-        return verdict
+            return dataclasses.replace(self, counts=counts), verdict
+        assert stamp_ns is not None
+        stamps = np.append(self.stamps_ns, np.int64(stamp_ns))
+        first = int(np.searchsorted(stamps, int(stamps[-1]) - self.horizon_ns, side="left"))
+        return WheelOdometry(stamps[first:], np.vstack([self.xyz, xyz])[first:], counts, int(stamp_ns),
+                             self.horizon_ns), verdict
 
     def position_at(self, stamp_ns: int, timeout_ns: int) -> tuple[F64 | None, str]:
         """The position at ``stamp_ns``: interpolated between the samples around it, extrapolated from the
         last two when the newest is at most ``timeout_ns`` older; (None, reason) otherwise."""
-        stamps = self._stamps
-        if len(stamps) < 2:
-            counts = self.counts
-            if counts.used >= 2:
+        stamps = self.stamps_ns
+        n = len(self)
+        if n < 2:
+            if self.counts.used >= 2:
                 return None, f"wheel odometry: no two messages within {self.horizon_ns * 1e-9:g} s"
-            return None, f"wheel odometry: {counts.text()}; need 2 usable"
-        i = bisect.bisect_left(stamps, stamp_ns)
+            return None, f"wheel odometry: {self.counts.text()}; need 2 usable"
+        i = int(np.searchsorted(stamps, stamp_ns, side="left"))
         if i == 0:
-            if stamps[0] - stamp_ns > timeout_ns:
-                return None, f"wheel odometry starts {(stamps[0] - stamp_ns) * 1e-9:.2f} s after the image"
+            if int(stamps[0]) - stamp_ns > timeout_ns:
+                return None, f"wheel odometry starts {(int(stamps[0]) - stamp_ns) * 1e-9:.2f} s after the image"
             i = 1
-        elif i == len(stamps):
-            late = stamp_ns - stamps[-1]
+        elif i == n:
+            late = stamp_ns - int(stamps[-1])
             if late > timeout_ns:
                 return None, f"wheel odometry stale: last message {late * 1e-9:.2f} s before the image"
-            i = len(stamps) - 1
-        elif stamps[i] - stamps[i - 1] > 2 * timeout_ns:
-            return None, f"wheel odometry gap of {(stamps[i] - stamps[i - 1]) * 1e-9:.2f} s around the image"
-        t0, t1 = stamps[i - 1], stamps[i]
+            i = n - 1
+        elif int(stamps[i]) - int(stamps[i - 1]) > 2 * timeout_ns:
+            return None, (f"wheel odometry gap of {(int(stamps[i]) - int(stamps[i - 1])) * 1e-9:.2f} s around the "
+                          "image")
+        t0, t1 = int(stamps[i - 1]), int(stamps[i])
         a = (stamp_ns - t0) / (t1 - t0)
-        return self._xyz[i - 1] + a * (self._xyz[i] - self._xyz[i - 1]), ""
+        return self.xyz[i - 1] + a * (self.xyz[i] - self.xyz[i - 1]), ""

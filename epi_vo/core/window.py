@@ -1,37 +1,37 @@
 """The windowed map stage: the last keyframes, the tracks linking them, and their bundle adjustment.
 
-After ``mapping`` made a keyframe, the pipeline hands it to :class:`WindowedMap`. Every
-``ba_every_keyframes`` tracking keyframes the last ``ba_window_keyframes`` keyframes are adjusted
-together (``epi_vo.core.bundle``, GTSAM): map points observed by at least two of them (tracks that
-survived across keyframes, linked by the keyframes' track ids), a Huber loss, the oldest keyframe fixed
-(gauge) and the scale held by wheel distances (``wheel_odometry``) or by the distance from the oldest
-keyframe to the farthest. The metric scale of ``ground_plane`` is the scale stage's: its filter, not the
-window, owns it (``add``: a keyframe whose step the scale stage corrected rescales the window's keyframes
-with it; a floor prior inside the window re-decided the scale every few keyframes from too little floor,
-README "The window's scale"). An adjustment is
-submitted at a keyframe and its result collected at the next one, so it can run beside the frame loop
-in a worker process (``ba_solver: process``, ``epi_vo.core.bundle_worker``; ``inline`` solves at the
-submission): either way it is applied at the same keyframe, and the poses are the same. With ``ba_wait:
-false`` (a live node) the frame loop never waits for the worker: a result not back at the next keyframe
-is collected at the first keyframe after it is, and every keyframe added meanwhile moves with it; no
-new adjustment starts while one is under way. The result moves
-the keyframe it adjusted and its map points, and the keyframe made since from that keyframe's old pose
-moves with it (``correct``): its pose by the same correction, its adjusted map points, and its
-covariance with the window's (``WindowUpdate``) in place of the chain's part. Older window poses are kept for the
-next adjustment. The window is dropped whenever the map is (restart, metric scale newly established),
-since its poses and points would no longer agree; an adjustment under way then is dropped as it comes
-back.
+After ``mapping`` made a keyframe, the pipeline hands it to :class:`WindowedMap`. Every ``ba_every_keyframes``
+tracking keyframes the last ``ba_window_keyframes`` keyframes are adjusted together (``epi_vo.core.bundle``,
+GTSAM): map points observed by at least two of them (tracks that survived across keyframes, linked by the
+keyframes' track ids), a Huber loss, the oldest keyframe fixed (gauge) and the scale held by wheel distances
+(``wheel_odometry``) or by the distance from the oldest keyframe to the farthest. The metric scale of
+``ground_plane`` is the scale stage's: its filter, not the window, owns it (``added``: a keyframe whose step
+the scale stage corrected rescales the window's keyframes with it; a floor prior inside the window would
+re-decide the scale every few keyframes from too little floor). An adjustment is submitted at a keyframe and
+its result collected at the next one, so it can run beside the frame loop in a worker process (``ba_solver:
+process``, ``epi_vo.runner.bundle_worker``; ``inline`` solves at the submission): either way it is applied at
+the same keyframe, and the poses are the same. With ``ba_wait: false`` (a live node) the frame loop never
+waits for the worker: a result not back at the next keyframe is collected at the first keyframe after it is,
+and every keyframe added meanwhile moves with it; no new adjustment starts while one is under way. The result
+moves the keyframe it adjusted and its map points, and the keyframe made since from that keyframe's old pose
+moves with it (``correct``): its pose by the same correction, its adjusted map points, and its covariance with
+the window's (``WindowUpdate``) in place of the chain's part. Older window poses are kept for the next
+adjustment. The window is dropped whenever the map is (restart, metric scale newly established), since its
+poses and points would no longer agree; an adjustment under way then is dropped as it comes back.
 
 GTSAM is imported only when the adjustment is switched on (``ba_window_keyframes > 0``): the rest of
 the pipeline runs without it (a ROS install whose gtsam has no Python wrapper), and switching it on
 without gtsam is a ConfigError saying what to install.
+
+The window is a frozen value of the tracking state: every change returns the window after it. Where the
+adjustment runs is the solver's (``epi_vo.core.workers.WindowSolver``), given at each call.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import itertools
-from collections import deque
 from dataclasses import dataclass
 from types import ModuleType
 from typing import TYPE_CHECKING
@@ -40,11 +40,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from epi_vo.core import covariance as covm
-from epi_vo.core.bundle_worker import InlineSolver, ProcessSolver
 from epi_vo.core.errors import ConfigError
 from epi_vo.core.geometry import nearest_rotation
 from epi_vo.core.scale import WindowAnchor
 from epi_vo.core.transforms import invert_T
+from epi_vo.core.workers import WindowSolver
 
 if TYPE_CHECKING:
     from epi_vo.core import bundle
@@ -55,8 +55,12 @@ I64 = NDArray[np.int64]
 MAX_POINTS = 300  # the most-observed tracks are adjusted; the cost grows with the observations
 
 
-@dataclass
-class _Entry:
+@dataclass(frozen=True)
+class Entry:
+    """One keyframe of the window; ``key`` names it for as long as it is in the window (and in an
+    adjustment under way), whatever its values become."""
+
+    key: int
     T_w_kf: F64
     ids: I64
     xn: F64
@@ -94,202 +98,191 @@ class WindowUpdate:
         return self.T_w_kf @ invert_T(self.T_w_kf_before)
 
 
-class WindowedMap:
-    """The last ``size`` keyframes with their track ids. An adjustment is ``submit``-ted at a keyframe and
-    its result ``collect``-ed at the next one (``adjust`` does both at once); ``solver`` says where it
-    runs: ``process`` (a worker beside the frame loop, ``epi_vo.core.bundle_worker``) or ``inline``."""
+@dataclass(frozen=True)
+class Pending:
+    """An adjustment under way: the keyframes submitted (oldest first, as they are now: a rescale since moved
+    those still in the window), the adjusted tracks, the newest one's pose and covariance when submitted."""
 
-    def __init__(self, size: int, every: int, sigma_px: float, solver: str = "inline") -> None:
-        self.size = size
-        self.every = max(every, 1)
-        self.sigma_px = sigma_px
-        self._entries: deque[_Entry] = deque(maxlen=max(size, 1))
-        self._since = 0
-        self._bundle: ModuleType | None = None
-        self._pending: _Pending | None = None  # the adjustment submitted and not yet collected
-        self._stale = 0  # results of submitted adjustments the window was cleared since (to be dropped)
-        self._solver: InlineSolver | ProcessSolver | None = None
-        self._failure_said = False
+    entries: tuple[Entry, ...]
+    point_ids: I64  # track id of each adjusted point
+    T_w_kf_before: F64  # the newest one's pose when submitted
+    cov_w_before: F64 | None  # and its covariance
+    # (r, b): p -> r p + b, the scale stage's corrections since it was submitted (``WindowedMap._rescaled``)
+    similarity: tuple[float, F64] = (1.0, np.zeros(3))
+
+
+@dataclass(frozen=True)
+class WindowedMap:
+    """The last ``size`` keyframes with their track ids (frozen: every change returns the window after it).
+
+    An adjustment is ``submitted`` at a keyframe and its result ``collected`` at the next one (``adjusted``
+    does both at once), through a ``WindowSolver`` (``epi_vo.core.workers``: in line; a worker process
+    beside the frame loop: ``epi_vo.runner``). Results come back in the order sent; those of adjustments the
+    window was cleared since are the solver's in-flight ones beyond the pending one, dropped at the next
+    collection."""
+
+    size: int
+    every: int
+    sigma_px: float
+    entries: tuple[Entry, ...] = ()
+    since: int = 0  # tracking keyframes added since the last adjustment started
+    pending: Pending | None = None  # the adjustment submitted and not yet collected
+    next_key: int = 0
+
+    @staticmethod
+    def create(size: int, every: int, sigma_px: float) -> WindowedMap:
+        """An empty window; with ``size`` > 0 GTSAM must be importable (ConfigError naming it else)."""
         if size > 0:
             try:
-                self._bundle = importlib.import_module("epi_vo.core.bundle")
+                importlib.import_module("epi_vo.core.bundle")
             except ImportError as exc:
                 raise ConfigError(f"ba_window_keyframes={size} needs the gtsam Python package "
                                   f"(pip install gtsam==4.3.0): {exc}") from None
-            self._solver = ProcessSolver() if solver == "process" else InlineSolver()
+        return WindowedMap(size, max(every, 1), sigma_px)
 
     def __len__(self) -> int:
-        return len(self._entries)
+        return len(self.entries)
 
-    def take_failure(self) -> str:
-        """Why the worker process stopped being used, the first time it is asked after it did ("" else)."""
-        if self._solver is None or not self._solver.failure or self._failure_said:
-            return ""
-        self._failure_said = True
-        return self._solver.failure
+    def cleared(self) -> WindowedMap:
+        """The keyframes forgotten; an adjustment still under way is dropped when it comes back."""
+        return dataclasses.replace(self, entries=(), since=0, pending=None)
 
-    def clear(self) -> None:
-        """Forget the keyframes; an adjustment still under way is dropped when it comes back."""
-        self._entries.clear()
-        self._since = 0
-        if self._pending is not None:
-            self._pending = None
-            self._stale += 1
-
-    def close(self) -> None:
-        """End the worker process (if any); the window cannot adjust afterwards."""
-        self.clear()
-        if self._solver is not None:
-            self._solver.close()
-        self._stale = 0
-
-    def add(self, T_w_kf: F64, ids: I64 | None, xn: F64, X_kf: F64, anchor: WindowAnchor | None = None,
-            cov_w: F64 | None = None, rescale: float = 1.0) -> None:
+    def added(self, T_w_kf: F64, ids: I64 | None, xn: F64, X_kf: F64, anchor: WindowAnchor | None = None,
+              cov_w: F64 | None = None, rescale: float = 1.0) -> WindowedMap:
         """A new keyframe; ``anchor`` becomes a scale prior of the adjustments; ``cov_w`` is its pose
         covariance. ``rescale``: the scale stage corrected this keyframe's step and map points by that
         factor (the map's scale was wrong by it), so the window's keyframes are rescaled with it first
-        (``_rescale``)."""
+        (``_rescaled``)."""
         if self.size <= 0 or ids is None:
-            return
-        self._rescale(rescale)
-        self._entries.append(_Entry(T_w_kf.copy(), ids.copy(), xn.copy(), X_kf.copy(), anchor,
-                                    None if cov_w is None else cov_w.copy()))
-        self._since += 1
+            return self
+        win = self._rescaled(rescale)
+        entry = Entry(win.next_key, T_w_kf.copy(), ids.copy(), xn.copy(), X_kf.copy(), anchor,
+                      None if cov_w is None else cov_w.copy())
+        return dataclasses.replace(win, entries=(*win.entries, entry)[-max(self.size, 1):], since=win.since + 1,
+                                   next_key=win.next_key + 1)
 
-    def _rescale(self, factor: float) -> None:
+    def _rescaled(self, factor: float) -> WindowedMap:
         """The map's scale changes by ``factor`` from the newest keyframe on: every keyframe of the window
-        moves about the newest one's centre by it and its map points scale with it, as does an
-        adjustment under way when it comes back (``_Pending.similarity``). Without this the window kept
-        the old scale and each adjustment undid the scale stage's corrections (KITTI ``ground_plane``,
-        window of 8 and no floor prior: step scale 0.94)."""
-        if factor == 1.0 or not self._entries:
-            return
-        c = self._entries[-1].T_w_kf[:3, 3].copy()
-        for e in self._entries:
-            e.T_w_kf = e.T_w_kf.copy()
-            e.T_w_kf[:3, 3] = c + factor * (e.T_w_kf[:3, 3] - c)
-            e.X_kf = e.X_kf * factor
-        if self._pending is not None:  # p -> c + f (r p + b - c)
-            r, b = self._pending.similarity
-            self._pending.similarity = (factor * r, factor * b + (1.0 - factor) * c)
+        moves about the newest one's centre by it and its map points scale with it, as does an adjustment
+        under way when it comes back (``Pending.similarity``). Without this the window would keep the old
+        scale and each adjustment would undo the scale stage's corrections."""
+        if factor == 1.0 or not self.entries:
+            return self
+        c = self.entries[-1].T_w_kf[:3, 3].copy()
+        moved = {}
+        for e in self.entries:
+            T = e.T_w_kf.copy()
+            T[:3, 3] = c + factor * (e.T_w_kf[:3, 3] - c)
+            moved[e.key] = dataclasses.replace(e, T_w_kf=T, X_kf=e.X_kf * factor)
+        pending = self.pending
+        if pending is not None:  # p -> c + f (r p + b - c)
+            r, b = pending.similarity
+            pending = dataclasses.replace(pending, entries=tuple(moved.get(e.key, e) for e in pending.entries),
+                                          similarity=(factor * r, factor * b + (1.0 - factor) * c))
+        return dataclasses.replace(self, entries=tuple(moved[e.key] for e in self.entries), pending=pending)
 
     def due(self) -> bool:
         """An adjustment is due: enough keyframes in the window, ``every`` added since the last, and none
         under way (``ba_wait: false`` leaves one pending until its result is back)."""
-        return self.size > 0 and len(self._entries) >= 3 and self._since >= self.every and self._pending is None
+        return self.size > 0 and len(self.entries) >= 3 and self.since >= self.every and self.pending is None
 
-    def submit(self, fx: float, exclude_ids: I64 | None = None) -> bool:
+    def submitted(self, solver: WindowSolver, fx: float, exclude_ids: I64 | None = None) -> tuple[WindowedMap, bool]:
         """Start adjusting the window (False when it cannot be: too few shared tracks). Tracks
-        ``exclude_ids`` (judged to move on their own) are left out. Its result is ``collect``-ed later."""
-        self._since = 0
-        entries = list(self._entries)
-        assert self._bundle is not None and self._solver is not None and self._pending is None
-        window, point_ids = _build(self._bundle, entries, self.sigma_px, fx, exclude_ids)
+        ``exclude_ids`` (judged to move on their own) are left out. Its result is ``collected`` later."""
+        assert self.size > 0 and self.pending is None
+        win = dataclasses.replace(self, since=0)
+        entries = self.entries
+        window, point_ids = _build(importlib.import_module("epi_vo.core.bundle"), entries, self.sigma_px, fx,
+                                   exclude_ids)
         if window is None:
-            return False
+            return win, False
         newest = entries[-1]
-        self._solver.send(window)
-        self._pending = _Pending(entries, point_ids, newest.T_w_kf.copy(),
-                                 None if newest.cov_w is None else newest.cov_w.copy())
-        return True
+        solver.send(window)
+        pending = Pending(entries, point_ids, newest.T_w_kf.copy(),
+                          None if newest.cov_w is None else newest.cov_w.copy())
+        return dataclasses.replace(win, pending=pending), True
 
-    @property
-    def pending(self) -> bool:
-        """An adjustment was submitted and its result not collected yet."""
-        return self._pending is not None
-
-    def collect(self, wait: bool = True) -> WindowUpdate | None:
+    def collected(self, solver: WindowSolver, wait: bool = True) -> tuple[WindowedMap, WindowUpdate | None]:
         """The submitted adjustment's result, applied to the keyframes it adjusted and moving the ones
-        added since (``_carry``); None when none was submitted, the optimiser refused the window, or,
+        added since (``_carried``); None when none was submitted, the optimiser refused the window, or,
         without ``wait``, the result is not back yet (it stays pending: ask again at the next keyframe)."""
-        while self._stale:
-            assert self._solver is not None
-            if not (wait or self._solver.ready()):
-                return None
-            self._solver.receive()
-            self._stale -= 1
-        if self._pending is None:
-            return None
-        assert self._solver is not None
-        if not (wait or self._solver.ready()):
-            return None
-        pending, self._pending = self._pending, None
-        result = self._solver.receive()
+        while solver.in_flight() > (self.pending is not None):  # of adjustments dropped by a clear
+            if not (wait or solver.ready()):
+                return self, None
+            solver.receive()
+        pending = self.pending
+        if pending is None or not (wait or solver.ready()):
+            return self, None
+        win = dataclasses.replace(self, pending=None)
+        result = solver.receive()
         if result is None:
-            return None
-        entries = pending.entries
+            return win, None
         r, b = pending.similarity  # the scale stage's corrections since it was submitted
-        for entry, T in zip(entries, result.T_w_kf, strict=True):
-            entry.T_w_kf = T.copy()
-            entry.T_w_kf[:3, 3] = r * T[:3, 3] + b
+        adjusted = []
+        for entry, T in zip(pending.entries, result.T_w_kf, strict=True):
+            T = T.copy()
+            T[:3, 3] = r * T[:3, 3] + b
+            adjusted.append(dataclasses.replace(entry, T_w_kf=T))
         points_w = r * result.points_w + b
-        newest = entries[-1]
+        newest = adjusted[-1]
         X_kf = newest.X_kf.copy()
         ok, Xw = _adjusted_rows(pending.point_ids, points_w, newest.ids)
         T_kf_w = invert_T(newest.T_w_kf)
         X_kf[ok] = Xw[ok] @ T_kf_w[:3, :3].T + T_kf_w[:3, 3]
-        newest.X_kf = X_kf
         cov = None
-        oldest = entries[0]
+        oldest = adjusted[0]
         if oldest.cov_w is not None and np.all(np.isfinite(result.cov_newest)):
             cov = covm.floored(covm.chain_world(oldest.cov_w, oldest.T_w_kf[:3, 3], newest.T_w_kf[:3, 3],
                                                 result.cov_newest))
             if newest.cov_w is not None:  # no narrower than the keyframe chain's (see WindowUpdate)
                 cov = covm.cover(covm.floored(newest.cov_w), cov)
-            newest.cov_w = cov
+        adjusted[-1] = newest = dataclasses.replace(newest, X_kf=X_kf, cov_w=newest.cov_w if cov is None else cov)
         update = WindowUpdate(newest.T_w_kf.copy(), X_kf, int(np.count_nonzero(np.isfinite(result.points_w[:, 0]))),
-                              len(entries), result.ms, pending.T_w_kf_before, pending.point_ids, points_w,
+                              len(adjusted), result.ms, pending.T_w_kf_before, pending.point_ids, points_w,
                               cov, pending.cov_w_before)
-        self._carry(update, pending.entries)
-        return update
+        return win._carried(update, {e.key: e for e in adjusted}), update
 
-    def _carry(self, update: WindowUpdate, adjusted: list[_Entry]) -> None:
-        """The keyframes added since the adjustment was submitted (a result collected late, ``ba_wait:
-        false``) were made from the adjusted keyframe's old pose: they move with it (``correct``), so the
-        next adjustment starts from poses that agree."""
-        for entry in self._entries:
-            if any(entry is a for a in adjusted):
+    def _carried(self, update: WindowUpdate, adjusted: dict[int, Entry]) -> WindowedMap:
+        """The window with the adjusted keyframes as adjusted, and those added since the adjustment was
+        submitted (a result collected late, ``ba_wait: false``) moved with the adjusted one: they were made
+        from its old pose (``correct``), so the next adjustment starts from poses that agree."""
+        entries = []
+        for entry in self.entries:
+            if entry.key in adjusted:
+                entries.append(adjusted[entry.key])
                 continue
-            T, X, cov = self.correct(update, entry.T_w_kf, entry.ids, entry.X_kf,
-                                     entry.cov_w if entry.cov_w is not None else np.zeros((6, 6)))
-            entry.T_w_kf, entry.X_kf = T, X
-            if entry.cov_w is not None:
-                entry.cov_w = cov
+            T, X, cov = correct(update, entry.T_w_kf, entry.ids, entry.X_kf,
+                                entry.cov_w if entry.cov_w is not None else np.zeros((6, 6)))
+            entries.append(dataclasses.replace(entry, T_w_kf=T, X_kf=X, cov_w=None if entry.cov_w is None else cov))
+        return dataclasses.replace(self, entries=tuple(entries))
 
-    def adjust(self, fx: float, exclude_ids: I64 | None = None) -> WindowUpdate | None:
-        """Adjust the window now (``submit`` and ``collect``); None when it cannot be (too few shared
+    def adjusted(self, solver: WindowSolver, fx: float, exclude_ids: I64 | None = None
+                 ) -> tuple[WindowedMap, WindowUpdate | None]:
+        """Adjust the window now (``submitted`` and ``collected``); None when it cannot be (too few shared
         tracks, the optimiser refused)."""
-        self.collect()
-        return self.collect() if self.submit(fx, exclude_ids) else None
-
-    def correct(self, update: WindowUpdate, T_w_kf: F64, ids: I64 | None, X_kf: F64, cov_w: F64,
-                factor: float = 1.0) -> tuple[F64, F64, F64]:
-        """A keyframe made after the adjusted one (from its pose before the adjustment) moved with it: its
-        pose by the adjusted keyframe's correction, its map points that were adjusted put where the
-        adjustment has them (times ``factor``, the scale stage's correction of this keyframe, not yet in
-        the window: its other points have it), and its covariance with the adjusted keyframe's part
-        replaced by the window's. Returns the pose, the map points (its own frame) and the covariance."""
-        T = update.correction @ T_w_kf
-        T[:3, :3] = nearest_rotation(T[:3, :3])  # the products' rounding would add up keyframe after keyframe
-        X = X_kf.copy()
-        if ids is not None:
-            ok, Xw = _adjusted_rows(update.point_ids, update.points_w, ids)
-            T_kf_w = invert_T(T)
-            X[ok] = (Xw[ok] @ T_kf_w[:3, :3].T + T_kf_w[:3, 3]) * factor
-        cov = cov_w
-        if update.cov_w_kf is not None and update.cov_w_before is not None:
-            cov = covm.floored(cov_w + update.cov_w_kf - update.cov_w_before)
-        return T, X, cov
+        win, _ = self.collected(solver)
+        win, sent = win.submitted(solver, fx, exclude_ids)
+        return win.collected(solver) if sent else (win, None)
 
 
-@dataclass
-class _Pending:
-    entries: list[_Entry]  # the keyframes submitted, oldest first
-    point_ids: I64  # track id of each adjusted point
-    T_w_kf_before: F64  # the newest one's pose when submitted
-    cov_w_before: F64 | None  # and its covariance
-    # (r, b): p -> r p + b, the scale stage's corrections since it was submitted (``WindowedMap._rescale``)
-    similarity: tuple[float, F64] = (1.0, np.zeros(3))
+def correct(update: WindowUpdate, T_w_kf: F64, ids: I64 | None, X_kf: F64, cov_w: F64,
+            factor: float = 1.0) -> tuple[F64, F64, F64]:
+    """A keyframe made after the adjusted one (from its pose before the adjustment) moved with it: its
+    pose by the adjusted keyframe's correction, its map points that were adjusted put where the
+    adjustment has them (times ``factor``, the scale stage's correction of this keyframe, not yet in
+    the window: its other points have it), and its covariance with the adjusted keyframe's part
+    replaced by the window's. Returns the pose, the map points (its own frame) and the covariance."""
+    T = update.correction @ T_w_kf
+    T[:3, :3] = nearest_rotation(T[:3, :3])  # the products' rounding would add up keyframe after keyframe
+    X = X_kf.copy()
+    if ids is not None:
+        ok, Xw = _adjusted_rows(update.point_ids, update.points_w, ids)
+        T_kf_w = invert_T(T)
+        X[ok] = (Xw[ok] @ T_kf_w[:3, :3].T + T_kf_w[:3, 3]) * factor
+    cov = cov_w
+    if update.cov_w_kf is not None and update.cov_w_before is not None:
+        cov = covm.floored(cov_w + update.cov_w_kf - update.cov_w_before)
+    return T, X, cov
 
 
 def _adjusted_rows(point_ids: I64, points_w: F64, ids: I64) -> tuple[NDArray[np.bool_], F64]:
@@ -301,7 +294,7 @@ def _adjusted_rows(point_ids: I64, points_w: F64, ids: I64) -> tuple[NDArray[np.
     return (point_ids[pos] == ids) & np.all(np.isfinite(Xw), axis=1), Xw
 
 
-def _build(bundle_module: ModuleType, entries: list[_Entry], sigma_px: float, fx: float,
+def _build(bundle_module: ModuleType, entries: tuple[Entry, ...], sigma_px: float, fx: float,
            exclude_ids: I64 | None = None) -> tuple[bundle.Window | None, I64]:
     """The bundle window of these keyframes: tracks seen by two or more of them that have a depth
     (except ``exclude_ids``)."""
@@ -343,7 +336,7 @@ def _build(bundle_module: ModuleType, entries: list[_Entry], sigma_px: float, fx
 WHEEL_MIN_SIGMA_M = 0.005  # wheel distance noise floor (encoder resolution, stamp jitter)
 
 
-def _wheel_priors(bundle_module: ModuleType, entries: list[_Entry]) -> tuple[bundle.DistancePrior, ...]:
+def _wheel_priors(bundle_module: ModuleType, entries: tuple[Entry, ...]) -> tuple[bundle.DistancePrior, ...]:
     """The wheel distances between consecutive anchored keyframes, as priors (``wheel_odometry``)."""
     distances = []
     wheel = [(k, e.anchor) for k, e in enumerate(entries) if e.anchor is not None and e.anchor.wheel_xyz is not None]

@@ -52,12 +52,12 @@ from epi_vo.core import covariance as covm
 from epi_vo.core.camera import CameraModelCache
 from epi_vo.core.config import VoConfig, live_advice
 from epi_vo.core.debug_image import draw_matches
+from epi_vo.core.decisions import Decision
 from epi_vo.core.diagnostics import DiagnosticStatusRecord
 from epi_vo.core.errors import CameraModelError, EpiVoError, clipped
 from epi_vo.core.frame import FrameResult
 from epi_vo.core.health import TrackingHealth
 from epi_vo.core.odometry import OdometryConverter, T_base_cam_from_params, status_pose
-from epi_vo.core.pipeline import VoPipeline
 from epi_vo.core.status import frame_status
 from epi_vo.core.transforms import invert_T
 from epi_vo.io import msgconv
@@ -68,6 +68,7 @@ from epi_vo.ros.node_diagnostics import NodeDiagnostics
 from epi_vo.ros.node_params import check_change, declare_all, effective_parameters_text, warn_undeclared_overrides
 from epi_vo.ros.node_run import bgr_image_msg, point_cloud_msg, run_node, stamp_msg, transform_msg
 from epi_vo.ros.node_tf import Extrinsic, ExtrinsicResolver, TransformLookup, make_tf2_lookup, make_tf_broadcaster
+from epi_vo.runner import make_pipeline
 
 __all__ = ["NodeOptions", "VoNode", "main"]
 
@@ -96,7 +97,7 @@ class VoNodeBase(NodeDiagnostics):
         self._entities_before = self._entities()
         self._worker: threading.Thread | None = None
         self._status_name = self.get_fully_qualified_name()
-        self._pipeline = VoPipeline(self.cfg)
+        self._pipeline = make_pipeline(self.cfg)
         for advice in live_advice(self.cfg):
             self.get_logger().warning(advice)
         T_params = T_base_cam_from_params(self.opts.camera_xyz, self.opts.camera_rpy)
@@ -388,7 +389,7 @@ class VoNodeBase(NodeDiagnostics):
         reset, the next frame starts a new map."""
         changed = changed_names(self.cfg, cfg)
         T_w_a, cov_w_a, index = self._last_pose
-        self._pipeline = VoPipeline(cfg)
+        self._pipeline = make_pipeline(cfg)
         if self._extrinsic is not None:
             self._pipeline.set_mounting(self._extrinsic.T_base_cam)
         for advice in live_advice(cfg):
@@ -462,7 +463,7 @@ class VoNodeBase(NodeDiagnostics):
             self.get_logger().warning(f"{result.reason} ({stamp * 1e-9:.6f} s)", throttle_duration_sec=5.0)
             self._publish_frame(result)
             return
-        if "time jumped backwards" in result.reason:
+        if Decision.TIME_JUMPED_BACK in result.decisions:
             self.get_logger().warning(result.reason)
             self._converter.reset_twist()
         self._publish(result, stamp_msg(result.stamp_ns), gray)

@@ -18,7 +18,7 @@ solutions: its rotation and direction columns say nothing there) but the distanc
 ground truth, with less sensitivity: 0.4 deg of ground-truth error over 4 frames adds 0.5 px there,
 2-3 px in a general scene.
 
-Found with it (2026-11-27): the KITTI clip's ground truth contradicts its images over its first 12
+Found with it: the KITTI clip's ground truth contradicts its images over its first 12
 frames (median Sampson distance 0.9-2.5 px under the ground truth against 0.10-0.15 px under the images'
 own pose; relative rotations 0.3-0.5 deg apart over 4 frames), and agrees from frame 12 on (0.13-0.36 px
 against 0.09-0.21 px).

@@ -41,9 +41,10 @@ from epi_vo.core.debug_image import mover_mask
 from epi_vo.core.errors import BagError, OutputError
 from epi_vo.core.frame import FrameResult, Model
 from epi_vo.core.geometry import CHI2_1DOF, CHI2_2DOF, epipolar_distances_sq, homogeneous, transfer_errors_sq
-from epi_vo.core.pipeline import VoPipeline, downscale
+from epi_vo.core.pipeline import downscale
 from epi_vo.io import bagio, checks
 from epi_vo.io.params import load_config
+from epi_vo.runner import make_pipeline
 from epi_vo.tools.replay import process_frame
 
 F64 = NDArray[np.float64]
@@ -258,7 +259,7 @@ def inspect_bag(bag_path: str | Path, frame: int | None = None, *, stamp_s: floa
     if (frame is None) == (stamp_s is None):
         raise ValueError("give exactly one of frame and stamp_s")
     cfg = cfg or VoConfig()
-    pipeline = VoPipeline(cfg)
+    pipeline = make_pipeline(cfg)
     with bagio.open_camera_bag(bag_path, image_topic, camera_info_topic) as bag:
         count = bag.frame_count
         if stamp_s is not None:  # a first pass over the stamps: the pipeline must stop at the chosen frame

@@ -44,6 +44,7 @@ from epi_vo.io import bag_topics, bagio, outbag, tum
 from epi_vo.io.msgconv import decode_frame
 from epi_vo.io.paths import check_bag_path, refuse_special_file
 from epi_vo.io.wheel_feed import WheelFeed
+from epi_vo.runner import make_pipeline
 from epi_vo.tools.consistency import OdometryLog, consistency_metrics, format_consistency
 from epi_vo.tools.json_check import fields_problem
 from epi_vo.tools.replay_outputs import (
@@ -265,7 +266,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     check_outputs_clear([bag_path, gt_tum, *inputs], output_paths(Path(output_dir)))
     out = ensure_output_dir(output_dir)
     remove_stats(out)  # stats.json is written last: without it the directory holds no finished replay
-    pipeline = VoPipeline(cfg)
+    pipeline = make_pipeline(cfg)
     converter = OdometryConverter(continuous=bool(map_frame_id))
     cameras = CameraModelCache()
     results_pose: list[tuple[float, np.ndarray, np.ndarray]] = []

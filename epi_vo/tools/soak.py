@@ -30,10 +30,10 @@ from epi_vo.core.camera import CameraModel
 from epi_vo.core.config import VoConfig
 from epi_vo.core.errors import BagError
 from epi_vo.core.odometry import OdometryConverter, status_pose
-from epi_vo.core.pipeline import VoPipeline
 from epi_vo.core.status import frame_status
 from epi_vo.io import bagio, checks
 from epi_vo.io.msgconv import decode_frame
+from epi_vo.runner import make_pipeline
 
 DEFAULT_BAG = Path(__file__).resolve().parents[2] / "bags" / "general_motion" / "bag"
 
@@ -123,7 +123,7 @@ def run_soak(n_frames: int, frames: SoakFrames | None = None, cfg: VoConfig | No
         msg = f"a soak of {n_frames} frames needs more than the {warmup} warm-up frames"
         raise ValueError(msg)
     frames = frames or load_frames()
-    pipeline = VoPipeline(cfg or VoConfig())
+    pipeline = make_pipeline(cfg or VoConfig())
     converter = OdometryConverter()
     states: Counter[str] = Counter()
     n_pose = 0

@@ -21,6 +21,7 @@ from hypothesis import strategies as st
 
 from epi_vo.core.camera import CameraModel
 from epi_vo.core.config import VoConfig, allowed_range, config_fields, validate
+from epi_vo.core.decisions import Decision
 from epi_vo.core.errors import ConfigError
 from epi_vo.core.odometry import OdometryConverter
 from epi_vo.core.pipeline import VoPipeline
@@ -32,7 +33,9 @@ FIELDS = {f.name: f for f in config_fields()}
 # Where the value of a knob is used: the scale source it needs to be exercised.
 SOURCE_OF = {"camera_height_rel_sigma": "ground_plane", "ground_max_tilt_deg": "ground_plane",
              "ground_inlier_ratio": "ground_plane", "ground_min_points": "ground_plane",
-             "wheel_odometry_rel_sigma": "wheel_odometry", "wheel_odometry_timeout_s": "wheel_odometry"}
+             "wheel_odometry_rel_sigma": "wheel_odometry", "wheel_odometry_timeout_s": "wheel_odometry",
+             "wheel_odometry_noise_m": "wheel_odometry", "wheel_odometry_window_m": "wheel_odometry",
+             "ground_fit_min_rel_sigma": "ground_plane"}
 METRIC = {"ground_plane": {"scale_source": "ground_plane", "camera_height_m": 0.45},
           "wheel_odometry": {"scale_source": "wheel_odometry", "wheel_odometry_topic": "/wheel/odom"},
           "none": {"scale_source": "none"}}
@@ -80,7 +83,8 @@ def _run(cfg: VoConfig, seq: Sequence) -> None:
             arrays.append(r.step_covariance)
         assert all(np.all(np.isfinite(a)) for a in arrays), (r.index, r.reason)
         assert math.isfinite(r.scale.scale) and not math.isinf(r.scale.rel_std)
-        assert "OpenCV could not process" not in r.reason and "internal" not in r.reason, r.reason
+        defects = {Decision.OPENCV_FAILED, Decision.POSE_NOT_FINITE, Decision.COVARIANCE_NOT_FINITE}
+        assert not defects & set(r.decisions), r.reason
 
 
 def _ends(name: str) -> list[Any]:

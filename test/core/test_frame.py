@@ -14,7 +14,6 @@ from epi_vo.core.frame import (
     MAX_STAMP_NS,
     STAT_FIELDS,
     FrameResult,
-    FrameStats,
     Matches,
     Model,
     TrackingState,
@@ -131,14 +130,3 @@ def test_stamp_seconds_never_rounds_above_the_stamp() -> None:
     assert s < 2**31  # ns * 1e-9 would round up to 2**31 s, which is no ROS time
     assert 2**31 - s < 1e-6
     assert stamp_seconds(0) == 0.0 and stamp_seconds(1_500_000_000) == 1.5
-
-
-def test_frame_stats_start_unmeasured() -> None:
-    st = FrameStats()
-    assert st.model is Model.NONE and st.n_inliers == 0 and st.reasons == []
-    for name in ("rh", "median_parallax_deg", "positive_depth_ratio", "median_reproj_err_px", "relative_scale"):
-        assert math.isnan(getattr(st, name)), name
-    assert st.points_w.shape == (0, 3) and st.matches.inliers.shape == (0,)
-    other = FrameStats()
-    other.reasons.append("x")
-    assert st.reasons == []  # no shared mutable default

@@ -27,12 +27,11 @@ def test_a_bounded_motion_is_spread_over_its_bound() -> None:
 def test_the_handover_grows_with_the_gap_and_the_platform() -> None:
     cfg = dataclasses.replace(VoConfig(), max_speed_mps=1.0, max_accel_mps2=0.5, max_turn_rate_deg_s=30.0,
                               max_turn_accel_deg_s2=20.0)
-    h = Handover(cfg)
+    h = Handover.from_config(cfg)
     assert h.covariance(10**9, metric=True) is None  # no pose with a map yet
     cov0 = np.diag([1e-4] * 3 + [1e-6] * 3)
     T1 = make_T(np.eye(3), np.array([0.0, 0.0, 0.04]))
-    h.book(0, np.eye(4), cov0)
-    h.book(100_000_000, T1, cov0)  # 0.4 m/s straight ahead
+    h = h.booked(0, np.eye(4), cov0).booked(100_000_000, T1, cov0)  # 0.4 m/s straight ahead
     metric = [h.covariance(100_000_000 + int(gap * 1e9), metric=True) for gap in (0.1, 1.0, 4.0)]
     assert all(c is not None for c in metric)
     pos = [float(c[0, 0] - 1e-4) for c in metric if c is not None]

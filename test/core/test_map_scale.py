@@ -14,19 +14,19 @@ from epi_vo.core.map_scale import DirectionOffset, MapScaleCovariance
 
 
 def _established_floor(rel_std: float) -> sc.GroundPlaneScale:
-    src = sc.GroundPlaneScale(1.0, 0.01, max_tilt_deg=35.0, inlier_ratio=0.04, min_points=8)
-    src.filter.var = rel_std**2  # established: a finite variance
+    src = sc.GroundPlaneScale(filter=sc.ScaleFilter(0.01, var=rel_std**2), camera_height_m=1.0, max_tilt_deg=35.0,
+                              inlier_ratio=0.04, min_points=8)  # established: a finite variance
     assert src.established
     return src
 
 
 def test_a_metric_scale_error_lengthens_the_step_and_does_not_turn_it() -> None:
     """Monte Carlo: steps scaled by (1 + s), s ~ N(0, rel_std): the sample covariance of the position error
-    is the term's, along the step; nothing across it (the isotropic term before 2026-11-27 claimed the
-    same variance across the step as well)."""
+    is the term's, along the step; nothing across it (an isotropic term would claim the same variance across
+    the step as well)."""
     rel = 0.02
     d = np.array([0.3, -0.1, 1.2])
-    cov = MapScaleCovariance(0.01).keyframe_cov(_established_floor(rel), False, d)
+    _, cov = MapScaleCovariance(0.01).keyframe_cov(_established_floor(rel), False, d)
     s = np.random.default_rng(3).normal(0.0, rel, 20000)
     errors = s[:, None] * d[None, :]
     np.testing.assert_allclose(np.cov(errors.T), cov, atol=0.03 * rel**2 * d @ d)
@@ -56,7 +56,7 @@ def test_the_direction_offset_predicts_the_spread_of_a_constant_turn_of_every_st
     Rs, cs = _path()
     off = DirectionOffset(sigma_px)
     for R, c in zip(Rs[:-1], cs[:-1], strict=True):
-        off.add_step(R @ c, R, fx)
+        off = off.with_step(R @ c, R, fx)
     half = 0.5 * Rs[-1] @ cs[-1]
     predicted = off.cov(half, Rs[-1], fx)
     rng = np.random.default_rng(11)
@@ -78,11 +78,11 @@ def test_the_direction_offset_follows_the_paths_rescaling_and_stays_finite() -> 
     Rs, cs = _path(5)
     off = DirectionOffset(1.0)
     for R, c in zip(Rs, cs, strict=True):
-        off.add_step(R @ c, R, 700.0)
+        off = off.with_step(R @ c, R, 700.0)
     before = off.cov(np.zeros(3), Rs[-1], 700.0)
-    off.rescale(1.5)
+    off = off.rescaled(1.5)
     np.testing.assert_allclose(off.cov(np.zeros(3), Rs[-1], 700.0), 2.25 * before)
-    off.add_step(np.array([np.nan, 0.0, 1.0]), Rs[-1], 700.0)  # a defect upstream: not taken
+    off = off.with_step(np.array([np.nan, 0.0, 1.0]), Rs[-1], 700.0)  # a defect upstream: not taken
     np.testing.assert_allclose(off.cov(np.full(3, np.inf), Rs[-1], 700.0), 2.25 * before)
 
 
@@ -112,3 +112,19 @@ def test_a_principal_point_off_by_dx_turns_the_direction_of_travel_by_dx_over_fx
     assert abs(c_est[1] / c_est[2]) < 0.1 * dx / fx  # not about the x axis
     rot_err = np.linalg.norm(Rotation.from_matrix(R_est @ R.T).as_rotvec())
     assert rot_err < 0.2 * dx / fx
+
+
+def test_a_keyframe_step_returns_the_map_scale_after_it_and_leaves_the_one_before() -> None:
+    """Frozen: asking twice from the same value gives the same answer; the VO-units scale variance grows by
+    the drift per keyframe and its covariance with the position by the step."""
+    q = 0.01**2
+    vo = sc.VoUnitsScale(filter=sc.ScaleFilter(0.01))
+    d = np.array([0.0, 0.0, 1.0])
+    m, first = MapScaleCovariance(0.01).keyframe_cov(vo, True, d)  # a new map: its baseline is the unit
+    assert np.all(first == 0.0) and m.var == q
+    after, cov = m.keyframe_cov(vo, False, d)
+    again, cov_again = m.keyframe_cov(vo, False, d)
+    assert m.var == q and np.array_equal(m.cov_ps, d * q)  # unchanged
+    np.testing.assert_array_equal(cov, cov_again)
+    assert after.var == again.var == 2 * q and np.array_equal(after.cov_ps, 2 * q * d)
+    np.testing.assert_allclose(cov, 3 * q * np.outer(d, d))  # d d^T var_s + c d^T + d c^T

@@ -15,10 +15,11 @@ import pytest
 from epi_vo.core import geometry as geo
 from epi_vo.core.camera import CameraModel
 from epi_vo.core.config import VoConfig
-from epi_vo.core.frame import FrameStats, TrackingState
+from epi_vo.core.frame import TrackingState
 from epi_vo.core.keyframe import Keyframe
-from epi_vo.core.mapping import keyframe_map
+from epi_vo.core.mapping import KeyframeMap, keyframe_map
 from epi_vo.core.motion import Motion
+from epi_vo.core.reasons import sentence
 
 CFG = VoConfig()
 KF_STAMP_NS = 5_000_000_000
@@ -42,22 +43,40 @@ def _truth(scene: Any, state: TrackingState = TrackingState.TRACKING, inliers: n
     return Motion(state, np.array(scene.R_cur_ref), t, np.eye(6) * 1e-4, inl, new_map)
 
 
-def _stats(motion: Motion, scene: Any, kf: Keyframe, rows: np.ndarray, xn_cur: np.ndarray) -> FrameStats:
-    """What the motion stage measured: inliers and their median parallax under the motion's rotation."""
-    st = FrameStats(stamp_ns=STAMP_NS)
-    st.n_tracked = int(rows.shape[0])
-    st.n_inliers = int(np.count_nonzero(motion.inliers))
-    par = geo.parallax_deg(motion.R_cur_kf, kf.xn[rows][motion.inliers], xn_cur[motion.inliers])
-    st.median_parallax_deg = float(np.median(par))
-    return st
+@dataclasses.dataclass(frozen=True)
+class _Seen:
+    """What the motion stage measured (inliers, their median parallax under the motion's rotation) and what
+    the mapping stage returned."""
+
+    n_inliers: int
+    median_parallax_deg: float
+    mapped: KeyframeMap
+
+    @property
+    def n_triangulated(self) -> int:
+        return self.mapped.n_triangulated
+
+    @property
+    def positive_depth_ratio(self) -> float:
+        return self.mapped.positive_depth_ratio
+
+    @property
+    def median_reproj_err_px(self) -> float:
+        return self.mapped.median_reproj_err_px
+
+    @property
+    def reasons(self) -> list[str]:
+        return [sentence(n) for n in self.mapped.notes]
 
 
 def _run(scene: Any, motion: Motion, kf: Keyframe, rows: np.ndarray | None = None, cfg: VoConfig = CFG,
-         stamp_ns: int = STAMP_NS) -> tuple[np.ndarray | None, FrameStats]:
+         stamp_ns: int = STAMP_NS) -> tuple[np.ndarray | None, _Seen]:
     rows = np.arange(scene.n, dtype=np.int64) if rows is None else rows
     xn_cur = kf.camera.normalize(np.asarray(scene.uv_cur_obs)[rows])
-    st = _stats(motion, scene, kf, rows, xn_cur)
-    return keyframe_map(cfg, motion, kf, rows, xn_cur, stamp_ns, st), st
+    n_inliers = int(np.count_nonzero(motion.inliers))
+    par = geo.parallax_deg(motion.R_cur_kf, kf.xn[rows][motion.inliers], xn_cur[motion.inliers])
+    mapped = keyframe_map(cfg, motion, kf, rows, xn_cur, stamp_ns, n_inliers, float(np.median(par)))
+    return mapped.X_cur, _Seen(n_inliers, float(np.median(par)), mapped)
 
 
 def _rel_err(X: np.ndarray, X_true: np.ndarray) -> np.ndarray:

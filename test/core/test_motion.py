@@ -19,10 +19,22 @@ import pytest
 from epi_vo.core import geometry as geo
 from epi_vo.core.camera import CameraModel
 from epi_vo.core.config import VoConfig
-from epi_vo.core.frame import FrameStats, Model, TrackingState
+from epi_vo.core.decisions import Decision
+from epi_vo.core.frame import Model, TrackingState
 from epi_vo.core.keyframe import Keyframe
-from epi_vo.core.motion import PLANE_MAX_WAIT, Motion, MotionContext, MotionStage, is_finite
-from epi_vo.core.scale import VoUnitsScale
+from epi_vo.core.motion import (
+    PLANE_MAX_WAIT,
+    Motion,
+    MotionContext,
+    MotionEstimate,
+    MotionMemory,
+    estimate,
+    has_map,
+    is_finite,
+)
+from epi_vo.core.motion.map_check import map_disagrees
+from epi_vo.core.reasons import sentence
+from epi_vo.core.scale import ScaleFilter, VoUnitsScale
 from epi_vo.core.selection import select_model
 from epi_vo.core.transforms import rotation_angle_deg
 
@@ -51,12 +63,27 @@ def _true_map(scene: Any) -> np.ndarray:
     return np.array(scene.X_ref) * MAP_SCALE
 
 
+class _Stage:
+    """The motion stage's memory carried from one frame to the next, as the tracking state carries it."""
+
+    def __init__(self) -> None:
+        self.memory = MotionMemory()
+
+
+def _reasons(est: MotionEstimate) -> list[str]:
+    return [sentence(n) for n in est.notes]
+
+
+def _decisions(est: MotionEstimate) -> list[Decision]:
+    return [n.decision for n in est.notes]
+
+
 def _estimate(scene: Any, X_kf: np.ndarray, cfg: VoConfig = CFG, baseline: float = 1.0,
-              T_prev: np.ndarray | None = None, stage: MotionStage | None = None, cam: CameraModel | None = None
-              ) -> tuple[Motion | None, FrameStats, list[float]]:
+              T_prev: np.ndarray | None = None, stage: _Stage | None = None, cam: CameraModel | None = None
+              ) -> tuple[Motion | None, MotionEstimate, list[float]]:
     """Run selection and the motion stage as the pipeline does; also return the dt the scale stage was
-    asked for. ``stage``: a motion stage that saw earlier frames against the same keyframe; ``cam``: the
-    calibration the pipeline has (default: the scene's true one)."""
+    asked for. ``stage``: the memory of earlier frames against the same keyframe; ``cam``: the calibration
+    the pipeline has (default: the scene's true one)."""
     kf = _keyframe(scene, X_kf, cam)
     cam = kf.camera
     xn_cur = cam.normalize(scene.uv_cur_obs)
@@ -67,11 +94,12 @@ def _estimate(scene: Any, X_kf: np.ndarray, cfg: VoConfig = CFG, baseline: float
         return baseline
 
     ctx = MotionContext(kf, np.arange(scene.n, dtype=np.int64), xn_cur, cam.to_pixels(xn_cur),
-                        np.eye(4) if T_prev is None else T_prev, initial_baseline)
+                        np.eye(4) if T_prev is None else T_prev, initial_baseline, stamp_ns=KF_STAMP_NS + DT_NS)
     sel = select_model(kf.uv, ctx.uv_cur, cam.K, cfg)
-    st = FrameStats(stamp_ns=KF_STAMP_NS + DT_NS)
-    st.rh = sel.rh
-    return (stage or MotionStage(cfg)).estimate(ctx, sel, st), st, asked
+    est = estimate(cfg, ctx, sel, stage.memory if stage is not None else MotionMemory())
+    if stage is not None:
+        stage.memory = est.memory
+    return est.motion, est, asked
 
 
 def _rot_err_deg(m: Motion, scene: Any) -> float:
@@ -121,15 +149,14 @@ def test_no_map_with_parallax_initialises_the_map(general_scene, baseline: float
     across = np.linalg.eigvalsh(Q @ P @ Q)[1:]  # the two directions across the baseline
     assert np.all(across > 0) and np.all(np.sqrt(across) < 0.03 * baseline)
     assert np.all(np.diag(m.cov_rel[3:, 3:]) > 0) and np.all(np.sqrt(np.diag(m.cov_rel[3:, 3:])) < math.radians(0.3))
-    assert any(r.startswith("map initialized from essential matrix") for r in st.reasons)
+    assert Decision.MAP_FROM_ESSENTIAL in _decisions(st)
     assert math.isnan(st.relative_scale)
 
 
 def test_initialisation_asks_the_scale_stage_for_the_baseline(general_scene) -> None:
     # With VoUnitsScale after a keyframe at 3 units/s, the first baseline 0.1 s later is 0.3 units.
     s = general_scene
-    scale = VoUnitsScale()
-    scale.on_keyframe(1.5, 0.5)
+    scale = VoUnitsScale(filter=ScaleFilter(0.01)).on_keyframe(1.5, 0.5)
     m, _, _ = _estimate(s, _no_map(s), baseline=scale.initial_baseline(DT_NS * 1e-9))
     assert m is not None and m.new_map is not None
     assert np.linalg.norm(m.t_cur_kf) == pytest.approx(0.3)
@@ -144,7 +171,7 @@ def test_planar_scene_without_map_initialises_from_the_homography(planar_scene) 
     assert np.linalg.norm(m.t_cur_kf) == pytest.approx(1.0)
     assert _rot_err_deg(m, s) < 0.2
     assert _dir_err_deg(m.t_cur_kf, s.t_cur_ref) < 1.5
-    assert any("homography (planar scene)" in r for r in st.reasons)
+    assert Decision.MAP_FROM_HOMOGRAPHY in _decisions(st)
     # The map points lie on the scene's plane n . X = d (d in the new map's units).
     d = s.plane_d / np.linalg.norm(s.t_cur_ref)
     X = m.new_map.X_ref[m.new_map.good]
@@ -161,7 +188,7 @@ def test_not_enough_parallax_holds_the_position(general_scene) -> None:
     np.testing.assert_array_equal(m.t_cur_kf, 0.0)
     assert _rot_err_deg(m, s) < 0.1  # the rotation is still estimated
     assert asked == []
-    assert any(r.startswith("low parallax (3.") and "waiting for baseline, position held" in r for r in st.reasons)
+    assert any(r.startswith("low parallax (3.") and "waiting for baseline, position held" in r for r in _reasons(st))
 
 
 def test_initialisation_refused_when_too_few_points_pass_the_gates(general_scene) -> None:
@@ -171,7 +198,7 @@ def test_initialisation_refused_when_too_few_points_pass_the_gates(general_scene
     assert m is not None and m.state is TrackingState.INITIALIZING and m.new_map is None
     np.testing.assert_array_equal(m.t_cur_kf, 0.0)
     assert st.n_triangulated == 0
-    assert any("initialization rejected: 0 points pass the triangulation gates" in r for r in st.reasons)
+    assert [n["n"] for n in st.notes if n.decision is Decision.INIT_REJECTED_GATES] == [0]
 
 
 # --- (b) with a map: translation in map units --------------------------------------------------
@@ -208,7 +235,7 @@ def test_planar_scene_with_a_map_tracks_on_the_map_points(planar_scene) -> None:
     m, st, _ = _estimate(s, _true_map(s), cfg)
     assert m is not None and m.state is TrackingState.TRACKING and st.model is Model.HOMOGRAPHY
     _check_planar_pose(m, s)
-    assert any(r.startswith("planar or low-parallax view") for r in st.reasons)
+    assert Decision.POSE_FROM_MAP_POINTS in _decisions(st)
 
 
 def _check_planar_pose(m: Motion, s: Any) -> None:
@@ -226,9 +253,9 @@ def test_plane_with_parallax_and_a_map_takes_e_checked_against_the_map(planar_sc
     m, st, _ = _estimate(s, _true_map(s))
     assert m is not None and m.state is TrackingState.TRACKING and st.model is Model.ESSENTIAL
     _check_planar_pose(m, s)
-    assert any(r.startswith("plane-dominated view (RH") for r in st.reasons)
+    assert Decision.PLANE_E_WITH_PARALLAX in _decisions(st)
     assert m.moving is None or not np.any(m.moving)
-    took_map = [r for r in st.reasons if r.startswith("E disagrees with the map's points")]
+    took_map = [r for r in _reasons(st) if r.startswith("E disagrees with the map's points")]
     assert all("E took the plane's other solution?" in r for r in took_map)
 
 
@@ -244,7 +271,7 @@ def test_rotation_scene_is_rotation_only_with_zero_translation(rotation_scene, w
     assert _rot_err_deg(m, s) < 0.1
     assert st.median_parallax_deg < CFG.rotation_only_parallax_deg
     assert asked == []
-    assert any(r.startswith("pure rotation: homography explains the motion") for r in st.reasons)
+    assert Decision.PURE_ROTATION in _decisions(st)
 
 
 @pytest.mark.parametrize("focal_scale", [0.9, 1.1, 0.95, 1.2])
@@ -266,7 +293,7 @@ def test_a_rotation_seen_through_a_wrong_focal_length_is_rotation_only_and_says_
     assert _rot_err_deg(m, s) < 0.1  # the rotation under the focal length H says
     assert asked == []
     assert st.focal_ratio == pytest.approx(1.0 / focal_scale, rel=0.015)
-    (reason,) = [r for r in st.reasons if r.startswith("pure rotation if the focal length were")]
+    (reason,) = [r for r in _reasons(st) if r.startswith("pure rotation if the focal length were")]
     assert f"{st.focal_ratio:.3f} x the calibration's" in reason and "check the camera calibration" in reason
     assert reason.endswith("position held")
     # The rotation's variance carries the focal length's 1 %: about 1 % of the 4.7 deg rotation, per axis.
@@ -275,7 +302,7 @@ def test_a_rotation_seen_through_a_wrong_focal_length_is_rotation_only_and_says_
     assert m is not None and m.state is TrackingState.TRACKING
     assert st.focal_ratio == pytest.approx(1.0 / focal_scale, rel=0.015)
     assert any(r.startswith("pure rotation if the focal length were") and r.endswith("pose from the map")
-               for r in st.reasons)
+               for r in _reasons(st))
 
 
 def _rotation_by(deg: float, seed: int = 5) -> SimpleNamespace:
@@ -312,8 +339,8 @@ def test_a_rotation_within_the_calibrations_tolerance_is_a_rotation_without_blam
         np.testing.assert_array_equal(m.t_cur_kf, 0.0)
         assert _rot_err_deg(m, s) < 0.1
         assert math.isnan(st.focal_ratio)
-        assert st.reasons[0].startswith("pure rotation: homography explains the motion under a focal length")
-        assert not any("calibration" in r and "check" in r for r in st.reasons)
+        assert _reasons(st)[0].startswith("pure rotation: homography explains the motion under a focal length")
+        assert not any("calibration" in r and "check" in r for r in _reasons(st))
         m, st, _ = _estimate(s, _true_map(s), cam=cam)
         assert m is not None and m.state is TrackingState.TRACKING
 
@@ -330,13 +357,13 @@ def test_once_a_focal_length_was_named_later_frames_agreeing_with_it_name_it_clo
 
     m, fresh, _ = _estimate(s, _no_map(s), cam=cam(0.97))
     assert m is not None and m.state is TrackingState.ROTATION_ONLY and math.isnan(fresh.focal_ratio)
-    stage = MotionStage(CFG)
+    stage = _Stage()
     _, first, _ = _estimate(s, _no_map(s), cam=cam(0.965), stage=stage)
     assert first.focal_ratio == pytest.approx(1.0 / 0.965, rel=0.01)
     m, later, _ = _estimate(s, _no_map(s), cam=cam(0.97), stage=stage)
     assert m is not None and m.state is TrackingState.ROTATION_ONLY
     assert later.focal_ratio == pytest.approx(1.0 / 0.97, rel=0.01) and abs(later.focal_ratio - 1.0) < 0.03
-    assert "check the camera calibration" in later.reasons[0]
+    assert "check the camera calibration" in _reasons(later)[0]
 
 
 def test_a_turn_about_a_point_off_the_camera_before_a_wall_waits_without_a_map_and_tracks_with_one() -> None:
@@ -361,7 +388,7 @@ def test_a_turn_about_a_point_off_the_camera_before_a_wall_waits_without_a_map_a
     assert m is not None and m.state is TrackingState.ROTATION_ONLY
     np.testing.assert_array_equal(m.t_cur_kf, 0.0)
     assert st.focal_ratio == pytest.approx(math.sqrt(1.0 + 0.3 / 2.0), rel=0.02)
-    assert any("or a wall-like plane seen while turning about a point off the camera" in r for r in st.reasons)
+    assert any("or a wall-like plane seen while turning about a point off the camera" in r for r in _reasons(st))
     m, st, _ = _estimate(scene, _true_map(scene))
     assert m is not None and m.state is TrackingState.TRACKING
     assert _rot_err_deg(m, scene) < 0.1
@@ -381,7 +408,7 @@ def test_a_translating_camera_is_not_taken_for_a_rotation_under_another_focal_le
         for X_kf in (_no_map(s), _true_map(s)):
             m, st, _ = _estimate(s, X_kf, cam=CameraModel.create(640, 480, K_wrong, []))
             assert m is not None and m.state is not TrackingState.ROTATION_ONLY
-            assert not any("focal length" in r for r in st.reasons)
+            assert not any("focal length" in r for r in _reasons(st))
 
 
 # --- (d) refusals say why -------------------------------------------------------------------------
@@ -391,8 +418,9 @@ def test_too_few_inliers_refuses_with_the_reason(general_scene) -> None:
     m, st, _ = _estimate(s, _no_map(s), cfg)
     assert m is None
     assert st.model is Model.ESSENTIAL and st.n_inliers == s.n
-    assert st.reasons == [f"too few inliers after cheirality ({s.n} < {s.n + 1}, RH {st.rh:.2f})"]
-    assert "pose" in st.timings
+    assert _decisions(st) == [Decision.TOO_FEW_E_INLIERS] and st.notes[0]["n"] == s.n
+    assert _reasons(st)[0].startswith(f"too few inliers after cheirality ({s.n} < {s.n + 1}, RH ")
+    assert st.ms > 0.0
 
 
 def test_too_few_homography_inliers_refuses_with_the_reason(rotation_scene) -> None:
@@ -400,7 +428,7 @@ def test_too_few_homography_inliers_refuses_with_the_reason(rotation_scene) -> N
     cfg = dataclasses.replace(CFG, min_inliers=s.n + 1)
     m, st, _ = _estimate(s, _no_map(s), cfg)
     assert m is None
-    assert st.reasons == [f"too few homography inliers ({s.n} < {s.n + 1})"]
+    assert _reasons(st) == [f"too few homography inliers ({s.n} < {s.n + 1})"]
 
 
 def test_outlier_rich_small_scene_refuses(two_view_scene) -> None:
@@ -409,7 +437,7 @@ def test_outlier_rich_small_scene_refuses(two_view_scene) -> None:
     m, st, _ = _estimate(s, _no_map(s))
     assert m is None
     assert st.model is Model.ESSENTIAL and st.n_inliers < CFG.min_inliers
-    assert st.reasons == [f"too few inliers after cheirality ({st.n_inliers} < {CFG.min_inliers}, RH {st.rh:.2f})"]
+    assert _decisions(st) == [Decision.TOO_FEW_E_INLIERS] and st.notes[0]["n"] == st.n_inliers
 
 
 def test_no_model_refuses_with_the_reason(general_scene) -> None:
@@ -418,9 +446,9 @@ def test_no_model_refuses_with_the_reason(general_scene) -> None:
     xn = kf.camera.normalize(s.uv_cur_obs[:3])
     ctx = MotionContext(kf, np.arange(3, dtype=np.int64), xn, kf.camera.to_pixels(xn), np.eye(4), lambda dt: 1.0)
     sel = select_model(kf.uv[:3], ctx.uv_cur, kf.camera.K, CFG)
-    st = FrameStats(stamp_ns=KF_STAMP_NS + DT_NS)
-    assert MotionStage(CFG).estimate(ctx, sel, st) is None
-    assert st.reasons == ["no two-view model could be estimated"] and st.model is Model.NONE
+    st = estimate(CFG, ctx, sel, MotionMemory())
+    assert st.motion is None
+    assert _reasons(st) == ["no two-view model could be estimated"] and st.model is Model.NONE
 
 
 def test_a_map_whose_points_are_all_outliers_cannot_carry_the_scale(general_scene_outliers) -> None:
@@ -432,7 +460,7 @@ def test_a_map_whose_points_are_all_outliers_cannot_carry_the_scale(general_scen
     assert m is None
     # E's consensus holds none of them: the map's points are tried on their own, and agree on nothing.
     n_out = int(np.count_nonzero(s.is_outlier))
-    assert st.reasons == ["E's inliers hold almost none of the map's points (a moving object took its consensus?): "
+    assert _reasons(st) == ["E's inliers hold almost none of the map's points (a moving object took its consensus?): "
                           "pose from the map", f"too few map points to carry the scale ({n_out})"]
 
 
@@ -440,10 +468,9 @@ def test_has_map_needs_min_scale_points(general_scene) -> None:
     s = general_scene
     X = _no_map(s)
     X[: CFG.min_scale_points - 1] = s.X_ref[: CFG.min_scale_points - 1]
-    stage = MotionStage(CFG)
-    assert not stage.has_map(_keyframe(s, X))
+    assert not has_map(CFG, _keyframe(s, X))
     X[CFG.min_scale_points - 1] = s.X_ref[CFG.min_scale_points - 1]
-    assert stage.has_map(_keyframe(s, X))
+    assert has_map(CFG, _keyframe(s, X))
 
 
 def test_is_finite_guards_the_motion() -> None:
@@ -517,7 +544,7 @@ def test_static_camera_with_a_mover_holds_its_pose_and_says_what_moved(general_s
     assert st.static_score == pytest.approx(1 - mover.mean(), abs=0.02)
     x0, _, x1, _ = st.moving_region
     assert x0 >= 430 and x1 <= 640 + 14
-    assert any(r.startswith("camera static:") and "another object's motion, ignored" in r for r in st.reasons)
+    assert any(r.startswith("camera static:") and "another object's motion, ignored" in r for r in _reasons(st))
 
 
 @pytest.mark.parametrize("scene_name", ["general_scene", "rotation_scene"])
@@ -571,20 +598,18 @@ def test_grid_spread_counts_the_occupied_cells_the_mask_reaches() -> None:
 def test_e_agreeing_with_the_map_needs_no_pose_of_its_own(general_scene, monkeypatch: pytest.MonkeyPatch) -> None:
     """A clean scene: E's pose with the map's scale puts the map points where they are seen, so the
     map's own pose (a PnP refinement) is not computed for the check; E's pose is taken."""
-    import epi_vo.core.motion as motion_module
-
     calls: list[int] = []
-    real = motion_module.geo.refine_pose_pnp
+    real = geo.refine_pose_pnp
 
     def counting(*args: Any, **kwargs: Any) -> Any:
         calls.append(1)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(motion_module.geo, "refine_pose_pnp", counting)
+    monkeypatch.setattr(geo, "refine_pose_pnp", counting)
     m, st, _ = _estimate(general_scene, _true_map(general_scene))
     assert m is not None and m.state is TrackingState.TRACKING and st.model is Model.ESSENTIAL
     assert calls == [] and m.moving is None
-    assert not any("disagrees" in r for r in st.reasons)
+    assert Decision.E_DISAGREES_WITH_MAP not in _decisions(st)
 
 
 def test_a_map_fit_holding_fewer_points_than_e_does_not_overrule_e(general_scene,
@@ -595,8 +620,6 @@ def test_a_map_fit_holding_fewer_points_than_e_does_not_overrule_e(general_scene
     within 2 px; the map overruled E, 95 features were called movers and the rotation error grew to
     1.5 deg. Here the map's fit returns such a minimum: E's pose is kept and nothing is a mover."""
     import cv2
-
-    import epi_vo.core.motion as motion_module
 
     s = general_scene
     X = _true_map(s).copy()
@@ -612,13 +635,13 @@ def test_a_map_fit_holding_fewer_points_than_e_does_not_overrule_e(general_scene
         keep[:15] = True
         return R_wrong, np.array(s.t_cur_ref)[[2, 1, 0]] * MAP_SCALE, keep, np.eye(6) * 1e-4
 
-    monkeypatch.setattr(motion_module.geo, "refine_pose_pnp", wrong_minimum)
+    monkeypatch.setattr(geo, "refine_pose_pnp", wrong_minimum)
     m, st, _ = _estimate(s, X)
     assert calls, "the map's own pose was not asked: the scene does not exercise the check"
     assert m is not None and m.state is TrackingState.TRACKING and st.model is Model.ESSENTIAL
     assert _rot_err_deg(m, s) < 0.1
     assert m.moving is None or not np.any(m.moving)
-    assert not any("disagrees" in r for r in st.reasons)
+    assert Decision.E_DISAGREES_WITH_MAP not in _decisions(st)
 
 
 @pytest.mark.parametrize(("map_holds_over_e", "overruled"), [(1.25, False), (2.0, True)])
@@ -630,8 +653,6 @@ def test_the_map_overrules_e_only_when_its_fit_holds_clearly_more_points(
     less than E_MAP_HELD_SHARE (0.7) of what the fit holds, or the fit explains the points more than
     E_MAP_RESIDUAL_RATIO (2) times better, as when a mover took E's consensus."""
     import cv2
-
-    import epi_vo.core.motion as motion_module
 
     s = general_scene
     X = _true_map(s).copy()
@@ -650,11 +671,11 @@ def test_the_map_overrules_e_only_when_its_fit_holds_clearly_more_points(
         keep[:min(X_m.shape[0], round(map_holds_over_e * held_by_e))] = True
         return R_map, np.array(s.t_cur_ref) * MAP_SCALE, keep, np.eye(6) * 1e-4
 
-    monkeypatch.setattr(motion_module.geo, "refine_pose_pnp", fit)
+    monkeypatch.setattr(geo, "refine_pose_pnp", fit)
     m, st, _ = _estimate(s, X)
     assert seen and 0 < seen[0] < 0.5 * s.n  # the scene exercises the rule
     assert m is not None and m.state is TrackingState.TRACKING
-    took_map = any(r.startswith("E disagrees with the map's points") for r in st.reasons)
+    took_map = Decision.E_DISAGREES_WITH_MAP in _decisions(st)
     assert took_map is overruled
     if not overruled:
         assert _rot_err_deg(m, s) < 0.1 and (m.moving is None or not np.any(m.moving))
@@ -789,7 +810,7 @@ def test_a_scene_with_many_points_off_h_plane_initialises_from_e() -> None:
     m, st, _ = _estimate(s, _no_map(s))
     assert m is not None and m.state is TrackingState.TRACKING and m.new_map is not None
     assert st.model is Model.ESSENTIAL
-    assert any(r.startswith("not a plane:") for r in st.reasons)
+    assert Decision.NOT_A_PLANE in _decisions(st)
     assert _rot_err_deg(m, s) < 0.3
     assert _dir_err_deg(m.t_cur_kf, s.t_cur_ref) < 3.0
 
@@ -805,7 +826,7 @@ def test_planar_initialisation_waits_when_e_disagrees_with_h_and_no_solution_nea
         assert _rot_err_deg(m, s) < 0.3
     else:
         assert m.state is TrackingState.INITIALIZING and m.new_map is None
-        assert any("ambiguous, waiting for parallax" in r for r in st.reasons)
+        assert Decision.PLANE_AMBIGUOUS in _decisions(st)
 
 
 def test_a_pure_floor_waits_for_a_view_that_keeps_the_plane_normal() -> None:
@@ -823,17 +844,17 @@ def test_a_pure_floor_waits_for_a_view_that_keeps_the_plane_normal() -> None:
                                         CFG.max_reprojection_error_px, CFG.min_triangulation_angle_deg)
     assert by_count is not None and rotation_angle_deg(by_count[0] @ first.R_cur_ref.T) > 5.0  # the trap
 
-    stage = MotionStage(CFG)
+    stage = _Stage()
     m1, st1, _ = _estimate(first, _no_map(first), stage=stage)
     assert m1 is not None and m1.state is TrackingState.INITIALIZING and m1.new_map is None
-    assert any("waiting for a view that tells the plane apart (1/" in r for r in st1.reasons)
+    assert Decision.PLANE_WAIT_FIRST in _decisions(st1)
     np.testing.assert_array_equal(m1.R_cur_kf, np.eye(3))
     assert np.all(np.sqrt(np.diag(m1.cov_rel)[3:]) > math.radians(5.0))
 
     m2, st2, _ = _estimate(second, _no_map(second), stage=stage)
     assert m2 is not None and m2.state is TrackingState.TRACKING and m2.new_map is not None
     assert st2.model is Model.HOMOGRAPHY
-    assert any(r.startswith("planar scene: the plane kept its normal over 2 views") for r in st2.reasons)
+    assert [n["views"] for n in st2.notes if n.decision is Decision.PLANE_KEPT_NORMAL] == [2]
     assert _rot_err_deg(m2, second) < 0.3
     assert _dir_err_deg(m2.t_cur_kf, second.t_cur_ref) < 3.0
 
@@ -842,7 +863,7 @@ def test_a_pure_floor_seen_straight_ahead_is_told_apart_as_parallax_grows() -> N
     """Straight ahead, the wrong solution's plane still turns as the baseline grows (its normal follows the
     translation over the plane's distance): within a few views the right one is picked."""
     views = _floor_views(110, 0, seed=1, moves=[(0.01 * k, 0.0, 0.0) for k in range(4, 12)], far=6.0)
-    stage = MotionStage(CFG)
+    stage = _Stage()
     for i, view in enumerate(views):
         m, _, _ = _estimate(view, _no_map(view), stage=stage)
         assert m is not None
@@ -859,7 +880,7 @@ def test_a_planar_initialisation_no_view_tells_apart_falls_back_to_the_count_aft
     """The same view again and again (nothing tells the solutions apart): after PLANE_MAX_WAIT frames the
     map starts from the solution most points pass, as without the wait, and says so."""
     views = _floor_views(110, 0, seed=2, moves=[(0.05, 0.0, 0.0)] * (PLANE_MAX_WAIT + 1), far=6.0)
-    stage = MotionStage(CFG)
+    stage = _Stage()
     states = []
     for view in views:
         m, st, _ = _estimate(view, _no_map(view), stage=stage)
@@ -868,7 +889,7 @@ def test_a_planar_initialisation_no_view_tells_apart_falls_back_to_the_count_aft
     assert states[:-1] == [TrackingState.INITIALIZING] * PLANE_MAX_WAIT
     assert states[-1] is TrackingState.TRACKING
     assert any(r.startswith(f"planar scene: no view told H's decompositions apart in {PLANE_MAX_WAIT} frames")
-               for r in st.reasons)
+               for r in _reasons(st))
 
 
 def _patch_scene(seed: int, box: tuple[float, float, float, float], side_m: float) -> Any:
@@ -906,7 +927,7 @@ def test_a_first_pose_e_does_not_determine_is_not_used_for_the_map(seed: int) ->
     assert m.state is TrackingState.INITIALIZING and m.new_map is None
     assert np.allclose(m.t_cur_kf, 0.0)
     assert any(r.startswith("initialization deferred: E's pose is not determined by these points")
-               for r in st.reasons)
+               for r in _reasons(st))
     # The held orientation is E's, and its variance covers E's error.
     assert _rot_err_deg(m, corner) < 3.0 * math.degrees(math.sqrt(np.max(np.diag(m.cov_rel)[3:])))
 
@@ -923,7 +944,7 @@ def test_a_first_pose_e_does_not_determine_is_not_used_for_the_map(seed: int) ->
 
 def _plane_check(s: Any, uv_cur: np.ndarray) -> tuple[np.ndarray, MotionContext, np.ndarray, np.ndarray]:
     """The keyframe holding the scene's true map, the current frame seen at ``uv_cur`` (px), and the true
-    pose in map units: (X, ctx, R_true, t_true) for ``MotionStage._map_disagrees``."""
+    pose in map units: (X, ctx, R_true, t_true) for ``motion.map_check.map_disagrees``."""
     X = _true_map(s)
     kf = _keyframe(s, X)
     xn = kf.camera.normalize(uv_cur)
@@ -959,13 +980,13 @@ def test_on_a_plane_the_map_overrules_an_e_it_explains_clearly_worse(planar_scen
     err_e = np.linalg.norm(residual(t_e).reshape(-1, 2), axis=1)
     assert 0.05 < np.median(err_e) < 1.0 and np.mean(err_e <= 1.0) >= 0.8  # the cheap check lets it pass
     assert np.all(err_e <= CFG.max_reprojection_error_px)  # and it holds every point
-    st = FrameStats(stamp_ns=KF_STAMP_NS + DT_NS)
-    agree = MotionStage(CFG)._map_disagrees(ctx, X, R_e, t_e, st, plane)
+    agree, why = map_disagrees(CFG, ctx, X, R_e, t_e, plane)
     if plane:
         assert agree is not None and np.count_nonzero(agree) >= 0.9 * s.n
-        assert any(r.startswith("E disagrees with the map's points by 0.4") for r in st.reasons)
+        assert why is not None and why.decision is Decision.E_DISAGREES_WITH_MAP and why["plane"]
+        assert sentence(why).startswith("E disagrees with the map's points by 0.4")
     else:
-        assert agree is None and not st.reasons
+        assert agree is None and why is None
 
 
 def test_on_a_plane_an_e_the_map_agrees_with_costs_no_fit_of_the_map(planar_scene, monkeypatch: pytest.MonkeyPatch
@@ -973,8 +994,6 @@ def test_on_a_plane_an_e_the_map_agrees_with_costs_no_fit_of_the_map(planar_scen
     """The check near a plane asks one Gauss-Newton step of the map points first (``geometry.map_step``,
     ~0.3 ms): when it turns E by less than half of e_map_max_rotation_diff_deg, the map's own fit (~1.2 ms)
     is not computed. ground_robot: 52 fits in 300 frames, not 189."""
-    import epi_vo.core.motion as motion_module
-
     s = planar_scene
     X, ctx, R_true, t_true = _plane_check(s, np.asarray(s.uv_cur_obs))  # 0.3 px noise: E at the truth
     step = geo.map_step(R_true, t_true, X, ctx.xn_cur)
@@ -983,6 +1002,5 @@ def test_on_a_plane_an_e_the_map_agrees_with_costs_no_fit_of_the_map(planar_scen
     def no_fit(*args: Any, **kwargs: Any) -> None:
         raise AssertionError("the map's own pose was fitted")
 
-    monkeypatch.setattr(motion_module.geo, "refine_pose_pnp", no_fit)
-    st = FrameStats(stamp_ns=KF_STAMP_NS + DT_NS)
-    assert MotionStage(CFG)._map_disagrees(ctx, X, R_true, t_true, st, True) is None and not st.reasons
+    monkeypatch.setattr(geo, "refine_pose_pnp", no_fit)
+    assert map_disagrees(CFG, ctx, X, R_true, t_true, True) == (None, None)

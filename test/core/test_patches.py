@@ -52,15 +52,13 @@ def _run(frames: list[np.ndarray], patch_px: int | None) -> tuple[np.ndarray, np
     pts = _points()
     ids = np.arange(pts.shape[0], dtype=np.int64)
     alive = np.ones(pts.shape[0], bool)
-    bank = pa.PatchTemplates(patch_px) if patch_px else None
-    if bank is not None:
-        bank.anchor(frames[0], pts, ids)
+    bank = pa.PatchTemplates.empty(patch_px).anchored(frames[0], pts, ids) if patch_px else None
     moved = 0
     for i in range(1, N_FRAMES + 1):
         tr = fe.track_klt(frames[i - 1], frames[i], pts, CFG)
         pts, alive = tr.pts, alive & tr.ok
         if bank is not None:
-            pts, moved = bank.refine(frames[i], pts, ids)
+            bank, pts, moved = bank.refined(frames[i], pts, ids)
     return pts, alive, moved
 
 
@@ -83,16 +81,16 @@ def test_a_track_on_changed_pixels_keeps_its_klt_position(frames: list[np.ndarra
     KLT position stays and the template starts again from the current image; the others are refined."""
     pts = _points()
     ids = np.arange(pts.shape[0], dtype=np.int64)
-    bank = pa.PatchTemplates(15)
-    bank.anchor(frames[0], pts, ids)
+    before = pa.PatchTemplates.empty(15).anchored(frames[0], pts, ids)
     cur = frames[1].copy()
     target = _truth(1, pts[:1])[0]
     x, y = np.rint(target).astype(int)
     cur[y - 12:y + 13, x - 12:x + 13] = np.random.default_rng(9).integers(0, 256, (25, 25))
     klt = _truth(1, pts).astype(np.float32)  # as if KLT had found every point exactly
     klt[0] += 0.4
-    out, moved = bank.refine(cur, klt, ids)
-    assert len(bank) == pts.shape[0]  # its template replaced, not a second one
+    bank, out, moved = before.refined(cur, klt, ids)
+    assert len(bank) == len(before) == pts.shape[0]  # its template replaced, not a second one
+    assert np.array_equal(before.tm[0], pa.PatchTemplates.empty(15).anchored(frames[0], pts, ids).tm[0])  # frozen
     assert np.array_equal(out[0], klt[0])
     assert moved == pts.shape[0] - 1
     assert np.allclose(bank.A[0], np.eye(2))  # template taken again, its warp reset
@@ -102,18 +100,17 @@ def test_a_track_on_changed_pixels_keeps_its_klt_position(frames: list[np.ndarra
 def test_anchor_keeps_only_the_keyframes_tracks(frames: list[np.ndarray]) -> None:
     pts = _points()
     ids = np.arange(pts.shape[0], dtype=np.int64)
-    bank = pa.PatchTemplates(11)
-    bank.anchor(frames[0], pts, ids)
+    bank = pa.PatchTemplates.empty(11).anchored(frames[0], pts, ids)
     assert len(bank) == pts.shape[0]
     keep = ids[::2]
     new_pts = np.array([[300.0, 200.0]], np.float32)
-    bank.anchor(frames[1], np.vstack([pts[::2], new_pts]), np.concatenate([keep, [1000]]))
+    bank = bank.anchored(frames[1], np.vstack([pts[::2], new_pts]), np.concatenate([keep, [1000]]))
     assert np.array_equal(bank.ids, np.concatenate([keep, [1000]]))
     # a point whose patch leaves the image gets no template: refine leaves it alone
     edge = np.array([[3.0, 3.0]], np.float32)
-    bank.anchor(frames[1], edge, np.array([2000]))
+    bank = bank.anchored(frames[1], edge, np.array([2000]))
     assert len(bank) == 0 or 2000 not in bank.ids
-    out, moved = bank.refine(frames[1], edge, np.array([2000]))
+    _, out, moved = bank.refined(frames[1], edge, np.array([2000]))
     assert moved == 0 and np.array_equal(out, edge)
 
 

@@ -16,7 +16,10 @@ from numpy.typing import NDArray
 from epi_vo.core import geometry as geo
 from epi_vo.core.camera import CameraModelCache
 from epi_vo.core.config import VoConfig
+from epi_vo.core.decisions import Decision
+from epi_vo.core.geometry.pose import CHI2_5DOF_999
 from epi_vo.core.pipeline import VoPipeline
+from epi_vo.core.reasons import sentence
 from epi_vo.core.transforms import rotation_angle_deg
 from epi_vo.io import bagio, tum
 from epi_vo.io.msgconv import decode_frame
@@ -81,7 +84,7 @@ def test_a_true_planes_pose_is_kept(two_view_scene: Scenes) -> None:
     s = two_view_scene("planar", seed=1, noise_px=0.3)
     R, _, note = _planar(s, s.R_cur_ref, s.t_cur_ref)
     assert R is s.R_cur_ref or np.array_equal(R, s.R_cur_ref)
-    assert note.startswith("H's pose fits its inliers' epipolar geometry (test ")
+    assert note.decision is Decision.PLANE_POSE_FITS and note["stat"] < CHI2_5DOF_999
 
 
 def test_a_pose_the_epipolar_geometry_rejects_is_refined(two_view_scene: Scenes) -> None:
@@ -89,7 +92,8 @@ def test_a_pose_the_epipolar_geometry_rejects_is_refined(two_view_scene: Scenes)
     rejects it, and the refined pose is the epipolar optimum, the one reached from the true pose."""
     s = two_view_scene("general", seed=4, noise_px=0.3)
     R, t, note = _planar(s, _turned(s.R_cur_ref, 0.1, (1, 0, 0)), s.t_cur_ref)
-    assert note.startswith("H's pose refined on its 200 epipolar inliers (test ")
+    assert note.decision is Decision.PLANE_POSE_REFINED and note["n"] == 200 and note["stat"] > CHI2_5DOF_999
+    assert sentence(note).startswith("planar scene: H's pose refined on its 200 epipolar inliers (test ")
     optimum = geo.refine_relative_pose(s.R_cur_ref, s.t_cur_ref, s.xn(s.uv_ref_obs), s.xn(s.uv_cur_obs))
     assert optimum is not None
     assert rotation_angle_deg(R @ optimum[0].T) < 1e-4 and _direction_deg(t, optimum[1]) < 1e-3
@@ -101,7 +105,7 @@ def test_a_refinement_that_leaves_for_another_solution_is_refused(two_view_scene
     start = _turned(s.R_cur_ref, 2.0, (0, 1, 0))
     R, _, note = _planar(s, start, s.t_cur_ref)
     assert np.array_equal(R, start)
-    assert note.startswith("pose from H: the epipolar fit moved ") and note.endswith("to another solution")
+    assert note.decision is Decision.PLANE_POSE_OTHER_SOLUTION and note["moved"] > 0.5
 
 
 def _first_map(name: str, frames: int = 4) -> tuple[float, str]:
@@ -118,7 +122,7 @@ def _first_map(name: str, frames: int = 4) -> tuple[float, str]:
                                  cameras.get(frame.camera_info_msg), frame.stamp_ns)
             if i == 0:
                 R0 = r.T_w_c[:3, :3]
-            if "map initialized from homography" in r.reason:
+            if Decision.MAP_FROM_HOMOGRAPHY in r.decisions:
                 return rotation_angle_deg((R0.T @ r.T_w_c[:3, :3]).T @ (R_gt[0].T @ R_gt[i])), r.reason
             assert i < frames
     raise AssertionError("no map from H")

@@ -12,7 +12,7 @@ import pytest
 from epi_vo.core import geometry as geo
 from epi_vo.core.config import VoConfig
 from epi_vo.core.frame import Model
-from epi_vo.core.selection import ModelSelection, ModelSelector, select_model
+from epi_vo.core.selection import ModelSelection, select_model
 
 CFG = VoConfig()
 
@@ -113,22 +113,6 @@ def test_selection_is_deterministic(general_scene_outliers) -> None:
     a, b = _select(general_scene_outliers), _select(general_scene_outliers)
     assert a.model is b.model and a.rh == b.rh
     np.testing.assert_array_equal(a.inliers_e, b.inliers_e)
-
-
-@pytest.mark.parametrize("scene_name", ["general_scene_outliers", "planar_scene", "rotation_scene"])
-def test_h_on_the_worker_thread_gives_the_same_selection(scene_name: str, request: pytest.FixtureRequest) -> None:
-    """``ModelSelector`` estimates H on its own thread while E is estimated: the selection is the one
-    ``select_model`` makes in line, to the bit (the robust estimators' sampling does not depend on the
-    thread), call after call."""
-    s = request.getfixturevalue(scene_name)
-    selector = ModelSelector()
-    inline = _select(s)
-    for _ in range(3):
-        par = selector(s.uv_ref_obs, s.uv_cur_obs, s.K, CFG)
-        assert par.model is inline.model and par.rh == inline.rh
-        for field in ("E", "H", "F", "inliers_e", "inliers_h", "inliers_static"):
-            np.testing.assert_array_equal(getattr(par, field), getattr(inline, field))
-        assert par.score_static == inline.score_static
 
 
 def test_the_static_hypothesis_scores_as_the_identity_homography() -> None:

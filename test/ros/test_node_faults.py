@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from ros_fixtures import RosSession, rclpy_session
 
+from epi_vo.core.decisions import Decision
 from epi_vo.core.frame import FrameResult
 
 
@@ -111,16 +112,18 @@ def test_internal_error_is_reported_as_such_and_tracking_restarts(ros: RosSessio
         real_publish(r, stamp_msg, gray)
 
     node._publish = record
-    real_process = node._pipeline._process
+    from epi_vo.core import step as step_module
+
+    real_tracked = step_module._tracked
     calls = {"n": 0}
 
     def failing_once(*args: Any, **kwargs: Any) -> Any:
         calls["n"] += 1
         if calls["n"] == 2:
             raise RuntimeError("simulated defect")
-        return real_process(*args, **kwargs)
+        return real_tracked(*args, **kwargs)
 
-    node._pipeline._process = failing_once
+    step_module._tracked = failing_once  # type: ignore[assignment]
     try:
         for i in range(4):
             img, info = _image(1_000_000_000 + i * 33_000_000, seed=i)
@@ -128,6 +131,7 @@ def test_internal_error_is_reported_as_such_and_tracking_restarts(ros: RosSessio
             node._on_image(img)
             assert _wait(lambda n=i + 1: len(published) >= n), f"frame {i} was not published"
     finally:
+        step_module._tracked = real_tracked  # type: ignore[assignment]
         node.destroy_node()
     reasons = [r.reason for r, _ in published]
     assert "internal error: RuntimeError('simulated defect')" in reasons[1]
@@ -163,4 +167,4 @@ def test_header_stamp_that_is_no_ros_time_is_a_rejected_frame(ros: RosSession) -
     (status,) = statuses[0].status
     assert "header stamp sec 5 nanosec 1500000000 is not a valid ROS time" in status.message
     assert 0 <= statuses[0].header.stamp.nanosec < 1_000_000_000
-    assert published[0].stamp_ns == 5_100_000_000 and "backwards" not in published[0].reason
+    assert published[0].stamp_ns == 5_100_000_000 and Decision.TIME_JUMPED_BACK not in published[0].decisions

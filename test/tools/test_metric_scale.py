@@ -164,7 +164,7 @@ def test_metric_covariance_carries_the_sources_systematic_scale_error(source: st
     # 2.53 / 2.63 since the filter's per-keyframe term lies along the step (map_scale.keyframe_cov). It was
     # isotropic, which also widened the lateral and vertical position: cautious at 0.88 / 0.78 (0.27 / 0.55
     # while a floor fit's least noise was 2 % and the wheels' calibration counted as each measurement's
-    # noise too; scale.GROUND_FIT_MIN_REL_STD, WHEEL_NOISE_M; 2026-11-27).
+    # noise too: ground_fit_min_rel_sigma, wheel_odometry_noise_m).
     assert 1.0 <= nees.mean_nees_pos <= 6.0 and nees.inside_pos_percent >= 90.0
 
 

@@ -22,6 +22,7 @@ from epi_vo.core.geometry.common import (
     reprojection_errors,
     skew,
 )
+from epi_vo.core.geometry.epipolar_refine import refine_relative_pose
 from epi_vo.core.geometry.models import (
     CHI2_1DOF,
     CHI2_2DOF,
@@ -55,7 +56,6 @@ from epi_vo.core.geometry.pose import (
     refine_focal_for_rotation,
     refine_planar_pose,
     refine_pose_pnp,
-    refine_relative_pose,
     rotation_from_homography,
     solution_off_plane,
 )

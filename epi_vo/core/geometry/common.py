@@ -58,7 +58,7 @@ def ray_depths(R_cur_ref: F64, t_cur_ref: F64, xn_ref: F64, xn_cur: F64) -> tupl
 def nearest_rotation(M: F64) -> F64:
     """Closest rotation matrix to M in Frobenius norm (polar decomposition via SVD)."""
     U, _, Vt = np.linalg.svd(M)
-    R = U @ Vt
+    R: F64 = U @ Vt
     if np.linalg.det(R) < 0:
         R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
     return R

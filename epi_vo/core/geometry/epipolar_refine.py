@@ -7,6 +7,7 @@ and the test of a homography's pose (``pose.refine_planar_pose``). Conventions: 
 from __future__ import annotations
 
 import math
+from typing import cast
 
 import cv2
 import numpy as np
@@ -19,7 +20,8 @@ def _signed_sampson(E: F64, h_ref: F64, h_cur: F64) -> F64:
     Ex = h_ref @ E.T
     Etx = h_cur @ E
     num = np.einsum("ij,ij->i", h_cur, Ex)
-    return num / np.sqrt(np.maximum(Ex[:, 0] ** 2 + Ex[:, 1] ** 2 + Etx[:, 0] ** 2 + Etx[:, 1] ** 2, 1e-300))
+    d: F64 = num / np.sqrt(np.maximum(Ex[:, 0] ** 2 + Ex[:, 1] ** 2 + Etx[:, 0] ** 2 + Etx[:, 1] ** 2, 1e-300))
+    return d
 
 
 def _sampson_jacobian(R: F64, t: F64, B: F64, h_ref: F64, h_cur: F64) -> tuple[F64, F64]:
@@ -53,8 +55,8 @@ def refine_relative_pose(R_cur_ref: F64, t_dir: F64, xn_ref: F64, xn_cur: F64, i
     (normalised units), or None for fewer than six correspondences or a non-finite start.
 
     Why: a homography's decomposition takes the plane's own fit, which the near-plane points H's
-    threshold lets in bias. ground_robot's first map, from H at frame 1: 0.023 deg off in pitch; its
-    pose refined on the same tracks' epipolar distances: 0.006 deg (2026-11-27, ``refine_planar_pose``).
+    threshold lets in bias. A floor's first map from H came out 0.023 deg off in pitch; its pose refined
+    on the same tracks' epipolar distances, 0.006 deg (``refine_planar_pose``).
     An essential matrix an estimator left unpolished is refitted with it too (``models.polish_essential``)."""
     n = xn_ref.shape[0]
     if n < 6 or not (np.all(np.isfinite(R_cur_ref)) and np.all(np.isfinite(t_dir))) or np.linalg.norm(t_dir) == 0:
@@ -75,7 +77,7 @@ def refine_relative_pose(R_cur_ref: F64, t_dir: F64, xn_ref: F64, xn_cur: F64, i
         r, J = _sampson_jacobian(R, t, B, h_ref, h_cur)
         A, g = J.T @ J, J.T @ r
         while lam < 1e8:
-            step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-18), -g)
+            step = cast(F64, np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-18), -g))
             R1, t1 = moved(step, R, t, B)
             r1 = _signed_sampson(skew(t1) @ R1, h_ref, h_cur)
             c1 = float(r1 @ r1)

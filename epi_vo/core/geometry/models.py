@@ -8,6 +8,7 @@ never an exception. Conventions: see ``epi_vo.core.geometry.common``.
 from __future__ import annotations
 
 import math
+from typing import cast
 
 import cv2
 import numpy as np
@@ -63,7 +64,8 @@ def sampson_distance_sq(F: F64, uv_ref: F64, uv_cur: F64) -> F64:
     Ftx = x_cur @ F
     num = np.einsum("ij,ij->i", x_cur, Fx) ** 2
     den = Fx[:, 0] ** 2 + Fx[:, 1] ** 2 + Ftx[:, 0] ** 2 + Ftx[:, 1] ** 2
-    return num / np.maximum(den, 1e-300)
+    d: F64 = num / np.maximum(den, 1e-300)
+    return d
 
 
 def transfer_errors_sq(H: F64, uv_ref: F64, uv_cur: F64) -> tuple[F64, F64]:
@@ -81,7 +83,7 @@ def transfer_errors_sq(H: F64, uv_ref: F64, uv_cur: F64) -> tuple[F64, F64]:
         return out
 
     try:
-        H_inv = np.linalg.inv(H)
+        H_inv = cast(F64, np.linalg.inv(H))
     except np.linalg.LinAlgError:
         inf = np.full(uv_ref.shape[0], np.inf)
         return inf, inf.copy()
@@ -158,18 +160,18 @@ def estimate_essential(uv_ref: F64, uv_cur: F64, K: F64, method: str = "magsac",
         return None, np.zeros(n, dtype=bool)
     flag = ROBUST_METHOD_FLAGS[method]
     try:
-        E, mask = cv2.findEssentialMat(uv_ref, uv_cur, K, method=flag, prob=confidence,
-                                       threshold=threshold_px, maxIters=max_iters)
+        E_found, mask = cv2.findEssentialMat(uv_ref, uv_cur, K, method=flag, prob=confidence,
+                                             threshold=threshold_px, maxIters=max_iters)
     except cv2.error:
         return None, np.zeros(n, dtype=bool)
-    if E is None or E.shape[0] < 3 or E.shape[1] != 3 or mask is None:
+    if E_found is None or E_found.shape[0] < 3 or E_found.shape[1] != 3 or mask is None:
         return None, np.zeros(n, dtype=bool)
-    E = np.asarray(E[:3, :3], dtype=np.float64)
+    E: F64 = np.asarray(E_found[:3, :3], dtype=np.float64)
     if not np.all(np.isfinite(E)):
         return None, np.zeros(n, dtype=bool)
     if not polished_by_opencv(method):
         return polish_essential(E, uv_ref, uv_cur, K, threshold_px)
-    return E, mask.reshape(-1).astype(bool)
+    return E, np.asarray(mask).reshape(-1).astype(np.bool_)
 
 
 def polish_essential(E: F64, uv_ref: F64, uv_cur: F64, K: F64, threshold_px: float,
@@ -188,9 +190,9 @@ def polish_essential(E: F64, uv_ref: F64, uv_cur: F64, K: F64, threshold_px: flo
     """
     gate_sq = threshold_px * threshold_px
     inliers = sampson_distance_sq(fundamental_from_essential(E, K), uv_ref, uv_cur) <= gate_sq
-    R, _, t = cv2.decomposeEssentialMat(E)
-    R = np.asarray(R, dtype=np.float64)
-    t = np.asarray(t, dtype=np.float64).reshape(3)
+    R_any, _, t_any = cv2.decomposeEssentialMat(E)
+    R: F64 = np.asarray(R_any, dtype=np.float64)
+    t: F64 = np.asarray(t_any, dtype=np.float64).reshape(3)
     K_inv = np.linalg.inv(K)
     xn_ref = (homogeneous(uv_ref) @ K_inv.T)[:, :2]
     xn_cur = (homogeneous(uv_cur) @ K_inv.T)[:, :2]
@@ -221,16 +223,16 @@ def estimate_homography(uv_ref: F64, uv_cur: F64, method: str = "usac_fast", thr
     if n < 4:
         return None, np.zeros(n, dtype=bool)
     try:
-        H, mask = cv2.findHomography(uv_ref, uv_cur, ROBUST_METHOD_FLAGS[method], threshold_px, maxIters=max_iters,
-                                     confidence=confidence)
+        H_found, mask = cv2.findHomography(uv_ref, uv_cur, ROBUST_METHOD_FLAGS[method], threshold_px,
+                                           maxIters=max_iters, confidence=confidence)
     except cv2.error:
         return None, np.zeros(n, dtype=bool)
-    if H is None or mask is None or not np.all(np.isfinite(H)) or abs(np.linalg.det(H)) < 1e-12:
+    if H_found is None or mask is None or not np.all(np.isfinite(H_found)) or abs(np.linalg.det(H_found)) < 1e-12:
         return None, np.zeros(n, dtype=bool)
-    H = np.asarray(H, dtype=np.float64)
+    H: F64 = np.asarray(H_found, dtype=np.float64)
     if not polished_by_opencv(method):
         return polish_homography(H, uv_ref, uv_cur, threshold_px)
-    return H, mask.reshape(-1).astype(bool)
+    return H, np.asarray(mask).reshape(-1).astype(np.bool_)
 
 
 def polish_homography(H: F64, uv_ref: F64, uv_cur: F64, threshold_px: float,
@@ -304,8 +306,8 @@ def _refine_homography(H: F64, uv_ref: F64, uv_cur: F64, iterations: int = 15) -
         J[:, 1, 3:6] = xs
         J[:, 0, 6:8] = -uv[:, 0:1] * xs[:, :2]
         J[:, 1, 6:8] = -uv[:, 1:2] * xs[:, :2]
-        J = J.reshape(2 * n, 8)
-        A, g = J.T @ J, J.T @ r
+        Jm = J.reshape(2 * n, 8)
+        A, g = Jm.T @ Jm, Jm.T @ r
         while lam < 1e8:
             step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-18), -g)
             M = Hn + np.append(step, 0.0).reshape(3, 3)
@@ -323,6 +325,7 @@ def _refine_homography(H: F64, uv_ref: F64, uv_cur: F64, iterations: int = 15) -
     H_out = np.linalg.inv(T_cur) @ Hn @ T_ref
     if not (np.all(np.isfinite(H_out)) and abs(np.linalg.det(H_out)) > 1e-12 and abs(H_out[2, 2]) > 1e-12):
         return None
-    return H_out / H_out[2, 2]
+    H_norm: F64 = H_out / H_out[2, 2]
+    return H_norm
 
 

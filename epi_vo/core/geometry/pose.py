@@ -7,17 +7,21 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
 
+from epi_vo.core.decisions import Decision, Note, note
 from epi_vo.core.geometry.common import F64, Mask, homogeneous, nearest_rotation, ray_depths
 from epi_vo.core.geometry.epipolar_refine import refine_relative_pose
 from epi_vo.core.geometry.models import essential_from_pose, fundamental_from_essential, sampson_distance_sq
 from epi_vo.core.geometry.triangulation import Triangulation, triangulate
 from epi_vo.core.transforms import rotation_angle_deg
 
-# Distance (in baselines) beyond which recoverPose calls a point 'at infinity'.
+# Distance (in baselines) beyond which a point votes for no decomposition of E: only points whose rays are
+# parallel to numerical precision (at infinity) lie there. recoverPose's own cut (50 baselines) is lifted: at
+# video rates the baseline is short and real points lie thousands of baselines away.
 _CHEIRALITY_MAX_DISTANCE = 1.0e7
 
 
@@ -40,9 +44,10 @@ def recover_pose(E: F64, uv_ref: F64, uv_cur: F64, K: F64, inliers: Mask, max_po
     xn_ref = (homogeneous(uv_ref) @ K_inv.T)[:, :2]
     xn_cur = (homogeneous(uv_cur) @ K_inv.T)[:, :2]
     vote = idx if idx.size <= max_points else idx[np.linspace(0, idx.size - 1, max_points).astype(np.int64)]
-    R1, R2, t = cv2.decomposeEssentialMat(np.asarray(E, dtype=np.float64))
-    R1, R2 = np.asarray(R1, np.float64), np.asarray(R2, np.float64)
-    t = np.asarray(t, dtype=np.float64).reshape(3)
+    R1_any, R2_any, t_any = cv2.decomposeEssentialMat(np.asarray(E, dtype=np.float64))
+    R1: F64 = np.asarray(R1_any, np.float64)
+    R2: F64 = np.asarray(R2_any, np.float64)
+    t: F64 = np.asarray(t_any, dtype=np.float64).reshape(3)
     # The depths are linear in t: those of (R, -t) are those of (R, t) negated.
     far = _CHEIRALITY_MAX_DISTANCE
     votes = []
@@ -149,10 +154,10 @@ def homography_solutions(H: F64, K: F64, xn_ref: F64, xn_cur: F64, inliers: Mask
     _, Rs, ts, ns = cv2.decomposeHomographyMat(H, K)
     idx = np.flatnonzero(inliers)
     out = []
-    for R, t, n in zip(Rs, ts, ns, strict=False):
-        R = np.asarray(R, dtype=np.float64)
-        t = np.asarray(t, dtype=np.float64).reshape(3)
-        n = np.asarray(n, dtype=np.float64).reshape(3)
+    for R_any, t_any, n_any in zip(Rs, ts, ns, strict=False):
+        R: F64 = np.asarray(R_any, dtype=np.float64)
+        t: F64 = np.asarray(t_any, dtype=np.float64).reshape(3)
+        n: F64 = np.asarray(n_any, dtype=np.float64).reshape(3)
         if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and np.all(np.isfinite(n))
                 and np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.norm(n) > 0):
             # OpenCV returns non-rotations for an H that no plane can produce (e.g. wildly unequal
@@ -175,8 +180,8 @@ def solution_off_plane(solutions: list[PlanarSolution], K: F64, uv_ref: F64, uv_
     every decomposition alike; too little parallax leaves them all close).
 
     The points themselves decide, not the rotation of E fitted to them with the plane: E on a plane plus
-    a few points is near-degenerate, and its decomposition can take the wrong solution. ground_robot
-    with klt_window_px 31 (2026-11-25): E's rotation agreed with the 4.3 deg solution, whose motion
+    a few points is near-degenerate, and its decomposition can take the wrong solution. On a floor
+    tracked with klt_window_px 31, E's rotation agreed with the 4.3 deg solution, whose motion
     leaves its 3 off-plane points 1.9-2.0 px from their epipolar lines; the true one (0.02 deg) leaves
     them at 0.13-0.24 px. Where E was right (max_features 80-140, a box in a floor pair), the right
     solution had 0.01-0.29 px and the other 2-16 px."""
@@ -199,8 +204,8 @@ def nearest_plane_motion(R: F64, t: F64, solutions: list[PlanarSolution]) -> tup
     solution with the smallest max(rotation / 0.5 deg, direction / 30 deg); (inf, inf) without one.
 
     A static plane allows only its decompositions' motions, so an E fitted to the same matches is one
-    of them unless part of its consensus moves. Measured (moving_mover and ground_robot started at
-    frames 0-85 and 0-240, general_motion, KITTI): at most 0.34 deg / 18 deg from the nearest where E
+    of them unless part of its consensus moves. Measured on the bundled bags started from many of their
+    frames and on KITTI: at most 0.34 deg / 18 deg from the nearest where E
     was right; 0.86-1.99 deg or 40-118 deg where a cart's points took E's consensus (the map then
     started 1-2 deg off: ATE 1-12 %, pose NEES 4000-13000)."""
     tn = np.asarray(t, dtype=np.float64) / max(float(np.linalg.norm(t)), 1e-300)
@@ -237,8 +242,8 @@ def pose_from_homography(H: F64, K: F64, xn_ref: F64, xn_cur: F64, inliers: Mask
     of the winner's good points, that solution is taken (the wrong one of a forward-moving camera sees
     its points under larger angles, so more pass the triangulation gates). When no solution that close
     has that many, the pair is ambiguous (None): with little parallax the right solution passes few
-    points through the gates, and the winner E disagrees with was 1.6-3.7 deg off on moving_mover
-    started at frame 20 and on synthetic floor pairs. Without ``prefer_R`` the rule above decides alone.
+    points through the gates, and the winner E disagrees with was 1.6-3.7 deg off on a floor with a cart
+    crossing it and on synthetic floor pairs. Without ``prefer_R`` the rule above decides alone.
     """
     results = homography_solutions(H, K, xn_ref, xn_cur, inliers, max_reproj_err_px, min_angle_deg)
     if not results:
@@ -267,7 +272,8 @@ def parallax_deg(R_cur_ref: F64, xn_ref: F64, xn_cur: F64) -> F64:
     b_ref = homogeneous(xn_ref) @ R_cur_ref.T
     b_cur = homogeneous(xn_cur)
     cos_a = np.einsum("ij,ij->i", b_ref, b_cur) / (np.linalg.norm(b_ref, axis=1) * np.linalg.norm(b_cur, axis=1))
-    return np.degrees(np.arccos(np.clip(cos_a, -1.0, 1.0)))
+    angles: F64 = np.degrees(np.arccos(np.clip(cos_a, -1.0, 1.0)))
+    return angles
 
 
 def refine_pose_pnp(X_ref: F64, uv_cur: F64, K: F64, R_cur_ref: F64, t_cur_ref: F64,
@@ -283,8 +289,8 @@ def refine_pose_pnp(X_ref: F64, uv_cur: F64, K: F64, R_cur_ref: F64, t_cur_ref: 
     (``cv2.solvePnPRansac``, deterministic), and keep whichever result holds more points (the given
     start's on a tie). From a pose a frame or more away the first gate is wide, and a few points of a
     moving object in the map pull LM into their own minimum, after which the static points fail the
-    narrower gates: moving_mover from frame 20, the pose from the map at its 47th frame came out 0.138
-    deg off, 3 of its 36 points 5-19 px off under the true pose and 15 static ones rejected. (The
+    narrower gates: with a cart in the map, the pose from the map came out 0.138 deg off, 3 of its 36
+    points 5-19 px off under the true pose and 15 static ones rejected. (The
     consensus start alone, taken whenever it held 6 points, did worse on noisy images: moving_mover with
     3 grey levels of noise 0.25 -> 0.40 % ATE, with motion blur 0.70 -> 1.04 %.)
     """
@@ -292,7 +298,7 @@ def refine_pose_pnp(X_ref: F64, uv_cur: F64, K: F64, R_cur_ref: F64, t_cur_ref: 
         return None
     obj = X_ref.reshape(-1, 1, 3).astype(np.float64)
     img = uv_cur.reshape(-1, 1, 2).astype(np.float64)
-    rvec, _ = cv2.Rodrigues(R_cur_ref)
+    rvec = cast(F64, cv2.Rodrigues(R_cur_ref)[0])
     best = _pnp_gated_lm(obj, img, uv_cur, K, rvec, t_cur_ref.reshape(3, 1).astype(np.float64), max_reproj_err_px)
     if robust_start:
         ok, rv, tv, inl = cv2.solvePnPRansac(obj, img, K, np.zeros(5), iterationsCount=200,
@@ -313,7 +319,8 @@ def _pnp_gated_lm(obj: F64, img: F64, uv_cur: F64, K: F64, rvec: F64, tvec: F64,
 
     def errors() -> F64:
         proj, _ = cv2.projectPoints(obj, rvec, tvec, K, zero_d)
-        return np.linalg.norm(proj.reshape(-1, 2) - uv_cur, axis=1)
+        e: F64 = np.linalg.norm(proj.reshape(-1, 2) - uv_cur, axis=1)
+        return e
 
     for i, gate in enumerate((4.0, 2.0, 1.0)):
         err = errors()
@@ -323,7 +330,8 @@ def _pnp_gated_lm(obj: F64, img: F64, uv_cur: F64, K: F64, rvec: F64, tvec: F64,
         keep = err <= limit
         if np.count_nonzero(keep) < 6:
             return None
-        rvec, tvec = cv2.solvePnPRefineLM(obj[keep], img[keep], K, zero_d, rvec, tvec)
+        refined = cv2.solvePnPRefineLM(obj[keep], img[keep], K, zero_d, rvec, tvec)
+        rvec, tvec = cast(F64, refined[0]), cast(F64, refined[1])
     keep = errors() <= max_reproj_err_px
     if np.count_nonzero(keep) < 6:
         return None
@@ -345,10 +353,10 @@ CHI2_5DOF_999 = 20.515
 
 
 def refine_planar_pose(R_cur_ref: F64, t_dir: F64, xn_ref: F64, xn_cur: F64, inliers: Mask,
-                       max_rotation_deg: float = 0.5, max_direction_deg: float = 10.0) -> tuple[F64, F64, str]:
+                       max_rotation_deg: float = 0.5, max_direction_deg: float = 10.0) -> tuple[F64, F64, Note]:
     """A homography decomposition's pose refined on the epipolar distances of ``inliers``
     (``refine_relative_pose``) when they reject it, else the decomposition's, unchanged. Returns
-    ``(R, t_dir, what was done)`` for the frame's reasons.
+    ``(R, t_dir, what was done)`` for the frame's notes.
 
     The test: the refinement's drop in the squared residuals over their variance after it,
     ``n (rms_before^2 / rms_after^2 - 1)``, above the chi-square 5-dof 99.9 % bound. A floor with a
@@ -360,15 +368,13 @@ def refine_planar_pose(R_cur_ref: F64, t_dir: F64, xn_ref: F64, xn_cur: F64, inl
     idx = np.flatnonzero(inliers)
     out = refine_relative_pose(R_cur_ref, t_dir, xn_ref[idx], xn_cur[idx])
     if out is None:
-        return R_cur_ref, t_dir, "pose from H (too few points to test it)"
+        return R_cur_ref, t_dir, note(Decision.PLANE_POSE_UNTESTED)
     R, t, before, after = out
     stat = idx.size * (before * before / max(after * after, 1e-300) - 1.0)
     if not stat > CHI2_5DOF_999:
-        return R_cur_ref, t_dir, f"H's pose fits its inliers' epipolar geometry (test {stat:.1f})"
+        return R_cur_ref, t_dir, note(Decision.PLANE_POSE_FITS, stat=stat)
     moved = rotation_angle_deg(R @ R_cur_ref.T)
     turned = math.degrees(math.acos(min(1.0, float(t @ t_dir) / float(np.linalg.norm(t_dir)))))
     if moved > max_rotation_deg or turned > max_direction_deg:
-        return R_cur_ref, t_dir, (f"pose from H: the epipolar fit moved {moved:.2f} deg / {turned:.1f} deg, "
-                                  "to another solution")
-    return R, t, (f"H's pose refined on its {idx.size} epipolar inliers (test {stat:.0f}, rotation moved "
-                  f"{moved:.3f} deg)")
+        return R_cur_ref, t_dir, note(Decision.PLANE_POSE_OTHER_SOLUTION, moved=moved, turned=turned)
+    return R, t, note(Decision.PLANE_POSE_REFINED, n=idx.size, stat=stat, moved=moved)

@@ -17,6 +17,7 @@ plane perpendicular to it. The returned 6x6 is over (c, phi), position first, as
 from __future__ import annotations
 
 import math
+from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -41,7 +42,8 @@ def _sampson(E: F64, h_kf: F64, h_cur: F64) -> F64:
     Etx = np.einsum("ni,kij->knj", h_cur, E)
     num = np.einsum("ni,kni->kn", h_cur, Ex)
     den = np.sqrt(Ex[..., 0] ** 2 + Ex[..., 1] ** 2 + Etx[..., 0] ** 2 + Etx[..., 1] ** 2)
-    return num / np.maximum(den, 1e-300)
+    d: F64 = num / np.maximum(den, 1e-300)
+    return d
 
 
 def _rotation_steps(R: F64, k: int, first: int) -> F64:
@@ -203,7 +205,7 @@ def map_step(R_cur_kf: F64, t_cur_kf: F64, X_kf: F64, xn_cur: F64) -> F64 | None
     if normal is None:
         return None
     try:
-        step = np.linalg.solve(normal[0], normal[1])
+        step = cast(F64, np.linalg.solve(normal[0], normal[1]))
     except np.linalg.LinAlgError:
         return None
     return step if np.all(np.isfinite(step)) else None
@@ -247,21 +249,23 @@ def fuse(cov: F64, info: F64) -> F64 | None:
     return fused if np.all(np.isfinite(fused)) and np.all(np.diag(fused) > 0) else None
 
 
-def pose_undetermined(cov: F64 | None, t: F64, max_rotation_sigma_deg: float, max_direction_sigma_deg: float) -> str:
-    """Why a first pose from E is not determined by its points ('' when it is): its covariance's largest
+def pose_undetermined(cov: F64 | None, t: F64, max_rotation_sigma_deg: float, max_direction_sigma_deg: float
+                      ) -> tuple[float, float] | None:
+    """Why a first pose from E is not determined by its points (None when it is): its covariance's largest
     rotation standard deviation above ``max_rotation_sigma_deg`` (``init_max_rotation_sigma_deg``) or the
     direction of travel's above ``max_direction_sigma_deg``. This is the bas-relief ambiguity of a small
-    baseline seen over part of the image: moving_mover replayed from frame 31 (a cart on 40 % of the view,
-    0.77 deg parallax) had 0.52 and 18.7 deg, its map started 1 deg off and the run ended at 5.5 % ATE;
+    baseline seen over part of the image: a cart on 40 % of the view at 0.77 deg of parallax gave 0.52 and
+    18.7 deg, a map started 1 deg off and a run that ended at 5.5 % ATE;
     the largest on a good initialisation of any bundled bag or KITTI, from any start frame, were 0.08 and
-    2.3 deg. No covariance (no parallax at all): undetermined."""
+    2.3 deg. Returns (rotation sigma, direction sigma) in degrees; no covariance (no parallax at all):
+    undetermined, (NaN, NaN)."""
     if cov is None or not np.all(np.isfinite(cov)):
-        return "no covariance"
+        return math.nan, math.nan
     rot_sigma = math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(cov[3:, 3:])[-1]), 0.0)))
     d = t / max(float(np.linalg.norm(t)), 1e-300)
     across = np.eye(3) - np.outer(d, d)
     dir_var = float(np.linalg.eigvalsh(across @ cov[:3, :3] @ across)[-1]) / max(float(t @ t), 1e-300)
     dir_sigma = math.degrees(math.sqrt(max(dir_var, 0.0)))
     if rot_sigma > max_rotation_sigma_deg or dir_sigma > max_direction_sigma_deg:
-        return f"rotation sigma {rot_sigma:.2f} deg, direction sigma {dir_sigma:.1f} deg"
-    return ""
+        return rot_sigma, dir_sigma
+    return None

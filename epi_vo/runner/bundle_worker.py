@@ -4,7 +4,7 @@ Why a process and not a thread: GTSAM's C++ solve releases Python's GIL, but the
 (``ground_plane``) are Python callbacks that need it for every evaluation. In a thread beside a busy
 frame loop such a window starved at the GIL's switch interval (a 140-point floor window: 116 ms alone,
 1.4 s in a thread). A worker *process* runs ``bundle.adjust`` on the second core instead. It is
-started with the interpreter the pipeline runs in (``python -m epi_vo.core.bundle_worker``), imports
+started with the interpreter the pipeline runs in (``python -m epi_vo.runner.bundle_worker``), imports
 only numpy and GTSAM, and speaks pickle over its stdin / stdout: a :class:`bundle.Window` in, an
 :class:`bundle.Adjusted` (or None) out, in order. Its own prints go to stderr, so nothing else ever reaches the pipe.
 
@@ -12,7 +12,7 @@ The result does not depend on where it was computed: the window's arrays cross t
 and the worker runs the same function (tested: identical trajectories either way). Results are read
 from the pipe by a thread of their own as they come, so ``ready`` can say, without waiting, whether the
 oldest one is back (``ba_wait: false``: the frame loop never waits for it). A worker that dies
-or answers garbage is not an input problem: :class:`ProcessSolver` says why once (``failure``) and
+or answers garbage is not an input problem: :class:`ProcessSolver` says why once (``take_failure``) and
 solves the window it lost, and every later one, in the calling process. The worker runs below the
 pipeline's scheduling priority (``WORKER_NICENESS``): a frame must not wait for a solve that has until
 the next keyframe.
@@ -29,36 +29,12 @@ import threading
 import weakref
 from typing import IO, Any
 
-MODULE = "epi_vo.core.bundle_worker"
+MODULE = "epi_vo.runner.bundle_worker"
 # The worker's scheduling priority below the pipeline's (POSIX nice increment). On two cores the frame
 # loop, its KLT thread and the worker compete; at the same priority the worker's solves pushed
 # ground_robot's paced frame p95 (ground_plane, window 8, ba_wait false) to 25-32 ms, niced by 10 to
 # 20-26 ms, where the same bag without a window gives 21-25 ms; the solves take as long (180-195 ms).
 WORKER_NICENESS = 10
-
-
-class InlineSolver:
-    """Solves in the calling process (``ba_solver: inline``): ``send`` computes, ``receive`` returns it."""
-
-    failure = ""
-
-    def __init__(self) -> None:
-        self._results: list[Any] = []
-
-    def send(self, window: Any) -> None:
-        from epi_vo.core import bundle
-
-        self._results.append(bundle.adjust(window))
-
-    def ready(self) -> bool:
-        """Whether ``receive`` would return at once (always: the result was computed by ``send``)."""
-        return True
-
-    def receive(self) -> Any:
-        return self._results.pop(0)
-
-    def close(self) -> None:
-        self._results.clear()
 
 
 def _read_results(out: IO[bytes], results: queue.SimpleQueue[tuple[bool, Any]]) -> None:
@@ -93,6 +69,9 @@ class ProcessSolver:
 
     def __init__(self) -> None:
         self.failure = ""  # why the worker is no longer used ("" while it is)
+        self._failure_said = False
+        from epi_vo.core.workers import InlineSolver  # here: the worker process itself needs only bundle
+
         self._inline = InlineSolver()
         self._sent: list[Any] = []  # windows sent and not yet received (kept to solve here if it dies)
         self._proc: subprocess.Popen[bytes] | None = None
@@ -142,6 +121,17 @@ class ProcessSolver:
             self._fail(f"the bundle adjustment worker {how} ({type(value).__name__})")
         self._inline.send(window)
         return self._inline.receive()
+
+    def in_flight(self) -> int:
+        """Windows sent and not yet received."""
+        return len(self._sent)
+
+    def take_failure(self) -> str:
+        """``failure``, the first time it is asked after the worker stopped being used ("" else)."""
+        if not self.failure or self._failure_said:
+            return ""
+        self._failure_said = True
+        return self.failure
 
     def close(self) -> None:
         self._sent.clear()

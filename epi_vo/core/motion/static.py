@@ -1,0 +1,76 @@
+"""The "no camera motion" hypothesis: a still camera must not build a map from something moving before it."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from numpy.typing import NDArray
+
+from epi_vo.core import covariance as covm
+from epi_vo.core.config import VoConfig
+from epi_vo.core.decisions import Decision, note
+from epi_vo.core.frame import Model, TrackingState
+from epi_vo.core.motion.record import Motion, MotionContext, MotionEstimate, has_map
+from epi_vo.core.selection import ModelSelection
+
+F64 = NDArray[np.float64]
+
+# A static camera stays static down to this share of static_min_fraction: a mover growing in front of it
+# covers more of the background (and occludes its tracks) without the camera having moved.
+STATIC_KEEP = 0.6
+GRID_CELLS = 4  # the spread of features is judged on a GRID_CELLS x GRID_CELLS grid of the image
+
+
+def static_camera(cfg: VoConfig, ctx: MotionContext, sel: ModelSelection, est: MotionEstimate) -> MotionEstimate:
+    """The "no camera motion" hypothesis, before a map exists: when most tracked features did not move and
+    those cover the image, the camera is static and whatever moved is another object. The pose holds (no
+    map is built from the mover's motion); the frame says what moved and where. ``est.motion`` is the held
+    pose when the camera is static, None otherwise (the other hypotheses decide).
+
+    With a map, the pose comes from the map points, whose majority (the static background) decides it; E
+    alone cannot tell: with no rotation every still point fits any translation's epipolar geometry, so
+    RANSAC happily explains a mover's motion.
+    """
+    was_static = est.memory.static
+    est = est.but(memory=dataclasses.replace(est.memory, static=False))
+    still = sel.inliers_static
+    n = ctx.uv_cur.shape[0]
+    if still is None or n == 0:
+        return est
+    fraction = float(np.count_nonzero(still)) / n
+    est = est.but(static_score=fraction)
+    # Entering needs the majority; staying needs STATIC_KEEP of it.
+    needed = cfg.static_min_fraction * (STATIC_KEEP if was_static else 1.0)
+    if has_map(cfg, ctx.kf) or fraction < needed:
+        return est
+    K = ctx.kf.camera
+    spread = grid_spread(ctx.uv_cur, still, K.width, K.height)
+    if spread < cfg.static_min_spread:
+        return est
+    moved = ~still
+    n_moving = int(np.count_nonzero(moved))
+    n_still = int(np.count_nonzero(still))
+    region = None
+    if n_moving:
+        lo = np.percentile(ctx.uv_cur[moved], 5, axis=0)
+        hi = np.percentile(ctx.uv_cur[moved], 95, axis=0)
+        region = (int(lo[0]), int(lo[1]), int(np.ceil(hi[0])), int(np.ceil(hi[1])))
+    rot_cov = covm.rotation_var(cfg.pixel_noise_px, K.K[0, 0], max(n_still, 1))
+    motion = Motion(TrackingState.STATIC, np.eye(3), np.zeros(3), covm.block(1e-6, rot_cov), still)
+    est = est.but(memory=dataclasses.replace(est.memory, static=True),
+                  n_moving=n_moving, n_inliers=n_still, median_parallax_deg=0.0, moving_region=region,
+                  model=Model.STATIC)
+    return est.noted(note(Decision.CAMERA_STATIC, fraction=fraction, spread=spread, n_moving=n_moving, region=region),
+                     motion)
+
+
+def grid_spread(uv: F64, mask: NDArray[np.bool_], width: int, height: int, cells: int = GRID_CELLS) -> float:
+    """Of the cells of a ``cells`` x ``cells`` grid holding any feature, the fraction holding a masked one."""
+    col = np.clip((uv[:, 0] * cells / max(width, 1)).astype(np.int64), 0, cells - 1)
+    row = np.clip((uv[:, 1] * cells / max(height, 1)).astype(np.int64), 0, cells - 1)
+    cell = row * cells + col
+    occupied = np.unique(cell)
+    if occupied.size == 0:
+        return 0.0
+    return float(np.unique(cell[mask]).size) / occupied.size

@@ -1,0 +1,128 @@
+"""The tracking state: everything one frame leaves for the next, as one frozen value.
+
+``epi_vo.core.step`` takes a ``TrackState`` and a frame and returns the state after the frame (and the
+frame's record); nothing else persists between frames. Its parts are frozen values too: the keyframe and
+its map (``Keyframe``), the scale source (``scale``), the windowed map (``window``), the motion stage's
+memory (``motion``), the covariance's scale and calibration terms (``map_scale``, ``offset``), the
+hand-over to a new map (``handover``). Arrays held here are never changed in place: a new state holds
+new arrays.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from epi_vo.core import scale as sc
+from epi_vo.core.config import VoConfig
+from epi_vo.core.decisions import Note
+from epi_vo.core.handover import Handover
+from epi_vo.core.keyframe import Keyframe
+from epi_vo.core.map_scale import DirectionOffset, MapScaleCovariance
+from epi_vo.core.motion import MotionMemory
+from epi_vo.core.patches import PatchTemplates, patch_templates
+from epi_vo.core.wheel_odometry import WheelOdometry
+from epi_vo.core.window import WindowedMap
+
+F64 = NDArray[np.float64]
+F32 = NDArray[np.float32]
+I64 = NDArray[np.int64]
+
+
+def _no_rows() -> I64:
+    return np.zeros(0, np.int64)
+
+
+def _no_points() -> F32:
+    return np.zeros((0, 2), np.float32)
+
+
+@dataclass(frozen=True)
+class Tracks:
+    """The live tracks: each one's keyframe row, its position in the previous image, and that image."""
+
+    rows: I64 = field(default_factory=_no_rows)
+    pts: F32 = field(default_factory=_no_points)
+    gray: NDArray[np.uint8] | None = None  # the previous image, KLT's start
+
+
+@dataclass(frozen=True)
+class TrackedNoise:
+    """The image noise the tracks gathered since keyframe ``kf_index``: the sum of each frame's squared
+    share of ``pixel_noise_px`` (``covariance.twist_noise_ratio``), up to frame ``last_index``."""
+
+    kf_index: int = -1
+    noise_sq: float = 0.0
+    last_index: int = -1
+
+
+@dataclass(frozen=True)
+class LastRelative:
+    """The last pose's covariance relative to its keyframe (odometry frame, without its map's scale part),
+    for the next frame's step covariance (``covariance.track_step``)."""
+
+    kf_stamp_ns: int
+    cov: F64
+
+
+@dataclass(frozen=True)
+class Measured:
+    """Whether the last frame's pose and position were measured (not held): its step to the next is then
+    measured too."""
+
+    pose: bool = False
+    position: bool = False
+
+
+def _eye4() -> F64:
+    return np.eye(4)
+
+
+def _zeros6() -> F64:
+    return np.zeros((6, 6))
+
+
+def _zeros3() -> F64:
+    return np.zeros(3)
+
+
+@dataclass(frozen=True)
+class TrackState:
+    """Everything the per-frame step carries from one frame to the next (module doc)."""
+
+    scale: sc.ScaleSource
+    handover: Handover
+    map_scale: MapScaleCovariance
+    offset: DirectionOffset
+    window: WindowedMap
+    patches: PatchTemplates | None  # KLT tracks refined against their first image (None: off)
+    index: int = 0  # the next frame's index (every frame gets one, skipped ones too)
+    last_stamp_ns: int | None = None  # the stamp of the last frame booked (duplicates and jumps back)
+    pending: Note | None = None  # a restart's note, said in the next processed frame
+    T_w_c: F64 = field(default_factory=_eye4)  # the last pose (held when the last frame had none)
+    cov_w_c: F64 = field(default_factory=_zeros6)  # and its covariance (odometry frame, position first)
+    kf: Keyframe | None = None  # the reference keyframe and its map (None: the next frame starts one)
+    tracks: Tracks = field(default_factory=Tracks)
+    T_cur_kf_prev: F64 = field(default_factory=_eye4)  # the last pose relative to the keyframe
+    fail_count: int = 0  # consecutive frames without a pose
+    n_keyframes: int = 0
+    next_id: int = 0  # the next feature track id
+    mover_ids: I64 = field(default_factory=_no_rows)  # sorted ids of tracks judged to move on their own
+    measured: Measured = field(default_factory=Measured)
+    last_pos_w: F64 = field(default_factory=_zeros3)  # position of the last frame with a pose
+    last_relative: LastRelative | None = None
+    tracked_noise: TrackedNoise = field(default_factory=TrackedNoise)
+    fx: float = 1.0  # the focal length (px) of the last frame's CameraInfo
+    motion: MotionMemory = field(default_factory=MotionMemory)
+    wheel: WheelOdometry = field(default_factory=WheelOdometry)
+
+
+def initial_state(cfg: VoConfig) -> TrackState:
+    """The state before the first frame: no keyframe, the origin, the scale source's start."""
+    return TrackState(scale=sc.source_from_config(cfg), handover=Handover.from_config(cfg),
+                      map_scale=MapScaleCovariance(cfg.scale_drift_per_keyframe),
+                      offset=DirectionOffset(cfg.principal_point_sigma_px),
+                      window=WindowedMap.create(cfg.ba_window_keyframes, cfg.ba_every_keyframes, cfg.pixel_noise_px),
+                      patches=patch_templates(cfg))

@@ -1,0 +1,94 @@
+"""The per-frame step (epi_vo.core.step) is a function of the tracking state: the state is one frozen value,
+the step returns the next one and leaves the one it was given as it was."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from epi_vo.core import step as sp
+from epi_vo.core.camera import CameraModel
+from epi_vo.core.config import VoConfig
+from epi_vo.core.decisions import Decision, note
+from epi_vo.core.frame import FrameResult, TrackingState
+from epi_vo.core.pipeline import VoPipeline
+from epi_vo.core.state import TrackState, initial_state
+from epi_vo.core.workers import InLine
+from epi_vo.io import bagio
+from epi_vo.io.msgconv import decode_frame
+
+BAG = Path(__file__).resolve().parents[2] / "bags" / "general_motion" / "bag"
+Frames = list[tuple[int, np.ndarray, CameraModel]]
+
+
+@pytest.fixture(scope="module")
+def frames() -> Frames:
+    out = []
+    with bagio.open_camera_bag(BAG) as bag:
+        for f in bag.iter_frames():
+            out.append((f.stamp_ns, decode_frame(f.image_msg, bag.image_is_compressed),
+                        CameraModel.from_camera_info(f.camera_info_msg)))
+    return out
+
+
+def _record(r: FrameResult) -> dict[str, object]:
+    rec = r.to_record()
+    rec.pop("timings_ms")
+    return rec
+
+
+def _run(state: TrackState, env: sp.StepEnv, frames: Frames) -> tuple[TrackState, list[FrameResult]]:
+    results = []
+    for s, g, c in frames:
+        state, r = sp.process(state, sp.Frame(g, c, s), env)
+        results.append(r)
+    return state, results
+
+
+def test_the_step_leaves_the_state_it_was_given(frames: Frames) -> None:
+    """The same state and frame give the same record and the same next state, however often; the state
+    given is not changed (a record can be replayed from any earlier state)."""
+    cfg = VoConfig()
+    env = sp.StepEnv.of(cfg, InLine())
+    state, _ = _run(initial_state(cfg), env, frames[:20])
+    T_before, kf_before, scale_before = state.T_w_c.copy(), state.kf, state.scale
+    a_state, a = sp.process(state, sp.Frame(frames[20][1], frames[20][2], frames[20][0]), env)
+    b_state, b = sp.process(state, sp.Frame(frames[20][1], frames[20][2], frames[20][0]), env)
+    assert _record(a) == _record(b) and a.state is TrackingState.TRACKING
+    np.testing.assert_array_equal(a_state.T_w_c, b_state.T_w_c)
+    assert a_state.index == b_state.index == state.index + 1
+    np.testing.assert_array_equal(state.T_w_c, T_before)  # unchanged
+    assert state.kf is kf_before and state.scale is scale_before
+    # Going on from either gives the records a single run gives.
+    _, rest_a = _run(a_state, env, frames[21:30])
+    _, rest_b = _run(b_state, env, frames[21:30])
+    _, single = _run(initial_state(cfg), env, frames[:30])
+    assert [_record(r) for r in rest_a] == [_record(r) for r in rest_b] == [_record(r) for r in single[21:30]]
+
+
+def test_the_state_is_one_frozen_value(frames: Frames) -> None:
+    pipe = VoPipeline()
+    first = pipe.state
+    pipe.process(frames[0][1], frames[0][2], frames[0][0])
+    assert pipe.state is not first and first.index == 0 and pipe.state.index == 1
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        pipe.state.fail_count = 3  # type: ignore[misc]
+    frozen_fields = [f.name for f in dataclasses.fields(TrackState)]
+    assert {"T_w_c", "cov_w_c", "kf", "scale", "window", "motion", "wheel", "handover"} <= set(frozen_fields)
+    assert all(dataclasses.is_dataclass(getattr(pipe.state, name)) and
+               type(getattr(pipe.state, name)).__dataclass_params__.frozen
+               for name in ("scale", "window", "motion", "wheel", "handover", "map_scale", "offset", "tracks"))
+
+
+def test_a_reject_and_a_restart_are_values_too(frames: Frames) -> None:
+    cfg = VoConfig()
+    env = sp.StepEnv.of(cfg, InLine())
+    state, _ = _run(initial_state(cfg), env, frames[:10])
+    restarted = sp.restart(state, note(Decision.RESET, text="operator"))
+    assert state.kf is not None and restarted.kf is None and restarted.pending is not None
+    after, r = sp.reject_checked(state, frames[10][0], note(Decision.FRAME_REJECTED, problem="bad"), 0.0, cfg)
+    assert not r.has_pose and r.problem == "bad" and after.fail_count == state.fail_count + 1
+    assert state.fail_count == 0 and after.index == state.index + 1
