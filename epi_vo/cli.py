@@ -333,7 +333,7 @@ def _say(line: str, *, stdout: bool = False) -> None:
 
 def _replay(args: argparse.Namespace) -> int:
     from epi_vo.io import checks
-    from epi_vo.io.params import load_config, load_node_options
+    from epi_vo.io.params import load_config, load_extrinsic, load_node_options
     from epi_vo.tools.fleet_bags import is_fleet, nested_bags
     from epi_vo.tools.replay import format_summary, run_replay
 
@@ -354,7 +354,8 @@ def _replay(args: argparse.Namespace) -> int:
                          camera_info_topic=args.camera_info_topic, gt_tum=args.gt,
                          progress=not args.no_progress, rate=args.rate,
                          map_frame_id=load_node_options(args.params).map_frame_id, gt_topic=args.gt_topic,
-                         no_gt=args.no_gt, inputs=[args.params] if args.params else [])
+                         no_gt=args.no_gt, inputs=[args.params] if args.params else [],
+                         extrinsic=load_extrinsic(args.params))
     _say(format_summary(summary), stdout=True)
     if args.report:
         from epi_vo.tools.report import write_report
@@ -368,7 +369,7 @@ def _replay(args: argparse.Namespace) -> int:
 
 def _replay_fleet(args: argparse.Namespace) -> int:
     from epi_vo.io import checks
-    from epi_vo.io.params import load_config, load_node_options
+    from epi_vo.io.params import load_config, load_extrinsic, load_node_options
     from epi_vo.tools.fleet import run_fleet
     from epi_vo.tools.fleet_bags import find_bags
     from epi_vo.tools.fleet_summary import exit_code
@@ -385,7 +386,8 @@ def _replay_fleet(args: argparse.Namespace) -> int:
                        progress=not args.no_progress, image_topic=args.image_topic,
                        camera_info_topic=args.camera_info_topic,
                        map_frame_id=load_node_options(args.params).map_frame_id, gt_topic=args.gt_topic,
-                       no_gt=args.no_gt, inputs=[args.params] if args.params else [])
+                       no_gt=args.no_gt, inputs=[args.params] if args.params else [],
+                       extrinsic=load_extrinsic(args.params))
     _print_rows(result.rows, result.summary_files)
     if result.signum is not None:
         hangup = result.signum == getattr(signal, "SIGHUP", None)

@@ -18,8 +18,11 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from numpy.typing import NDArray
+
 from epi_vo.core.config import PIPELINE_NAMES, VoConfig, from_dict
 from epi_vo.core.errors import ConfigError
+from epi_vo.core.odometry import T_base_cam_from_params
 
 IMAGE_TRANSPORTS = ("auto", "raw", "compressed")
 QOS_RELIABILITIES = ("best_effort", "reliable")
@@ -47,6 +50,20 @@ class NodeOptions:
     watchdog_timeout_s: float = 1.0
     camera_info_wait_s: float = 0.2
     hardware_id: str = ""
+
+
+@dataclass(frozen=True)
+class CameraExtrinsic:
+    """A camera mounting declared by ``camera_xyz`` / ``camera_rpy`` (what the node takes when TF has none), for
+    the offline tools: the replay's odometry and floor search use it as the node does."""
+
+    camera_xyz: tuple[float, ...]
+    camera_rpy: tuple[float, ...]
+
+    @property
+    def T_base_cam(self) -> NDArray[Any]:
+        """4x4, camera optical frame -> base (the optical rotation appended)."""
+        return T_base_cam_from_params(self.camera_xyz, self.camera_rpy)
 
 
 NODE_DOCS: dict[str, str] = {

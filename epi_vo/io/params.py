@@ -23,7 +23,14 @@ from epi_vo.core.config import (
     unknown_names_text,
 )
 from epi_vo.core.errors import ConfigError
-from epi_vo.io.node_options import NODE_DOCS, NODE_OPTION_NAMES, NodeOptions, is_read_only, make_node_options
+from epi_vo.io.node_options import (
+    NODE_DOCS,
+    NODE_OPTION_NAMES,
+    CameraExtrinsic,
+    NodeOptions,
+    is_read_only,
+    make_node_options,
+)
 from epi_vo.io.paths import refuse_special_file
 
 
@@ -87,6 +94,16 @@ def load_node_options(path: str | Path | None = None) -> NodeOptions:
         return make_node_options({k: v for k, v in params.items() if k in NODE_OPTION_NAMES})
     except ConfigError as exc:
         raise ConfigError(f"parameter file {path}: {exc}") from None
+
+
+def load_extrinsic(path: str | Path | None = None) -> CameraExtrinsic | None:
+    """The camera mounting a parameter file declares (it sets ``camera_xyz`` or ``camera_rpy``; the other one
+    takes its default), None when it declares none: then the offline tools know no extrinsic. ConfigError
+    naming a bad value, as :func:`load_node_options`."""
+    if path is None or not {"camera_xyz", "camera_rpy"} & set(load_params_file(path)):
+        return None
+    opts = load_node_options(path)
+    return CameraExtrinsic(opts.camera_xyz, opts.camera_rpy)
 
 
 def to_params_yaml(cfg: VoConfig, extra: dict[str, Any] | None = None, node: NodeOptions | None = None) -> str:

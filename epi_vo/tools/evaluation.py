@@ -52,6 +52,7 @@ from epi_vo.core.odometry import default_T_base_cam
 from epi_vo.core.transforms import invert_T
 from epi_vo.io import tum
 from epi_vo.io.odometry_bag import OdometryTrack, read_odometry
+from epi_vo.tools.replay_outputs import read_recorded_extrinsic
 
 logger = logging.getLogger(__name__)
 
@@ -681,11 +682,8 @@ def conditioned_on(T_o_b: NDArray[np.float64], cov_o: NDArray[np.float64], a: in
 def replay_dir_nees(directory: str | Path, anchor: AlignmentAnchor = AlignmentAnchor.ORIGIN,
                     from_ns: int | None = None) -> NeesResult | None:
     """:func:`replay_nees` of an ``epi-vo replay`` output directory (frames.jsonl, output.mcap,
-    groundtruth.tum); None when it has no ground truth.
-
-    Raises:
-        EvaluationError: the files cannot be read or evaluated (the message names the file).
-    """
+    groundtruth.tum, and the extrinsic stats.json records); None when it has no ground truth. Raises
+    EvaluationError when the files cannot be read or evaluated (the message names the file)."""
     d = Path(directory)
     if not (d / "groundtruth.tum").is_file():
         return None
@@ -694,7 +692,8 @@ def replay_dir_nees(directory: str | Path, anchor: AlignmentAnchor = AlignmentAn
                    if line.strip()]
         odometry = read_odometry(d / "output.mcap")
         gt = tum.read_tum(d / "groundtruth.tum")
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, EpiVoError) as exc:
+        T_base_cam = read_recorded_extrinsic(d)  # the odometry's (None: the default extrinsic)
+    except (OSError, UnicodeDecodeError, ValueError, EpiVoError) as exc:  # ValueError: JSON, the extrinsic
         msg = f"{d}: cannot read the replay output for the covariance check: {exc}"
         raise EvaluationError(msg) from None
-    return replay_nees(records, odometry, gt, anchor=anchor, from_ns=from_ns)
+    return replay_nees(records, odometry, gt, T_base_cam=T_base_cam, anchor=anchor, from_ns=from_ns)

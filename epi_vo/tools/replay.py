@@ -42,6 +42,7 @@ from epi_vo.core.pipeline import VoPipeline
 from epi_vo.core.status import frame_status
 from epi_vo.io import bag_topics, bagio, outbag, tum
 from epi_vo.io.msgconv import decode_frame
+from epi_vo.io.node_options import CameraExtrinsic
 from epi_vo.io.paths import check_bag_path, refuse_special_file
 from epi_vo.io.wheel_feed import WheelFeed
 from epi_vo.runner import make_pipeline
@@ -126,6 +127,9 @@ class ReplaySummary:
     # it stays continuous and /tf carries them as map_frame_id -> odom
     # scale_source wheel_odometry: the messages of its topic and what became of them (WheelInputCounts)
     wheel_odometry: dict[str, int] | None = None
+    # The camera extrinsic of /vo/odometry (:func:`extrinsic_record`): declared by the parameters, or the default
+    # (camera level at base_link, no offset: the base frame is the camera's); None in an older stats.json
+    extrinsic: dict[str, Any] | None = None
 
     @property
     def has_problems(self) -> bool:
@@ -225,7 +229,8 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                on_result: Callable[[FrameResult], None] | None = None,
                on_open: Callable[[int], None] | None = None, lookahead: bool = True,
                rate: float | None = None, map_frame_id: str = "", gt_topic: str | None = None,
-               no_gt: bool = False, inputs: Sequence[str | Path] = ()) -> ReplaySummary:
+               no_gt: bool = False, inputs: Sequence[str | Path] = (),
+               extrinsic: CameraExtrinsic | None = None) -> ReplaySummary:
     """Replay every image of a bag through the pipeline and write the outputs (see module doc).
 
     A frame that cannot be used (undecodable message or image, header stamp that is no ROS time,
@@ -249,7 +254,10 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     written at every frame with a pose either way), as the node broadcasts them.
     Ground truth: ``gt_tum`` (a TUM file) when given, else the bag's ``gt_topic``, else its one topic named
     as ground truth (:func:`epi_vo.io.bag_topics.is_ground_truth_name`); none with ``no_gt``. ``inputs``: other
-    files the run reads (a parameter file), which no output may overwrite either.
+    files the run reads (a parameter file), which no output may overwrite either. ``extrinsic``: the camera
+    mounting the parameters declare (``camera_xyz`` / ``camera_rpy``), used as vo_node uses it without TF (for
+    /vo/odometry, /tf and the floor search); None: the default (camera level at base_link), as the node's
+    defaults give. ``stats.json`` records which (``extrinsic``).
 
     Raises:
         BagError: unreadable or empty bag, missing or ambiguous topics, a bag that is no regular file or
@@ -267,7 +275,9 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     out = ensure_output_dir(output_dir)
     remove_stats(out)  # stats.json is written last: without it the directory holds no finished replay
     pipeline = make_pipeline(cfg)
-    converter = OdometryConverter(continuous=bool(map_frame_id))
+    converter = OdometryConverter(None if extrinsic is None else extrinsic.T_base_cam, continuous=bool(map_frame_id))
+    if extrinsic is not None:
+        pipeline.set_mounting(converter.T_base_cam)  # the floor is sought along the up it declares, as live
     cameras = CameraModelCache()
     results_pose: list[tuple[float, np.ndarray, np.ndarray]] = []
     metric_stamps: list[dict[str, Any]] = []  # the poses published in metres (see evaluation.metric_poses)
@@ -382,7 +392,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
             notes.append(f"evaluation skipped: {exc}")
         if metrics is not None and odo_log is not None:
             try:
-                metrics.update(consistency_metrics(odo_log, gt[1], ODOM_FRAME, BASE_FRAME))
+                metrics.update(consistency_metrics(odo_log, gt[1], ODOM_FRAME, BASE_FRAME, converter.T_base_cam))
             except EpiVoError as exc:
                 notes.append(f"covariance consistency not evaluated: {exc}")
     totals = stage_times.get("total", [0.0])
@@ -398,12 +408,22 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
         units=units, metric_from_frame=metric_from, poses_before_metric=held, wall_s=wall_s,
         end_to_end_fps=n_frames / max(wall_s, 1e-9), map_frame_id=map_frame_id,
         wheel_odometry=None if wheel_counts is None else wheel_counts.record(),
+        extrinsic=extrinsic_record(extrinsic, converter.T_base_cam),
         gt_choice=gt_choice(gt_tum, gt_topic, no_gt))
     write_stats(out, summary.to_json())
     return summary
 
 
 CALIBRATION_NOTE = "check the camera calibration"  # how the note on rotation-only frames under another focal begins
+
+
+def extrinsic_record(extrinsic: CameraExtrinsic | None, T_base_cam: NDArray[np.float64]) -> dict[str, Any]:
+    """``stats.json``'s ``extrinsic``: ``source`` ('parameters' or 'default'), the parameters (zeros for the
+    default) and ``T_base_cam`` (4x4 rows, camera optical frame -> base_link, as /vo/odometry was made with)."""
+    return {"source": "default" if extrinsic is None else "parameters",
+            "camera_xyz": [0.0] * 3 if extrinsic is None else [float(v) for v in extrinsic.camera_xyz],
+            "camera_rpy": [0.0] * 3 if extrinsic is None else [float(v) for v in extrinsic.camera_rpy],
+            "T_base_cam": [[float(v) for v in row] for row in T_base_cam]}
 
 
 def _wheel_topic(cfg: VoConfig) -> str | None:
