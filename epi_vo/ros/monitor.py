@@ -303,9 +303,9 @@ class MonitorState:
         frame_line = f"  state       {state}  frame {_int(f, 'index')}  stamp {_float(f, 'stamp', 3)}"
         if f and self.frame_s < self.latest_s:
             frame_line += f"  (last frame {now_s - self.frame_s:.1f} s ago)"
-        if f:
-            frame_line += f"  reason {self.frame_message or 'none'}"
         lines.append(frame_line)
+        if f:  # the frame's own words (its reason), beside the health's fixed messages
+            lines.append(f"  why         {self.frame_message or 'n/a'}")
         lines.append(f"  input       {_float(lt, 'input_rate_hz', 1, ' Hz')}  received {_int(lt, 'frames_received')}"
                      f"  dropped {_int(lt, 'dropped_frames')}  queue {_int(lt, 'queue_depth')}"
                      f"  last image {_float(lt, 'time_since_last_image_s', 2, ' s ago')}")

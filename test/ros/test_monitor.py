@@ -67,6 +67,7 @@ def test_snapshot_shows_level_state_reason_and_numbers() -> None:
     assert text.startswith("/vo_node  (hardware monocular_camera)")
     assert re.search(r"level\s+OK\b", text)
     assert re.search(r"reason\s+tracking\b", text)
+    assert re.search(r"^  why\s+tracking$", text, re.MULTILINE)  # the latest frame's own words
     assert re.search(r"state\s+tracking\s+frame 41\b", text)
     for part in ("inliers 170", "inlier ratio 0.850", "tracked 200", "features 300", "RH 0.183",
                  "parallax 2.91 deg", "model       E", "keyframes 4", "15.0 Hz", "dropped 1", "received 42",
@@ -374,7 +375,9 @@ def test_monitor_against_a_running_node(ros: RosSession) -> None:
         assert out.startswith(NODE) and re.search(r"level\s+(OK|WARN)\b", out), out
         assert re.search(r"health\s+tracking (OK|WARN) \(.*\)  input OK \(receiving images\)  extrinsic ", out), out
         assert re.search(r"state\s+(tracking|initializing|rotation_only)\s+frame \d+", out), out
-        (index,), (features,) = _ints(out, "frame"), _ints(out, "features")
+        state_line = re.search(r"^  state\s+\S+\s+frame (\d+)", out, re.MULTILINE)
+        assert state_line is not None, out
+        index, (features,) = int(state_line.group(1)), _ints(out, "features")
         assert 50 <= features <= 2000
         assert 0.0 < _floats(out, "input")[0]  # Hz: the player's rate as the node measured it
         # The numbers are those the node published for that frame (once the probe has its status too).
