@@ -94,6 +94,16 @@ def test_the_wheel_topic_is_relative_by_default_so_a_namespaced_node_reads_its_o
     assert "/odom" not in subscribed
 
 
+def test_a_node_stopped_while_it_starts_exits_quietly(ros: RosSession) -> None:
+    """SIGINT (Ctrl-C, launch stopping a stack) can come while the node is still being made: an exit like one
+    during spin, no traceback."""
+    code = ("from epi_vo.ros.node_run import run_node\n"
+            "def make():\n    raise KeyboardInterrupt\n"
+            "run_node(make, 'vo_node', '', ['--ros-args'])\n")
+    proc = subprocess.run([sys.executable, "-c", code], env=ros.env, capture_output=True, text=True, timeout=WAIT_S)
+    assert (proc.returncode, proc.stderr) == (0, "")
+
+
 class Probe(ProbeBase):
     def __init__(self, ros: RosSession, name: str) -> None:
         from lifecycle_msgs.srv import ChangeState
