@@ -98,6 +98,13 @@ def _add_benchmark(sub: argparse._SubParsersAction) -> None:
                                                  "or ~/.cache/epi_vo/scenarios)")
     p.add_argument("--data", default=None, help="distribution: folder of the real clips (default ../shared/data)")
     p.add_argument("--no-real", action="store_true", help="distribution: leave the real clips out")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", dest="overrides",
+                   help="distribution: change one parameter after --params (repeatable); with --baseline, the "
+                        "run without the change, this is how a rule is judged with and without it")
+    p.add_argument("--baseline", default=None, metavar="RECORD.json",
+                   help="distribution: an earlier record's JSON; prints every family's figures before -> after")
+    p.add_argument("--no-reference", action="store_true",
+                   help="distribution: leave the seed reference pipeline out (faster; for ablations)")
     p.add_argument("--record-dir", default=None,
                    help="where the dated record goes (default: docs/benchmarks of the source tree)")
     p.add_argument("--no-record", action="store_true", help="print only: write no dated record")
@@ -298,6 +305,12 @@ def _benchmark(args: argparse.Namespace) -> int:
 
     record = None if args.no_record else (Path(args.record_dir) if args.record_dir else default_record_dir())
     if args.suite == "bundled":
+        for flag, given in (("--set", args.overrides), ("--baseline", args.baseline),
+                            ("--no-reference", args.no_reference)):
+            if given:
+                _say(f"epi-vo: error: {flag} is an option of --suite distribution and subset, not of the bundled "
+                     "suite")
+                return 2
         from epi_vo.tools.benchmark import run_benchmark
 
         return run_benchmark(args.bags, args.kitti, args.params, args.output, record)
@@ -309,7 +322,8 @@ def _benchmark(args: argparse.Namespace) -> int:
     from epi_vo.tools.distribution import run_distribution
 
     return run_distribution(args.suite, args.params, families=args.families, seeds=args.seeds, jobs=args.jobs,
-                            cache=args.cache, data_dir=args.data, real=not args.no_real, record_dir=record)
+                            cache=args.cache, data_dir=args.data, real=not args.no_real, record_dir=record,
+                            reference=not args.no_reference, overrides=args.overrides, baseline=args.baseline)
 
 
 def _one_line(text: str) -> str:
