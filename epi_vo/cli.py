@@ -103,6 +103,9 @@ def _add_benchmark(sub: argparse._SubParsersAction) -> None:
                         "run without the change, this is how a rule is judged with and without it")
     p.add_argument("--baseline", default=None, metavar="RECORD.json",
                    help="distribution: an earlier record's JSON; prints every family's figures before -> after")
+    p.add_argument("--ablate", nargs="*", default=None, metavar="RULE",
+                   help="distribution: run the defaults and each rule switched off (all rules, or these), and "
+                        "say which pay on which family (docs/distribution.md)")
     p.add_argument("--no-reference", action="store_true",
                    help="distribution: leave the seed reference pipeline out (faster; for ablations)")
     p.add_argument("--record-dir", default=None,
@@ -306,7 +309,7 @@ def _benchmark(args: argparse.Namespace) -> int:
     record = None if args.no_record else (Path(args.record_dir) if args.record_dir else default_record_dir())
     if args.suite == "bundled":
         for flag, given in (("--set", args.overrides), ("--baseline", args.baseline),
-                            ("--no-reference", args.no_reference)):
+                            ("--no-reference", args.no_reference), ("--ablate", args.ablate is not None)):
             if given:
                 _say(f"epi-vo: error: {flag} is an option of --suite distribution and subset, not of the bundled "
                      "suite")
@@ -319,6 +322,15 @@ def _benchmark(args: argparse.Namespace) -> int:
             _say(f"epi-vo: error: {flag} is an option of the bundled suite, not of --suite {args.suite} (its JSON "
                  "is written beside the dated record)")
             return 2
+    if args.ablate is not None:
+        if args.overrides or args.baseline:
+            _say("epi-vo: error: --ablate runs its own baseline and overrides: leave --set and --baseline out")
+            return 2
+        from epi_vo.tools.ablation import run_ablation
+
+        return run_ablation(args.suite, args.params, args.ablate, record_dir=record, families=args.families,
+                            seeds=args.seeds, jobs=args.jobs, cache=args.cache, data_dir=args.data,
+                            real=not args.no_real)
     from epi_vo.tools.distribution import run_distribution
 
     return run_distribution(args.suite, args.params, families=args.families, seeds=args.seeds, jobs=args.jobs,

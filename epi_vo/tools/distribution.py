@@ -105,6 +105,7 @@ class RealTask:
     bag: Path
     gt: Path
     cfg: VoConfig
+    reference: bool = True
 
 
 def bench_real(task: RealTask) -> list[BenchRow]:
@@ -117,7 +118,8 @@ def bench_real(task: RealTask) -> list[BenchRow]:
     for label, values in METRIC_VARIANTS.get(task.name, ()):
         rows.append(bench_epi_vo(task.name, task.bag, task.gt, dataclasses.replace(task.cfg, **values),
                                  f"epi_vo[{label}]", checked=check))
-    rows.append(bench_reference(task.name, task.bag, task.gt))
+    if task.reference:
+        rows.append(bench_reference(task.name, task.bag, task.gt))
     return rows
 
 
@@ -195,7 +197,7 @@ def run_distribution(suite: str, params: str | None, *, families: Sequence[str] 
         fam = gen.FAMILIES[s.family]
         tasks.append(SequenceTask(s.family, s.seed, s.path, s.info, fam.scale_sources, cfg, reference))
     clips = real_clips(Path(data_dir) if data_dir else None) if real else []
-    tasks += [RealTask(name, bag, gt, cfg) for name, bag, gt in clips]
+    tasks += [RealTask(name, bag, gt, cfg, reference) for name, bag, gt in clips]
     bench_started = time.perf_counter()
     print(f"benchmarking {len(rendered.sequences)} sequences and {len(clips)} real clips in {jobs} processes ...",
           file=sys.stderr, flush=True)
