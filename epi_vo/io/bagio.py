@@ -58,6 +58,7 @@ DIAGNOSTIC_ARRAY_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
 TF_MESSAGE_TYPE = "tf2_msgs/msg/TFMessage"
 
 ODOMETRY_TOPIC = "/vo/odometry"
+VO_UNITS_ODOMETRY_TOPIC = "/vo/odometry/vo_units"  # the motion in VO units (frames in no TF tree)
 POINTS_TOPIC = "/vo/points"
 PATH_TOPIC = "/vo/path"
 DIAGNOSTICS_TOPIC = "/diagnostics"

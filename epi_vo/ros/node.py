@@ -8,8 +8,12 @@ Topics (relative names, so namespaces and remapping work):
   in:  ``camera/image_raw`` (sensor_msgs/Image) and/or ``camera/image_raw/compressed`` (CompressedImage):
        ``image_transport: auto`` subscribes to both and keeps whichever delivers first (logged and in the
        diagnostics), ``raw`` / ``compressed`` to one; ``camera/camera_info``
-  out: ``vo/odometry`` (nav_msgs/Odometry, odom -> base_link, REP-105), ``vo/points`` (PointCloud2 of
-       the points triangulated at keyframes, frame odom), ``vo/path`` (bounded nav_msgs/Path),
+  out: ``vo/odometry`` (nav_msgs/Odometry, odom -> base_link, REP-105: what a filter may fuse; metres once a
+       metric scale source is established, else the position held with the "unknown" variance and the
+       orientation as estimated), ``vo/odometry/vo_units`` (the motion in VO units while there are no metres,
+       odom_vo_units -> base_link_vo_units: frames in no TF tree; ``epi_vo.runner.outputs``), ``vo/points``
+       (PointCloud2 of the points triangulated at keyframes, in odom, or odom_vo_units in VO units),
+       ``vo/path`` (bounded nav_msgs/Path, the same frame rule),
        ``/diagnostics`` (``<fully qualified node name>: tracking`` per frame and from the watchdog, and a
        ``<...>: summary`` once a second), ``vo/debug_image`` (off by default); TF odom -> base_link when
        tf2_ros is importable.
@@ -156,6 +160,7 @@ class VoNodeBase(NodeDiagnostics):
                                      QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100))
             self.get_logger().info(f"metric scale from wheel odometry on {self.cfg.wheel_odometry_topic}")
         self._pub_odom = self._create_output_publisher(Odometry, "vo/odometry", 10)
+        self._pub_odom_vo_units = self._create_output_publisher(Odometry, "vo/odometry/vo_units", 10)
         self._pub_points = self._create_output_publisher(PointCloud2, "vo/points", 10)
         self._pub_path = self._create_output_publisher(Path, "vo/path", 10)
         if getattr(self, "_pub_diag", None) is None:  # the managed node has one of its own, for every state
@@ -433,9 +438,10 @@ class VoNodeBase(NodeDiagnostics):
         """The frame's outputs as messages: odometry, path, points, TF, its status, the debug image."""
         out = handled.outputs
         self._last_frame_status = out.status
+        if out.odometry_vo_units is not None:
+            self._pub_odom_vo_units.publish(odometry_msg(out.odometry_vo_units))
         if out.odometry is not None:
-            odom = odometry_msg(out.odometry)
-            self._pub_odom.publish(odom)
+            self._pub_odom.publish(odometry_msg(out.odometry))
             if self._arrived_s is not None:
                 self._last_latency_ms = (time.monotonic() - self._arrived_s) * 1e3
         if out.path is not None:
@@ -498,7 +504,8 @@ class VoNode(VoNodeBase, Node):
 HELP_TEXT = """usage: vo_node [--ros-args --params-file FILE -p NAME:=VALUE -r FROM:=TO ...]
 
 Monocular visual odometry node (epi_vo). Subscribes camera/image_raw (+ /compressed) and
-camera/camera_info; publishes vo/odometry, vo/points, vo/path, /diagnostics; service vo/reset.
+camera/camera_info; publishes vo/odometry (metres, or the position held while the scale is unknown),
+vo/odometry/vo_units (the motion in VO units), vo/points, vo/path, /diagnostics; service vo/reset.
 Its parameters, with their defaults (the same file as `epi-vo params` and config/epi_vo.yaml):
 
 """

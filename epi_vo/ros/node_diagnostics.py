@@ -127,12 +127,13 @@ class NodeDiagnostics:
                 f"{self.opts.queue_max_mb:g} ({queued} waiting, {held_mb:.1f} MB)")
 
     def _map_odom_values(self) -> tuple[tuple[str, str], ...]:
-        """With map_frame_id: how far the corrections have taken map from odom (vo/odometry's units)."""
+        """With map_frame_id: how far the corrections have taken map from odom (in the
+        frame status's ``units``: metres, or VO units while no map -> odom is broadcast)."""
         if not self.opts.map_frame_id:
             return ()
         M = self._converter.T_map_odom
         return ((f"{self.opts.map_frame_id}_to_{self.opts.frame_id}",
-                 f"{float(np.linalg.norm(M[:3, 3])):.4g} (units of vo/odometry), "
+                 f"{float(np.linalg.norm(M[:3, 3])):.4g} (the status's units), "
                  f"{rotation_angle_deg(M[:3, :3]):.3g} deg"),)
 
     def _wheel_values(self) -> tuple[tuple[str, str], ...]:

@@ -51,7 +51,7 @@ from epi_vo.core.errors import EpiVoError, EvaluationError
 from epi_vo.core.odometry import default_T_base_cam
 from epi_vo.core.transforms import invert_T
 from epi_vo.io import tum
-from epi_vo.io.odometry_bag import OdometryTrack, read_odometry
+from epi_vo.io.odometry_bag import OdometryTrack, read_estimate_odometry
 
 logger = logging.getLogger(__name__)
 
@@ -692,7 +692,7 @@ def replay_dir_nees(directory: str | Path, anchor: AlignmentAnchor = AlignmentAn
     try:
         records = [json.loads(line) for line in (d / "frames.jsonl").read_text(encoding="utf-8").splitlines()
                    if line.strip()]
-        odometry = read_odometry(d / "output.mcap")
+        odometry = read_estimate_odometry(d / "output.mcap")  # the motion as estimated, in its units
         gt = tum.read_tum(d / "groundtruth.tum")
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, EpiVoError) as exc:
         msg = f"{d}: cannot read the replay output for the covariance check: {exc}"

@@ -4,7 +4,9 @@ Writes into the output directory:
 - ``trajectory.tum``: ``stamp tx ty tz qx qy qz qw`` per frame that has a pose, the camera optical
   frame relative to the first frame (the pipeline's ``T_w_c``), stamp = image header stamp in seconds;
 - ``frames.jsonl``: one JSON object per input frame (:meth:`FrameResult.to_record`), flushed per line;
-- ``output.mcap``: /vo/odometry, /vo/points, /vo/path, /diagnostics stamped with the image stamps;
+- ``output.mcap``: what vo_node publishes, stamped with the image stamps: /vo/odometry (what a robot may
+  fuse: metres, or the position held with the "unknown" variance), /vo/odometry/vo_units (the motion in VO
+  units, while it is in VO units), /vo/points, /vo/path, /tf, /diagnostics (``epi_vo.runner.outputs``);
 - ``stats.json``: run totals, per-stage median times and, with ground truth, evo metrics;
 - ``groundtruth.tum``: the ground truth used (when there is one), in the same TUM form.
 
@@ -49,6 +51,7 @@ from epi_vo.tools.replay_outputs import (
     OUTPUT_BAG,
     OUTPUT_FLUSH_FRAMES,
     TRAJECTORY_FILE,
+    PathLength,
     check_outputs_clear,
     ensure_output_dir,
     open_output,
@@ -98,7 +101,7 @@ class ReplaySummary:
     models: dict[str, int]
     ms_per_frame: float
     stage_ms: dict[str, float]
-    path_length: float
+    path_length: float  # in ``units`` (``PathLength``)
     metrics: dict[str, Any] | None = None
     gt_source: str = ""
     output_dir: str = ""
@@ -278,10 +281,9 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     first_rejected: dict[str, int] = {}
     n_frames = n_pose = n_kf = 0
     focal_ratios: list[float] = []  # frames that fit a pure rotation under another focal length
-    path_length = 0.0
-    last_pos: np.ndarray | None = None
+    path = PathLength()
     metric_from: int | None = None
-    units = "vo"
+    units = Units.VO
     odo_log: OdometryLog | None = None  # with ground truth
 
     try:
@@ -335,12 +337,10 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                     results_pose.append((result.stamp_ns * 1e-9, p.copy(), q.copy()))
                     if result.scale.metric:
                         metric_stamps.append({"stamp_ns": result.stamp_ns, "metric_scale": True})
-                    if last_pos is not None:
-                        path_length += float(np.linalg.norm(p - last_pos))
-                    last_pos = p.copy()
+                    path.add(p, result.scale.units)
                 write_outputs(obag, outputs)  # a skipped frame gets its record and status, but no pose
-                if odo_log is not None and outputs.odometry is not None:
-                    odo_log.add(outputs.odometry.sample, record)
+                if odo_log is not None and (estimate := outputs.estimate) is not None:
+                    odo_log.add(estimate.sample, record)  # the motion as estimated, in its own units
                 if n_frames % OUTPUT_FLUSH_FRAMES == 0:
                     obag.flush()  # a complete chunk on disk: what epi-vo recover can copy after a kill
                 bar.update()
@@ -386,7 +386,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
         bag=str(bag_path), image_topic=bag.image_topic, camera_info_topic=bag.camera_info_topic,
         frames=n_frames, frames_with_pose=n_pose, tracked_percent=100.0 * n_pose / n_frames, keyframes=n_kf,
         states=dict(states), models=dict(models), ms_per_frame=float(np.median(totals)),
-        stage_ms={k: float(np.median(v)) for k, v in stage_times.items()}, path_length=path_length,
+        stage_ms={k: float(np.median(v)) for k, v in stage_times.items()}, path_length=path.length(units),
         metrics=metrics, gt_source=gt_source, output_dir=str(out), notes=notes, parameters=asdict(cfg),
         rejected=[f"{n} frame(s) from frame {first_rejected[r]}: {r}" for r, n in rejected.items()],
         rejected_frames=sum(rejected.values()), skipped_messages=skipped, scale_source=cfg.scale_source,
@@ -506,10 +506,12 @@ def stop_on_signals() -> Iterator[StopRequest]:
 def write_outputs(obag: outbag.OutputBag, outputs: FrameOutputs) -> None:
     """One frame's outputs into output.mcap, as vo_node publishes them (each message at the image stamp)."""
     stamp = outputs.result.stamp_ns
-    if (odom := outputs.odometry) is not None:
-        s = odom.sample
-        obag.write_odometry(stamp, odom.frame_id, odom.child_frame_id, s.position, s.quat_xyzw, s.pose_covariance,
-                            s.linear_velocity, s.angular_velocity, s.twist_covariance)
+    for odom, topic in ((outputs.odometry, bagio.ODOMETRY_TOPIC),
+                        (outputs.odometry_vo_units, bagio.VO_UNITS_ODOMETRY_TOPIC)):
+        if odom is not None:
+            s = odom.sample
+            obag.write_odometry(stamp, odom.frame_id, odom.child_frame_id, s.position, s.quat_xyzw, s.pose_covariance,
+                                s.linear_velocity, s.angular_velocity, s.twist_covariance, topic)
     if outputs.points is not None:
         obag.write_points(stamp, outputs.points.frame_id, outputs.points.points_xyz)
     if (path := outputs.path) is not None:

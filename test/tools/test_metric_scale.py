@@ -18,6 +18,7 @@ from epi_vo.core.config import VoConfig
 from epi_vo.core.pipeline import VoPipeline
 from epi_vo.io import bagio, tum
 from epi_vo.io.msgconv import decode_frame
+from epi_vo.io.odometry_bag import read_odometry
 from epi_vo.tools import evaluation
 from epi_vo.tools.replay import ReplaySummary, run_replay
 
@@ -132,10 +133,15 @@ def test_metric_sources_give_metres(source: str, request: pytest.FixtureRequest)
     metric = [r for r in recs if r["metric_scale"]]
     assert len(metric) == s.frames - s.metric_from_frame
     assert all(r["units"] == "m" and 0 < r["scale_rel_std"] < 0.2 for r in metric)
-    # Before metric scale the position holds at the map's origin and says the scale is unknown.
+    # Before metric scale the records' poses are in VO units and say so; what a robot may fuse (vo/odometry)
+    # holds the position where tracking started, with the 'unknown' variance, and is metres after.
     before = [r for r in recs if not r["metric_scale"]]
-    assert all(r["position"] == [0.0, 0.0, 0.0] for r in before)
-    assert all(r["covariance_diagonal"][0] >= 1e4 for r in before if r["has_pose"])
+    assert all(r["units"] == "vo" for r in before) and any(r["position"] != [0.0, 0.0, 0.0] for r in before)
+    fused = read_odometry(out / "output.mcap")
+    held = np.isin(fused.stamps_ns, [r["stamp_ns"] for r in before])
+    assert held.sum() == len(before) and not fused.positions[held].any()
+    assert np.all(fused.pose_covariance[held, 0, 0] >= 1e4)
+    assert np.all(fused.pose_covariance[~held, 0, 0] < 1.0) and np.linalg.norm(fused.positions[-1]) > 5.0
     assert all(r["covariance_diagonal"][0] < 1.0 for r in metric)
     # The held poses are no positions in metres: the metrics are over the metric ones, the held counted.
     held = sum(1 for r in before if r["has_pose"])

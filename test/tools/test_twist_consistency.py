@@ -10,7 +10,7 @@ import pytest
 
 from epi_vo.core.transforms import make_T
 from epi_vo.io import tum
-from epi_vo.io.odometry_bag import OdometryTrack, read_odometry
+from epi_vo.io.odometry_bag import OdometryTrack, read_estimate_odometry
 from epi_vo.io.params import load_config
 from epi_vo.tools.replay import run_replay
 from epi_vo.tools.twist_consistency import replay_twist_nees, twist_consistency
@@ -96,7 +96,7 @@ def test_bag_twist_covariance_matches_its_errors(bag: str, params: dict, min_lin
     (tmp_path / "p.yaml").write_text(yaml)
     s = run_replay(BAGS / bag / "bag", tmp_path / "out", load_config(tmp_path / "p.yaml"))
     out = tmp_path / "out"
-    odo = read_odometry(out / "output.mcap")
+    odo = read_estimate_odometry(out / "output.mcap")
     records = [json.loads(line) for line in (out / "frames.jsonl").read_text().splitlines()]
     r = replay_twist_nees(records, odo, tum.read_tum(out / "groundtruth.tum"))
     if s.units == "m":
@@ -131,6 +131,6 @@ def test_the_vo_unit_twist_carries_one_keyframes_scale_transfer_not_the_drift_si
     assert s.units == "vo"
     out = tmp_path / "out"
     records = [json.loads(line) for line in (out / "frames.jsonl").read_text().splitlines()]
-    r = replay_twist_nees(records, read_odometry(out / "output.mcap"), tum.read_tum(out / "groundtruth.tum"))
+    r = replay_twist_nees(records, read_estimate_odometry(out / "output.mcap"), tum.read_tum(out / "groundtruth.tum"))
     assert 1.0 < r.mean_linear < 6.0, r.mean_linear
     assert r.inside_linear_percent >= 95.0
