@@ -98,6 +98,13 @@ def _add_benchmark(sub: argparse._SubParsersAction) -> None:
                                                  "or ~/.cache/epi_vo/scenarios)")
     p.add_argument("--data", default=None, help="distribution: folder of the real clips (default ../shared/data)")
     p.add_argument("--no-real", action="store_true", help="distribution: leave the real clips out")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", dest="overrides",
+                   help="distribution: change one parameter after --params (repeatable); with --baseline, the "
+                        "run without the change, this is how a rule is judged with and without it")
+    p.add_argument("--baseline", default=None, metavar="RECORD.json",
+                   help="distribution: an earlier record's JSON; prints every family's figures before -> after")
+    p.add_argument("--no-reference", action="store_true",
+                   help="distribution: leave the seed reference pipeline out (faster; for ablations)")
     p.add_argument("--record-dir", default=None,
                    help="where the dated record goes (default: docs/benchmarks of the source tree)")
     p.add_argument("--no-record", action="store_true", help="print only: write no dated record")
@@ -165,9 +172,10 @@ def _add_params(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_play(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("play", help="publish a bag's image and camera_info topics over ROS 2 (ros2 bag play stand-in)",
-                       description="Publish the image and camera_info topics of a bag (and /clock) in real time or "
-                                   "scaled, as recorded. DDS settings come from the environment (ROS_DOMAIN_ID, "
+    p = sub.add_parser("play", help="publish a bag's topics vo_node consumes over ROS 2 (ros2 bag play stand-in)",
+                       description="Publish the image and camera_info topics of a bag, its wheel odometry and /tf, "
+                                   "/tf_static when it has them (and /clock), in real time or scaled, in the bag's "
+                                   "order, as recorded. DDS settings come from the environment (ROS_DOMAIN_ID, "
                                    "ROS_AUTOMATIC_DISCOVERY_RANGE).")
     p.add_argument("bag", help="bag directory or .mcap file")
     p.add_argument("--rate", type=float, default=1.0,
@@ -178,6 +186,10 @@ def _add_play(sub: argparse._SubParsersAction) -> None:
                    help="published image topic (default camera/image_raw, or camera/image_raw/compressed)")
     p.add_argument("--remap-camera-info", metavar="TOPIC",
                    help="published camera_info topic (default camera/camera_info)")
+    p.add_argument("--wheel-topic", help="bag topic of the wheel odometry (default: the only nav_msgs/Odometry one "
+                                         "not named as ground truth)")
+    p.add_argument("--remap-wheel", metavar="TOPIC",
+                   help="published wheel odometry topic (default odom, vo_node's wheel_odometry_topic)")
     p.add_argument("--namespace", default="", help="namespace of the player node (applies to relative topics)")
     p.add_argument("--clock", action="store_true", help="publish /clock with the bag time before each message")
     p.add_argument("--qos-reliability", choices=("reliable", "best_effort"), default="reliable",
@@ -296,6 +308,12 @@ def _benchmark(args: argparse.Namespace) -> int:
 
     record = None if args.no_record else (Path(args.record_dir) if args.record_dir else default_record_dir())
     if args.suite == "bundled":
+        for flag, given in (("--set", args.overrides), ("--baseline", args.baseline),
+                            ("--no-reference", args.no_reference)):
+            if given:
+                _say(f"epi-vo: error: {flag} is an option of --suite distribution and subset, not of the bundled "
+                     "suite")
+                return 2
         from epi_vo.tools.benchmark import run_benchmark
 
         return run_benchmark(args.bags, args.kitti, args.params, args.output, record)
@@ -307,7 +325,8 @@ def _benchmark(args: argparse.Namespace) -> int:
     from epi_vo.tools.distribution import run_distribution
 
     return run_distribution(args.suite, args.params, families=args.families, seeds=args.seeds, jobs=args.jobs,
-                            cache=args.cache, data_dir=args.data, real=not args.no_real, record_dir=record)
+                            cache=args.cache, data_dir=args.data, real=not args.no_real, record_dir=record,
+                            reference=not args.no_reference, overrides=args.overrides, baseline=args.baseline)
 
 
 def _one_line(text: str) -> str:
@@ -426,7 +445,8 @@ def _play(args: argparse.Namespace) -> int:
     from epi_vo.ros.play import PlayOptions, Reliability, format_summary, run_play
 
     options = PlayOptions(rate=args.rate, image_topic=args.image_topic, camera_info_topic=args.camera_info_topic,
-                          remap_image=args.remap_image, remap_camera_info=args.remap_camera_info, clock=args.clock,
+                          remap_image=args.remap_image, remap_camera_info=args.remap_camera_info,
+                          wheel_topic=args.wheel_topic, remap_wheel=args.remap_wheel, clock=args.clock,
                           qos_reliability=Reliability(args.qos_reliability), qos_depth=args.qos_depth,
                           start_delay_s=args.start_delay, loop=args.loop)
     print(format_summary(run_play(args.bag, options, namespace=args.namespace)))

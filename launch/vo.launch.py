@@ -14,7 +14,8 @@ The node subscribes ``camera/image_raw`` (sensor_msgs/Image), ``camera/image_raw
 ``image_topic`` / ``camera_info_topic`` remap them (the compressed topic follows image_transport's
 convention, ``<image_topic>/compressed``). Parameters come from ``params_file``; ``image_transport`` and
 ``use_sim_time`` given here override the file. Outputs: ``vo/odometry``, ``vo/path``, ``vo/points``,
-``vo/debug_image`` (``publish_debug_image: true`` in the file), ``/diagnostics``, TF odom -> base_link.
+``vo/frame_status``, ``vo/debug_image`` (``publish_debug_image: true`` in the file), ``/diagnostics``, TF
+odom -> base_link.
 """
 
 # ruff takes `launch` for this repository's launch/ folder (first party); these are ROS 2's launch packages.

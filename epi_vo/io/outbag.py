@@ -22,16 +22,12 @@ from numpy.typing import ArrayLike, NDArray
 from rosbags.typesys import Stores, get_typestore
 
 from epi_vo.core.errors import BagError
+from epi_vo.io.bag_topics import DIAGNOSTIC_ARRAY_TYPE, ODOMETRY_TYPE, PATH_TYPE, POINT_CLOUD2_TYPE, TF_MESSAGE_TYPE
 from epi_vo.io.bagio import (
-    DIAGNOSTIC_ARRAY_TYPE,
-    DIAGNOSTICS_TOPIC,
+    FRAME_STATUS_TOPIC,
     ODOMETRY_TOPIC,
-    ODOMETRY_TYPE,
     PATH_TOPIC,
-    PATH_TYPE,
-    POINT_CLOUD2_TYPE,
     POINTS_TOPIC,
-    TF_MESSAGE_TYPE,
     TF_TOPIC,
     VO_UNITS_ODOMETRY_TOPIC,
 )
@@ -71,7 +67,7 @@ _OUTPUT_TOPICS: dict[str, str] = {
     VO_UNITS_ODOMETRY_TOPIC: ODOMETRY_TYPE,
     POINTS_TOPIC: POINT_CLOUD2_TYPE,
     PATH_TOPIC: PATH_TYPE,
-    DIAGNOSTICS_TOPIC: DIAGNOSTIC_ARRAY_TYPE,
+    FRAME_STATUS_TOPIC: DIAGNOSTIC_ARRAY_TYPE,
     TF_TOPIC: TF_MESSAGE_TYPE,
 }
 
@@ -199,8 +195,8 @@ class OutputBag:
     """Write VO results to one MCAP file with the ROS 2 profile (see the module docstring).
 
     Topics: /vo/odometry and /vo/odometry/vo_units (nav_msgs/Odometry), /vo/points
-    (sensor_msgs/PointCloud2), /vo/path (nav_msgs/Path), /diagnostics (diagnostic_msgs/DiagnosticArray), /tf
-    (tf2_msgs/TFMessage); all six channels are declared up front. Stamps are integer nanoseconds; each
+    (sensor_msgs/PointCloud2), /vo/path (nav_msgs/Path), /vo/frame_status (diagnostic_msgs/DiagnosticArray),
+    /tf (tf2_msgs/TFMessage); all six channels are declared up front. Stamps are integer nanoseconds; each
     message is logged at its header stamp (a TFMessage's transforms all carry it). A stamp that is no valid
     ROS time (outside [0, (2**31 - 1) s + 999999999 ns]) is refused with a BagError before anything of that
     message is written (the file stays valid and readable).
@@ -419,8 +415,9 @@ class OutputBag:
         return np.array([self._check_time(topic, int(x)) for x in array], dtype=np.int64)
 
     def write_diagnostics(self, stamp_ns: int, statuses: Sequence[DiagnosticStatusRecord]) -> None:
-        """diagnostic_msgs/DiagnosticArray on /diagnostics, one DiagnosticStatus per record."""
-        stamp_ns = self._check_time(DIAGNOSTICS_TOPIC, stamp_ns)
+        """diagnostic_msgs/DiagnosticArray on /vo/frame_status (as vo_node publishes each frame's), one
+        DiagnosticStatus per record."""
+        stamp_ns = self._check_time(FRAME_STATUS_TOPIC, stamp_ns)
         message = _Cdr()
         message.header(stamp_ns, "")
         message.u32(len(statuses))
@@ -433,4 +430,4 @@ class OutputBag:
             for key, value in record.values:
                 message.string(key)
                 message.string(value)
-        self._write(DIAGNOSTICS_TOPIC, stamp_ns, message)
+        self._write(FRAME_STATUS_TOPIC, stamp_ns, message)

@@ -388,6 +388,6 @@ def run_benchmark(bags_dir: str | None, kitti_dir: str | None, params: str | Non
             "```\n" + table + "\n```", LEGEND.replace("\n", "\n\n"), "```\n" + checked + "\n```"])
         md, js = write_record(record_dir, "bundled", markdown,
                               {"header": dataclasses.asdict(header), "benchmark_s": elapsed, "legend": LEGEND,
-                               "rows": [row_dict(r) for r in rows]}, header.date)
+                               "rows": [row_dict(r) for r in rows]}, header.date, header.commit)
         print(f"\nrecorded in {md} and {js}")
     return 0

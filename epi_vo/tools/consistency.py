@@ -51,7 +51,9 @@ class OdometryLog:
 def consistency_metrics(log: OdometryLog, gt: tuple[np.ndarray, np.ndarray, np.ndarray], frame_id: str,
                         child_frame_id: str, T_base_cam: np.ndarray | None = None) -> dict[str, Any]:
     """Mean NEES (3 dof each; consistent: 3) of the tracking frames' position, rotation, linear and angular
-    velocity against the published covariances, and the share inside the chi-square 99 % bound.
+    velocity against the published covariances, and the share inside the chi-square 99 % bound. The
+    ground-truth camera poses become base poses with the odometry's extrinsic ``T_base_cam`` (default: the
+    optical rotation).
 
     Raises:
         EvaluationError: no odometry sample, or none with ground truth.

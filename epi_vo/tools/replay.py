@@ -6,7 +6,7 @@ Writes into the output directory:
 - ``frames.jsonl``: one JSON object per input frame (:meth:`FrameResult.to_record`), flushed per line;
 - ``output.mcap``: what vo_node publishes, stamped with the image stamps: /vo/odometry (what a robot may
   fuse: metres, or the position held with the "unknown" variance), /vo/odometry/vo_units (the motion in VO
-  units, while it is in VO units), /vo/points, /vo/path, /tf, /diagnostics (``epi_vo.runner.outputs``);
+  units, while it is in VO units), /vo/points, /vo/path, /tf, /vo/frame_status (``epi_vo.runner.outputs``);
 - ``stats.json``: run totals, per-stage median times and, with ground truth, evo metrics;
 - ``groundtruth.tum``: the ground truth used (when there is one), in the same TUM form.
 
@@ -33,12 +33,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from epi_vo.core.config import ScaleSourceKind, VoConfig
 from epi_vo.core.errors import BagError, EpiVoError, Interrupted, OutputError
 from epi_vo.core.frame import FrameResult
 from epi_vo.core.scale import Units
-from epi_vo.io import bagio, outbag, tum
+from epi_vo.io import bag_topics, bagio, outbag, tum
 from epi_vo.io.node_options import CameraExtrinsic
 from epi_vo.io.paths import check_bag_path, refuse_special_file
 from epi_vo.io.wheel_feed import WheelFeed
@@ -126,6 +127,9 @@ class ReplaySummary:
     # it stays continuous and /tf carries them as map_frame_id -> odom
     # scale_source wheel_odometry: the messages of its topic and what became of them (WheelInputCounts)
     wheel_odometry: dict[str, int] | None = None
+    # The camera extrinsic of /vo/odometry (:func:`extrinsic_record`): declared by the parameters, or the default
+    # (camera level at base_link, no offset: the base frame is the camera's); None in an older stats.json
+    extrinsic: dict[str, Any] | None = None
 
     @property
     def has_problems(self) -> bool:
@@ -249,10 +253,11 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     puts the corrections into the ``map_frame_id -> odom`` transform on /tf (beside ``odom -> base_link``,
     written at every frame with a pose either way), as the node broadcasts them.
     Ground truth: ``gt_tum`` (a TUM file) when given, else the bag's ``gt_topic``, else its one topic named
-    as ground truth (:func:`epi_vo.io.bagio.is_ground_truth_name`); none with ``no_gt``. ``inputs``: other
+    as ground truth (:func:`epi_vo.io.bag_topics.is_ground_truth_name`); none with ``no_gt``. ``inputs``: other
     files the run reads (a parameter file), which no output may overwrite either. ``extrinsic``: the camera
-    mounting the parameters declare (``camera_xyz`` / ``camera_rpy``), used as vo_node uses it without TF (the
-    odometry, /tf, the floor search); None: the default (a level camera at base_link), as the node's defaults.
+    mounting the parameters declare (``camera_xyz`` / ``camera_rpy``), used as vo_node uses it without TF (for
+    /vo/odometry, /tf and the floor search); None: the default (camera level at base_link), as the node's
+    defaults give. ``stats.json`` records which (``extrinsic``).
 
     Raises:
         BagError: unreadable or empty bag, missing or ambiguous topics, a bag that is no regular file or
@@ -393,6 +398,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
         units=units, metric_from_frame=metric_from, poses_before_metric=held, wall_s=wall_s,
         end_to_end_fps=n_frames / max(wall_s, 1e-9), map_frame_id=map_frame_id,
         wheel_odometry=None if wheel_counts is None else wheel_counts.record(),
+        extrinsic=extrinsic_record(extrinsic, handler.output.T_base_cam),
         gt_choice=gt_choice(gt_tum, gt_topic, no_gt))
     write_stats(out, summary.to_json())
     return summary
@@ -401,8 +407,20 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
 CALIBRATION_NOTE = "check the camera calibration"  # how the note on rotation-only frames under another focal begins
 
 
+def extrinsic_record(extrinsic: CameraExtrinsic | None, T_base_cam: NDArray[np.float64]) -> dict[str, Any]:
+    """``stats.json``'s ``extrinsic``: ``source`` ('parameters' or 'default'), the parameters (zeros for the
+    default) and ``T_base_cam`` (4x4 rows, camera optical frame -> base_link, as /vo/odometry was made with)."""
+    return {"source": "default" if extrinsic is None else "parameters",
+            "camera_xyz": [0.0] * 3 if extrinsic is None else [float(v) for v in extrinsic.camera_xyz],
+            "camera_rpy": [0.0] * 3 if extrinsic is None else [float(v) for v in extrinsic.camera_rpy],
+            "T_base_cam": [[float(v) for v in row] for row in T_base_cam]}
+
+
 def _wheel_topic(cfg: VoConfig) -> str | None:
-    return cfg.wheel_odometry_topic if cfg.scale_source is ScaleSourceKind.WHEEL_ODOMETRY else None
+    """The bag topic of the wheel odometry: the node's parameter as a node in the root namespace resolves it."""
+    if cfg.scale_source is not ScaleSourceKind.WHEEL_ODOMETRY:
+        return None
+    return bag_topics.recorded_topic_name(cfg.wheel_odometry_topic)
 
 
 

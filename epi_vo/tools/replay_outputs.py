@@ -153,3 +153,28 @@ class PathLength:
     def length(self, units: Units) -> float:
         return self._metric if units is Units.METRES else self._vo
 
+
+def recorded_extrinsic(stats: Any) -> np.ndarray | None:
+    """``T_base_cam`` (4x4) a replay made its odometry with when the parameters declared the extrinsic
+    (``stats.json`` ``extrinsic``, source ``parameters``); None for the default (camera level at base_link)
+    or a ``stats.json`` older than the record. ValueError when the record is no rigid 4x4 transform."""
+    record = stats.get("extrinsic") if isinstance(stats, dict) else None
+    if not isinstance(record, dict) or record.get("source") in (None, "default"):
+        return None
+    try:
+        T = np.asarray(record["T_base_cam"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        T = np.zeros((0,))
+    R = T[:3, :3] if T.shape == (4, 4) else np.zeros((3, 3))
+    if not (T.shape == (4, 4) and np.all(np.isfinite(T)) and np.allclose(R @ R.T, np.eye(3), atol=1e-6)
+            and np.linalg.det(R) > 0 and np.allclose(T[3], [0.0, 0.0, 0.0, 1.0])):
+        msg = "extrinsic.T_base_cam is no rigid 4x4 transform"
+        raise ValueError(msg)
+    return T
+
+
+def read_recorded_extrinsic(directory: str | Path) -> np.ndarray | None:
+    """:func:`recorded_extrinsic` of ``directory``'s stats.json (None without one). OSError, ValueError (JSON,
+    the record) as reading it raises."""
+    path = Path(directory) / "stats.json"
+    return recorded_extrinsic(json.loads(path.read_text(encoding="utf-8"))) if path.is_file() else None

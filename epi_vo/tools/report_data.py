@@ -1,7 +1,7 @@
 """The data of a replay report: pure functions of the files in an ``epi-vo replay`` output directory.
 
 - :func:`load_run` reads ``frames.jsonl``, ``trajectory.tum``, ``stats.json`` and ``groundtruth.tum``;
-- :func:`trajectory_views` gives the estimate and the aligned ground truth in a top and a side view;
+- :func:`gt_alignment` aligns the ground truth onto the estimate (``epi_vo.tools.report_views`` draws both);
 - :func:`timeline` gives the per-frame series of the frame records;
 - :func:`spans` finds the runs of frames that are not ``tracking``, with their reasons;
 - :func:`error_series` gives ATE over time and RPE per frame, computed with evo;
@@ -10,9 +10,8 @@
 Frames. The estimate holds camera poses T_w_c, w = the first camera's optical frame (x right,
 y down, z forward), in the run's units: metres when a metric scale source (``scale_source``
 ground_plane or wheel_odometry) was established, VO units otherwise (``stats.json`` ``units``; an
-output directory older than the scale sources has no such key and is in VO units). The top view is
-the x-z plane (x right, z forward, seen from above), the side view the z-y plane with -y drawn
-upwards. The ground truth is drawn in the estimate's frame: evo's Umeyama fit p_gt ~= s R p_est + t
+output directory older than the scale sources has no such key and is in VO units). The ground truth
+is brought into the estimate's frame: evo's Umeyama fit p_gt ~= s R p_est + t
 (the one :mod:`epi_vo.tools.evaluation` uses for ATE) is inverted, p = R^T (p_gt - t) / s. When that
 fit is degenerate (an estimate that never moves, as under pure rotation, or moves along one line) the
 ground truth is only origin-aligned: its first matched pose is put on the estimate's, in its own
@@ -301,65 +300,6 @@ def gt_in_estimate_frame(run: Run, alignment: GtAlignment) -> F64:
         return np.zeros((0, 3))
     T_est_gt = np.linalg.inv(alignment.T_gt_est)
     return run.gt.positions_xyz @ T_est_gt[:3, :3].T + T_est_gt[:3, 3]
-
-
-# --- trajectory views -----------------------------------------------------------------------------
-
-
-def top_view(p: F64) -> F64:
-    """(N, 3) optical-frame points -> (N, 2) top view: (x right, z forward)."""
-    return np.column_stack([p[:, 0], p[:, 2]]) if p.size else np.zeros((0, 2))
-
-
-def side_view(p: F64) -> F64:
-    """(N, 3) optical-frame points -> (N, 2) side view: (z forward, -y up); the optical y axis points down."""
-    return np.column_stack([p[:, 2], -p[:, 1]]) if p.size else np.zeros((0, 2))
-
-
-class View(NamedTuple):
-    """One 2-D projection of the trajectories (all arrays in the same plot coordinates)."""
-
-    title: str
-    xlabel: str
-    ylabel: str
-    est: F64  # (N, 2) estimated camera centres
-    gt: F64  # (M, 2) ground truth in the estimate's frame (empty without a usable ground truth)
-    keyframes: F64  # (K, 2) estimated camera centres of the keyframes
-    heading: F64  # (N, 2) projection of each estimated camera's forward (optical z) axis, unit 3-D vector
-
-
-@dataclass(frozen=True)
-class TrajectoryViews:
-    top: View
-    side: View
-    est_frame_index: NDArray[np.int64]  # (N,) record index of each estimated pose
-    keyframe_index: NDArray[np.int64]  # (K,) record index of each keyframe with a pose
-    alignment: GtAlignment | None  # None: no ground truth
-
-
-def trajectory_views(run: Run) -> TrajectoryViews:
-    """The estimate, its keyframes and the aligned ground truth in the top (x-z) and side (z, -y) views."""
-    p = run.est.positions_xyz
-    kf_records = {int(r["index"]) for r in run.records if r["is_keyframe"]}
-    kf_mask = np.array([i in kf_records for i in run.est_frame_index], dtype=bool)
-    forward = _forward_axes(run.est.quats_xyzw)
-    alignment = gt_alignment(run)
-    gt = gt_in_estimate_frame(run, alignment) if alignment is not None else np.zeros((0, 3))
-    u = f"[{units_name(run_scale(run).units)}]"
-    top = View("top view (x-z)", f"x (right) {u}", f"z (forward) {u}",
-               top_view(p), top_view(gt), top_view(p[kf_mask]), top_view(forward))
-    side = View("side view (z-y)", f"z (forward) {u}", f"-y (up) {u}",
-                side_view(p), side_view(gt), side_view(p[kf_mask]), side_view(forward))
-    return TrajectoryViews(top, side, run.est_frame_index, run.est_frame_index[kf_mask], alignment)
-
-
-def _forward_axes(quats_xyzw: F64) -> F64:
-    """(N, 4) quaternions of R_w_c -> (N, 3) third column of R_w_c: the camera's optical axis in w."""
-    if quats_xyzw.size == 0:
-        return np.zeros((0, 3))
-    q = quats_xyzw / np.linalg.norm(quats_xyzw, axis=1, keepdims=True)
-    x, y, z, w = q.T
-    return np.column_stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)])
 
 
 # --- scale ------------------------------------------------------------------------------------------

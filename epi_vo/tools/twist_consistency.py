@@ -114,8 +114,9 @@ def replay_twist_nees(records: list[dict], odometry: OdometryTrack,
                       gt: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]],
                       T_base_cam: NDArray[np.float64] | None = None) -> TwistNees:
     """:func:`twist_consistency` of a replay: its frame records, its /vo/odometry and the ground-truth
-    camera poses (TUM), turned into base poses with ``T_base_cam`` (default: the optical rotation). Tracking
-    frames are judged; metres when the run established them."""
+    camera poses (TUM), turned into base poses with the extrinsic the odometry was made with
+    (``T_base_cam``; default: the optical rotation). Tracking frames are judged; metres when the run
+    established them."""
     by_stamp = {int(r.get("stamp_ns", -1)): r for r in records}
     evaluate = np.array([by_stamp.get(int(t), {}).get("state") == "tracking" for t in odometry.stamps_ns], bool)
     metric = any(bool(r.get("metric_scale")) for r in records if r.get("state") == "tracking")

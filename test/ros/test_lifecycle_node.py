@@ -93,14 +93,15 @@ class Probe(ProbeBase):
         return [s for a in self.diag for s in a.status if s.name.endswith(suffix)]
 
     def frame_statuses(self) -> list[Any]:
-        return [s for s in self.statuses(": tracking") if not s.message.startswith("stalled")]
+        return [s for a in self.frame_status for s in a.status if s.name.endswith(": tracking")]
 
     def summaries(self) -> list[dict[str, Any]]:
+        """The lifecycle statuses of /diagnostics (once a second, in every state)."""
         return [{"message": s.message, "level": _level(s), **{kv.key: kv.value for kv in s.values}}
-                for s in self.statuses(": summary")]
+                for s in self.statuses(": lifecycle")]
 
     def ignored(self) -> int:
-        """The latest count of images the node ignored while inactive (its summary), -1 before any."""
+        """The latest count of images the node ignored while inactive (its lifecycle status), -1 before any."""
         counts = [int(s["frames_ignored_inactive"]) for s in self.summaries() if "frames_ignored_inactive" in s]
         return counts[-1] if counts else -1
 
@@ -175,7 +176,7 @@ def test_configure_activate_deactivate_cleanup_shutdown(ros: RosSession,
     later = bag_frames_rclpy(BAG, 20, shift_s=100)  # after a deactivate / activate: the same scene 100 s later
     try:
         with NodeProcess(ros.env, *PLAYBACK_ARGS, module=LIFECYCLE) as node:
-            # Unconfigured: the lifecycle services and a summary, no VO endpoints.
+            # Unconfigured: the lifecycle services and the lifecycle status, no VO endpoints.
             assert probe.state() == "unconfigured", node.proc.stderr
             assert probe.spin_until(lambda: any(s["lifecycle_state"] == "unconfigured" for s in probe.summaries()))
             assert probe.node.count_publishers("/vo/odometry") == 0
@@ -274,9 +275,9 @@ def test_bad_parameter_fails_configure_with_the_reason_and_can_be_fixed(ros: Ros
         with NodeProcess(ros.env, "-p", "frontend:=sift", "-p", "hardware_id:=front_cam", module=LIFECYCLE) as node:
             assert not probe.change(Transition.TRANSITION_CONFIGURE), node.proc.stderr
             assert probe.state() == "unconfigured"
-            assert probe.spin_until(lambda: any(reason in s["message"] for s in probe.summaries()))
-            failed = next(s for s in probe.summaries() if reason in s["message"])
-            assert failed["level"] == 2 and failed["message"].startswith("unconfigured: configure failed:")
+            assert probe.spin_until(lambda: any(reason in s["configure_error"] for s in probe.summaries()))
+            failed = next(s for s in probe.summaries() if reason in s["configure_error"])
+            assert failed["level"] == 2 and failed["message"] == "unconfigured: configure failed"
             assert failed["lifecycle_state"] == "unconfigured" and failed["configurations"] == "0"
             assert probe.node.count_publishers("/vo/odometry") == 0
 

@@ -58,9 +58,12 @@ class Probe(ProbeBase):
         return self.spin_until(lambda: self.node.count_publishers("vo/odometry") > 0, timeout_s)
 
     def frame_statuses(self) -> list[Any]:
-        """Per-frame tracking statuses (the watchdog's 'stalled' ones excluded)."""
-        return [s for a in self.diag for s in a.status
-                if s.name.endswith(": tracking") and not s.message.startswith("stalled")]
+        """Per-frame tracking statuses (vo/frame_status)."""
+        return [s for a in self.frame_status for s in a.status if s.name.endswith(": tracking")]
+
+    def health(self, concern: str) -> list[Any]:
+        """The node's statuses of one concern on /diagnostics ('input', 'tracking', ...)."""
+        return [s for a in self.diag for s in a.status if s.name.endswith(f": {concern}")]
 
 
 def _play(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]:
@@ -378,6 +381,7 @@ def test_namespace_and_remapping(ros: RosSession) -> None:
             for check in (lambda: probe.node.count_publishers("/robot1/odom_vo") > 0,
                           lambda: probe.node.count_subscribers("/robot1/camera/image_raw") > 0,
                           lambda: probe.node.count_publishers("/robot1/vo/points") > 0,
+                          lambda: probe.node.count_publishers("/robot1/vo/frame_status") > 0,
                           lambda: probe.node.count_publishers("/diagnostics") > 0):
                 assert probe.spin_until(check), node.proc.stderr
     finally:
@@ -405,10 +409,10 @@ def test_watchdog_reports_a_stalled_camera(ros: RosSession) -> None:
     try:
         with NodeProcess(ros.env, "-p", "watchdog_timeout_s:=0.3") as node:
             assert probe.wait_for_node(), node.proc.stderr
-            assert probe.spin_until(lambda: any(s.level in (b"\x03", 3) for a in probe.diag for s in a.status)), \
+            assert probe.spin_until(lambda: any(s.level in (b"\x03", 3) for s in probe.health("input"))), \
                 node.proc.stderr
-        stale = [s for a in probe.diag for s in a.status if s.message.startswith("stalled")]
-        assert stale and "no image" in stale[-1].message
+        stale = [s for s in probe.health("input") if s.level in (b"\x03", 3)]
+        assert stale[-1].message == "no image received yet" and stale[-1].name == "/vo_node: input"
     finally:
         probe.close()
 
@@ -467,7 +471,7 @@ def test_bad_frames_and_a_stalled_camera_keep_the_node_up(ros: RosSession) -> No
             # The stall: every frame so far processed, then STALE for lack of images (not the STALE "no image
             # received yet" of the start-up).
             assert probe.spin_until(lambda: len(probe.odom) >= len(good) + len(bad) and any(
-                s.level in (b"\x03", 3) and "no image for" in s.message for a in probe.diag for s in a.status))
+                s.level in (b"\x03", 3) and s.message == "stalled: no recent image" for s in probe.health("input")))
             n_before = len(probe.odom)
             for img, info in after:
                 pub_info.publish(info)

@@ -141,11 +141,20 @@ class Probe(ProbeBase):
         return [s for a in self.diag for s in a.status if s.name.endswith(suffix)]
 
     def frame_statuses(self) -> list[Any]:
-        return [s for s in self.statuses(": tracking") if not s.message.startswith("stalled")]
+        return [s for a in self.frame_status for s in a.status if s.name.endswith(": tracking")]
 
     def summaries(self) -> list[dict[str, str]]:
-        return [{"message": s.message, "hardware_id": s.hardware_id, **{kv.key: kv.value for kv in s.values}}
-                for s in self.statuses(": summary")]
+        """Each /diagnostics array of the node as one dict: every concern's key/values, its message as
+        '<concern>_message', the hardware id."""
+        merged = []
+        for a in self.diag:
+            d: dict[str, str] = {}
+            for st in a.status:
+                concern = st.name.rpartition(": ")[2]
+                d.update({kv.key: kv.value for kv in st.values}, hardware_id=st.hardware_id)
+                d[f"{concern}_message"] = st.message
+            merged.append(d)
+        return merged
 
     def send(self, frames: list[tuple[Any, Any]]) -> None:
         """Publish (image, camera_info) pairs once both publishers are matched."""
@@ -228,15 +237,17 @@ def test_node_waits_for_tf_says_so_then_uses_it(ros: RosSession) -> None:
     try:
         probe.send(frames[:1])
         waiting = "waiting for TF base_link <- camera_optical_frame"
-        assert probe.spin_until(lambda: any(waiting in s["message"] for s in probe.summaries())), probe.summaries()
+        assert probe.spin_until(lambda: any(waiting in s["detail"] for s in probe.summaries())), probe.summaries()
         assert not probe.odom and buf.calls  # no frame goes through before the extrinsic is known
-        s = next(s for s in probe.summaries() if waiting in s["message"])
+        s = next(s for s in probe.summaries() if waiting in s["detail"])
         assert s["extrinsic_source"] == "pending" and s["camera_frame"] == CAMERA_FRAME
+        assert s["extrinsic_message"] == "waiting for TF"
         buf.ready = True
         probe.send(frames[1:])
         assert probe.spin_until(lambda: len(probe.odom) >= len(frames)), len(probe.odom)
         assert probe.spin_until(lambda: bool(probe.summaries()) and probe.summaries()[-1]["extrinsic_source"] == "tf")
         assert probe.summaries()[-1]["camera_xyz"] == "0.1 -0.05 0.3"
+        assert probe.summaries()[-1]["extrinsic_message"] == "from TF"
         _assert_status_pose_is_the_odometry(probe)
         _assert_points_in_front(probe, make_T(R_BASE_OPTICAL, TF_XYZ))
         assert all(s.hardware_id == CAMERA_FRAME for s in probe.frame_statuses())  # the camera's frame id
@@ -260,6 +271,7 @@ def test_node_falls_back_to_the_parameters_when_tf_never_comes(ros: RosSession) 
         assert probe.spin_until(lambda: probe.summaries() and probe.summaries()[-1]["extrinsic_source"]
                                 == "parameters")
         assert probe.summaries()[-1]["camera_xyz"] == "0.2 0 0.5"
+        assert probe.summaries()[-1]["extrinsic_message"] == "from parameters: TF not available"
         assert buf.calls and set(buf.calls) == {("base_link", CAMERA_FRAME)}
         _assert_points_in_front(probe, T_base_cam_from_params([0.2, 0.0, 0.5], [0.0, 0.0, 0.0]))
         assert all(s.hardware_id == "front_cam" for s in probe.statuses(""))  # the parameter overrides it
@@ -369,12 +381,10 @@ def test_auto_transport_namespace_extrinsic_fallback_and_warnings(ros: RosSessio
         with NodeProcess(ros.env, "-r", "__ns:=/robot1", "-p", "camera_xyz:=[0.2, 0.0, 0.5]",
                          "-p", "qos_reliability:=reliable", "-p", "qos_depth:=100",
                          "-p", "process_every_frame:=true") as node:
-            waiting = ("stalled: no image received yet on /robot1/camera/image_raw or "
-                       "/robot1/camera/image_raw/compressed")
-            assert probe.spin_until(lambda: any(s.message == waiting for s in probe.statuses(": tracking"))), \
-                [s.message for s in probe.statuses("")]
-            assert probe.spin_until(lambda: any(s["message"] == waiting and s["image_transport"]
-                                                == "auto (none received yet)" for s in probe.summaries()))
+            waiting = "/robot1/camera/image_raw or /robot1/camera/image_raw/compressed"
+            assert probe.spin_until(lambda: any(s["input_message"] == "no image received yet" and s["image_topic"]
+                                                == waiting and s["image_transport"] == "auto (none received yet)"
+                                                for s in probe.summaries())), probe.summaries()
             probe.send(frames)
             assert probe.spin_until(lambda: len(probe.odom) >= len(frames)
                                     and len(probe.frame_statuses()) >= len(frames)), len(probe.odom)
@@ -387,7 +397,8 @@ def test_auto_transport_namespace_extrinsic_fallback_and_warnings(ros: RosSessio
             # The raw subscription is dropped once compressed images came first.
             assert probe.spin_until(lambda: probe.node.count_subscribers("/robot1/camera/image_raw") == 0)
         names = {s.name for s in probe.statuses("")}
-        assert names == {"/robot1/vo_node: tracking", "/robot1/vo_node: summary"}
+        assert names == {f"/robot1/vo_node: {c}" for c in ("tracking", "input", "extrinsic", "scale")}
+        assert {s.name for a in probe.frame_status for s in a.status} == {"/robot1/vo_node: tracking"}
         assert {s.hardware_id for s in probe.frame_statuses()} == {CAMERA_FRAME}
         _assert_status_pose_is_the_odometry(probe)
         err = node.stderr
@@ -483,13 +494,14 @@ def test_watchdog_keeps_reporting_when_the_simulated_clock_stops(ros: RosSession
 
             assert probe.spin_until(clock_and_check), node.proc.stderr
             n = len(probe.diag)
-            # The clock has stopped: the watchdog (0.5 s) and the summary (1 s) go on.
-            assert probe.spin_until(lambda: len(probe.diag) >= n + 6)
+            # The clock has stopped: /diagnostics (once a second, steady clock) goes on.
+            assert probe.spin_until(lambda: len(probe.diag) >= n + 3)
             later = probe.diag[n:]
             assert all(_stamp_ns(a.header.stamp) == 1234_500_000_000 for a in later)
             names = {s.name for a in later for s in a.status}
-            assert names == {"/vo_node: tracking", "/vo_node: summary"}
-            assert all(s.message.startswith("stalled: no image received yet") for a in later for s in a.status)
+            assert names == {f"/vo_node: {c}" for c in ("tracking", "input", "extrinsic", "scale")}
+            assert all(s.message == "no image received yet" for a in later for s in a.status
+                       if s.name.endswith(": input"))
     finally:
         probe.close()
 

@@ -101,9 +101,16 @@ def test_in_vo_units_the_fusable_odometry_holds_and_the_vo_unit_topic_moves(ros:
         assert float(np.linalg.norm(odom_pose(last)[:3])) > 1.0  # it moved (VO units)
         speeds = [float(np.linalg.norm(_twist(m)[0])) for m in probe.odom_vo_units[10:]]
         assert np.median(speeds) > 0.0 and np.median([_twist(m)[2][0, 0] for m in probe.odom_vo_units[10:]]) < 1.0
-        units = [{kv.key: kv.value for kv in s.values}.get("units") for a in probe.diag for s in a.status
-                 if s.name.endswith(": tracking") and not s.message.startswith("stalled")]
-        assert len(units) >= n and set(units) == {"vo"}
+        # Every frame's status says VO units, and so does the node's scale status on /diagnostics.
+        units = [{kv.key: kv.value for kv in s.values}.get("units") for a in probe.frame_status for s in a.status]
+        assert len(units) == n and set(units) == {"vo"}
+
+        def scale_statuses() -> list[dict[str, str]]:
+            return [{kv.key: kv.value for kv in s.values} for a in probe.diag for s in a.status
+                    if s.name.endswith(": scale")]
+
+        assert probe.spin_until(lambda: any("metric_scale" in v for v in scale_statuses()), WAIT_S)  # after a frame
+        assert {v["units"] for v in scale_statuses()} == {"vo"}
     finally:
         probe.close()
 

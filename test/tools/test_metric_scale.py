@@ -26,7 +26,8 @@ REPO = Path(__file__).resolve().parents[2]
 BAG = REPO / "bags" / "ground_robot" / "bag"
 GT_PATH_M = 11.24  # camera path length of the bag (bags/README.md)
 GROUND_PLANE = {"scale_source": "ground_plane", "camera_height_m": 0.45}
-WHEELS = {"scale_source": "wheel_odometry", "wheel_odometry_topic": "/wheel/odom"}
+# Relative, as a node's parameter usually is: the replay reads it as the root namespace's, /wheel/odom.
+WHEELS = {"scale_source": "wheel_odometry", "wheel_odometry_topic": "wheel/odom"}
 
 
 def _params(tmp: Path, values: dict[str, object]) -> Path:
@@ -224,7 +225,7 @@ def test_ground_plane_without_camera_height_is_an_error(tmp_path: Path, capsys: 
 
 
 def test_wheel_topic_missing_from_the_bag_is_an_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    params = _params(tmp_path, {"scale_source": "wheel_odometry", "wheel_odometry_topic": "/odom"})
+    params = _params(tmp_path, {"scale_source": "wheel_odometry"})  # the default topic, odom: /odom in a bag
     assert main(["replay", str(BAG), "--output", str(tmp_path / "o"), "--params", str(params)]) == 2
     err = capsys.readouterr().err
     assert "wheel_odometry_topic '/odom' is not in the bag" in err and "/wheel/odom" in err
