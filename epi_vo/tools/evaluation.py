@@ -38,7 +38,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 from evo.core import geometry, sync
@@ -52,6 +52,7 @@ from epi_vo.core.odometry import default_T_base_cam
 from epi_vo.core.transforms import invert_T
 from epi_vo.io import tum
 from epi_vo.io.odometry_bag import OdometryTrack, read_estimate_odometry
+from epi_vo.io.trajectory import StampedPoses
 from epi_vo.tools.replay_outputs import read_recorded_extrinsic
 
 logger = logging.getLogger(__name__)
@@ -67,17 +68,7 @@ _MIN_GT_STEP = 1e-6
 _MIN_EST_STEP = 1e-9
 
 
-class StampedPoses(NamedTuple):
-    """Camera poses T_w_c with stamps; a plain ``(stamps_s, positions_xyz, quats_xyzw)`` tuple works too."""
-
-    stamps_s: NDArray[np.float64]  # (N,) seconds, strictly increasing
-    positions_xyz: NDArray[
-        np.float64
-    ]  # (N, 3) camera centre in world (translation of T_w_c)
-    quats_xyzw: NDArray[np.float64]  # (N, 4) R_w_c as a quaternion, x, y, z, w order
-
-
-def metric_poses(est: StampedPoses | tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]],
+def metric_poses(est: StampedPoses,
                  records: Sequence[dict[str, Any]]) -> tuple[StampedPoses, int]:
     """The poses of ``est`` that the trajectory metrics judge, and how many were left out.
 
@@ -126,10 +117,8 @@ class TrajectoryMetrics:
 
 
 def evaluate_trajectory(
-    est: StampedPoses
-    | tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]],
-    gt: StampedPoses
-    | tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]],
+    est: StampedPoses,
+    gt: StampedPoses,
     max_time_diff: float = 0.01,
 ) -> TrajectoryMetrics:
     """Compare an estimated trajectory of camera poses T_w_c with ground truth.
@@ -286,8 +275,7 @@ def _steps_in_previous_camera(T_w_c: NDArray[np.float64]) -> NDArray[np.float64]
 
 
 def to_evo_trajectory(
-    poses: StampedPoses
-    | tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]],
+    poses: StampedPoses,
     name: str,
 ) -> PoseTrajectory3D:
     """Validate ``(stamps_s, positions_xyz, quats_xyzw)`` and build an evo trajectory (wxyz quaternions)."""
@@ -592,7 +580,7 @@ def poses_from_xyz_quat(positions: NDArray[np.float64], quats_xyzw: NDArray[np.f
 def replay_nees(
     records: Sequence[dict[str, Any]],
     odometry: OdometryTrack,
-    gt: StampedPoses | tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]],
+    gt: StampedPoses,
     *,
     T_base_cam: NDArray[np.float64] | None = None,
     anchor: AlignmentAnchor = AlignmentAnchor.ORIGIN,

@@ -42,6 +42,7 @@ from epi_vo.core.scale import Units
 from epi_vo.io import bag_topics, bagio, outbag, tum
 from epi_vo.io.node_options import CameraExtrinsic
 from epi_vo.io.paths import check_bag_path, refuse_special_file
+from epi_vo.io.trajectory import StampedPoses
 from epi_vo.io.wheel_feed import WheelFeed
 from epi_vo.runner.frames import FrameHandler, FrameInput
 from epi_vo.runner.outputs import FrameOutputs, OutputFrames
@@ -540,13 +541,14 @@ def write_outputs(obag: outbag.OutputBag, outputs: FrameOutputs) -> None:
 
 
 def _ground_truth(bag: bagio.CameraBag, gt_tum: str | Path | None
-                  ) -> tuple[str, tuple[np.ndarray, np.ndarray, np.ndarray]] | None:
+                  ) -> tuple[str, StampedPoses] | None:
     if gt_tum is not None:
         return str(gt_tum), tum.read_tum(gt_tum)
     gt = bag.read_ground_truth()
     if gt is None:
         return None
-    return gt_topic_source(gt.topic), (gt.stamps_ns * 1e-9, gt.positions, gt.quats_xyzw)
+    stamps_s = np.asarray(gt.stamps_ns * 1e-9, dtype=np.float64)
+    return gt_topic_source(gt.topic), StampedPoses(stamps_s, gt.positions, gt.quats_xyzw)
 
 
 def gt_topic_source(topic: str) -> str:
@@ -555,7 +557,7 @@ def gt_topic_source(topic: str) -> str:
 
 
 def _evaluate(poses: list[tuple[float, np.ndarray, np.ndarray]], metric_stamps: list[dict[str, Any]],
-              gt: tuple[np.ndarray, np.ndarray, np.ndarray]) -> tuple[TrajectoryMetrics, int]:
+              gt: StampedPoses) -> tuple[TrajectoryMetrics, int]:
     """The metrics of the run's poses (its metric ones once it established metres) and how many poses
     were left out (held before metric scale)."""
     from epi_vo.tools.evaluation import evaluate_trajectory, metric_poses  # evo: only with ground truth
@@ -563,7 +565,7 @@ def _evaluate(poses: list[tuple[float, np.ndarray, np.ndarray]], metric_stamps: 
     stamps = np.array([s for s, _, _ in poses])
     pos = np.array([p for _, p, _ in poses]).reshape(-1, 3)
     quat = np.array([q for _, _, q in poses]).reshape(-1, 4)
-    est, held = metric_poses((stamps, pos, quat), metric_stamps)
+    est, held = metric_poses(StampedPoses(stamps, pos, quat), metric_stamps)
     return evaluate_trajectory(est, gt), held
 
 

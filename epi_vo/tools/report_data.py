@@ -43,9 +43,9 @@ from epi_vo.core.errors import EpiVoError, ReportError
 from epi_vo.core.frame import Model, TrackingState
 from epi_vo.core.scale import Units
 from epi_vo.io import tum
+from epi_vo.io.trajectory import StampedPoses
 from epi_vo.tools.evaluation import (
     MIN_MATCHED_POSES,
-    StampedPoses,
     TrajectoryMetrics,
     evaluate_trajectory,
     metric_poses,
@@ -138,9 +138,9 @@ def load_run(directory: str | Path) -> Run:
     if not (d / "trajectory.tum").is_file():
         msg = f"{d} is not an 'epi-vo replay' output directory: trajectory.tum is missing"
         raise ReportError(msg)
-    est = StampedPoses(*_read_tum(d / "trajectory.tum"))
+    est = _read_tum(d / "trajectory.tum")
     est_frame_index = _frame_index_of_stamps(records, est.stamps_s, d / "trajectory.tum")
-    gt = StampedPoses(*_read_tum(d / "groundtruth.tum")) if (d / "groundtruth.tum").is_file() else None
+    gt = _read_tum(d / "groundtruth.tum") if (d / "groundtruth.tum").is_file() else None
     stats = None
     if (d / "stats.json").is_file():
         try:
@@ -189,7 +189,7 @@ def _read_records(path: Path) -> tuple[dict[str, Any], ...]:
     return tuple(records)
 
 
-def _read_tum(path: Path) -> tuple[F64, F64, F64]:
+def _read_tum(path: Path) -> StampedPoses:
     try:
         return tum.read_tum(path)
     except EpiVoError as exc:  # bagio says BagError; here it is a report input
