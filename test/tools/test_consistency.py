@@ -36,7 +36,7 @@ def test_replay_reports_the_covariance_consistency_it_published(tmp_path: Path) 
     assert m["nees_twist_linear"] == pytest.approx(twist.mean_linear, rel=1e-9)
     assert m["nees_twist_angular"] == pytest.approx(twist.mean_angular, rel=1e-9)
     assert m["nees_twist_angular_inside_percent"] == pytest.approx(twist.inside_angular_percent)
-    # the bag's figures (README, Measured): consistent, none off by an order of magnitude
+    # consistent (3 in expectation), none off by an order of magnitude (the bag's row: docs/benchmarks)
     assert 0.5 < m["nees_pos"] < 6 and 0.5 < m["nees_rot"] < 6 and 1.0 < m["nees_twist_angular"] < 6
     stats = json.loads((tmp_path / "stats.json").read_text())["metrics"]
     assert stats["nees_pos"] == pytest.approx(m["nees_pos"])
