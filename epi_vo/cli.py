@@ -132,7 +132,10 @@ def _add_monitor(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--once", action="store_true", help="print one snapshot and exit")
     p.add_argument("--timeout", type=float, default=None,
                    help="exit non-zero if no VO status arrived within this many seconds")
-    p.add_argument("--odometry-topic", default="vo/odometry", help="odometry topic (for distance travelled)")
+    p.add_argument("--odometry-topic", default="vo/odometry", help="odometry topic (distance travelled in metres)")
+    p.add_argument("--vo-units-topic", default=None,
+                   help="odometry in VO units, for the distance while there are no metres (default: vo/odometry/"
+                        "vo_units in the odometry topic's namespace)")
     p.add_argument("--node-name", default=None, help="only statuses of this node ('<name>: tracking')")
 
 

@@ -62,6 +62,8 @@ def test_the_file_names_what_vo_node_publishes_and_reads() -> None:
         assert ekf[f"{source}_differential"] is False and ekf[f"{source}_relative"] is False  # no pose fused
         assert not any(vector[:6]), source  # twist (and the gyro), never a pose: two odometries in one frame
     assert ekf["odom0"] == "vo/odometry" and ekf["odom0"] in _vo_node_publishes()
+    assert "vo/odometry/vo_units" in _vo_node_publishes()  # published, and fused by no source here
+    assert not any(str(ekf[k]).endswith("vo_units") for k in ("odom0", "odom1", "imu0"))
     assert ekf["odom1"] == VoConfig().wheel_odometry_topic  # the wheels vo_node itself reads for metres
     opts = NodeOptions()
     assert (ekf["odom_frame"], ekf["base_link_frame"], ekf["world_frame"]) == (opts.frame_id, opts.child_frame_id,
@@ -134,6 +136,23 @@ def _errors(poses: np.ndarray, truth: np.ndarray) -> np.ndarray:
     return e
 
 
+def with_h(source: tuple[np.ndarray, np.ndarray], fields: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """A source measuring some of the rates: padded to all three, the others with no weight."""
+    n = source[0].shape[0]
+    z = np.zeros((n, 3))
+    R = np.tile(np.eye(3) * 1e12, (n, 1, 1))
+    z[:, fields] = source[0]
+    R[np.ix_(range(n), fields, fields)] = source[1]
+    return z, R
+
+
+def _planar_twist(odometry: OdometryTrack, fields: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """The rates ``fields`` of PLANAR_TWIST an odometry track carries, and their published covariance."""
+    twist = np.column_stack([odometry.linear_velocity[:, :2], odometry.angular_velocity[:, 2]])
+    cov = odometry.twist_covariance[:, [0, 1, 5]][:, :, [0, 1, 5]]
+    return twist[:, fields], cov[:, fields][:, :, fields]
+
+
 def _fields(vector: list[bool]) -> list[int]:
     """Indices into PLANAR_TWIST of the planar rates a config vector fuses."""
     on = {f for f, v in zip(FIELDS, vector, strict=True) if v}
@@ -167,19 +186,9 @@ def test_the_fused_pose_is_inside_its_covariance_and_better_than_either_source(
     n = truth.shape[0]
     # epi_vo: the fields odom0_config fuses, with the twist covariance it published (base_link, ROS order).
     vo_fields = _fields(ekf["odom0_config"])
-    twist = np.column_stack([odometry.linear_velocity[:, :2], odometry.angular_velocity[:, 2]])
-    cov = odometry.twist_covariance[:, [0, 1, 5]][:, :, [0, 1, 5]]
-    vo = (twist[:, vo_fields], cov[:, vo_fields][:, :, vo_fields])
+    vo = _planar_twist(odometry, vo_fields)
     wheel_fields = _fields(ekf["odom1_config"])
     wheel_cov = np.tile(np.diag(WHEEL_SIGMA[wheel_fields] ** 2), (n, 1, 1))
-
-    def with_h(source: tuple[np.ndarray, np.ndarray], fields: list[int]) -> tuple[np.ndarray, np.ndarray]:
-        """A source measuring some of the rates: padded to all three, the others with no weight."""
-        z = np.zeros((n, 3))
-        R = np.tile(np.eye(3) * 1e12, (n, 1, 1))
-        z[:, fields] = source[0]
-        R[np.ix_(range(n), fields, fields)] = source[1]
-        return z, R
 
     vo_m = with_h(vo, vo_fields)
     rms: dict[str, list[np.ndarray]] = {"fused": [], "vo": [], "wheels": []}
@@ -204,3 +213,40 @@ def test_the_fused_pose_is_inside_its_covariance_and_better_than_either_source(
     assert fused[0] < vo_alone[0] and fused[0] < wheels_alone[0], (fused, vo_alone, wheels_alone)
     assert fused[1] < wheels_alone[1], (fused, wheels_alone)
     assert fused[0] < 0.02 and math.degrees(fused[1]) < 0.2  # metres and degrees over the 11 m drive
+
+
+def test_with_scale_source_none_fusing_the_linear_rates_by_mistake_changes_nothing(
+        tmp_path: Path, replayed: tuple[OdometryTrack, np.ndarray]) -> None:
+    """The file's odom0_config on a replay with ``scale_source: none`` (a user who kept the config but not the
+    metres): vo/odometry's linear rates are zero with the "unknown" variance, so the fused position is, within
+    a millimetre, the one fusing its yaw rate only; the same fields of vo/odometry/vo_units (VO units with their
+    tight covariance, what vo/odometry carried before) pull it metres away."""
+    import dataclasses
+
+    _, truth_T = replayed
+    ekf = _ekf()
+    cfg = dataclasses.replace(load_config(CONFIG), scale_source="none")
+    run_replay(BAG, tmp_path, cfg, extrinsic=load_extrinsic(CONFIG))
+    fusable = read_odometry(tmp_path / "output.mcap")
+    vo_units = read_odometry(tmp_path / "output.mcap", "/vo/odometry/vo_units")
+    np.testing.assert_array_equal(fusable.stamps_ns, vo_units.stamps_ns)
+    dt = np.diff(fusable.stamps_ns) * 1e-9
+    truth = _planar(truth_T)
+    assert truth.shape[0] == fusable.stamps_ns.size
+    wheel_fields = _fields(ekf["odom1_config"])
+    n = truth.shape[0]
+    noisy = _body_rates(truth_T, dt) + np.random.default_rng(0).normal(size=(n, 3)) * WHEEL_SIGMA
+    wheels = with_h((noisy[:, wheel_fields], np.tile(np.diag(WHEEL_SIGMA[wheel_fields] ** 2), (n, 1, 1))),
+                    wheel_fields)
+    vo_fields = _fields(ekf["odom0_config"])
+    yaw_rate = [PLANAR_TWIST.index("vyaw")]
+
+    def fused(track: OdometryTrack, fields: list[int]) -> np.ndarray:
+        return fuse(dt, [with_h(_planar_twist(track, fields), fields), wheels])[0]
+
+    mistaken, intended = fused(fusable, vo_fields), fused(fusable, yaw_rate)
+    assert float(np.max(np.hypot(*(mistaken - intended)[:, :2].T))) < 1e-3
+    error = np.hypot(*_errors(intended, truth)[:, :2].T)
+    assert float(np.max(error)) < 0.5  # the wheels' metres and epi_vo's yaw rate
+    in_vo_units = np.hypot(*_errors(fused(vo_units, vo_fields), truth)[:, :2].T)
+    assert float(np.max(in_vo_units)) > 1.0, float(np.max(in_vo_units))

@@ -55,6 +55,7 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 ODOMETRY_TOPIC = "/vo/odometry"
+VO_UNITS_ODOMETRY_TOPIC = "/vo/odometry/vo_units"  # the motion in VO units (frames in no TF tree)
 POINTS_TOPIC = "/vo/points"
 PATH_TOPIC = "/vo/path"
 FRAME_STATUS_TOPIC = "/vo/frame_status"  # the per-frame statuses, as vo_node publishes them

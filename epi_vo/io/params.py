@@ -8,6 +8,7 @@ parameter name.
 
 from __future__ import annotations
 
+import enum
 from pathlib import Path
 from typing import Any
 
@@ -98,8 +99,8 @@ def load_node_options(path: str | Path | None = None) -> NodeOptions:
 
 def load_extrinsic(path: str | Path | None = None) -> CameraExtrinsic | None:
     """The camera mounting a parameter file declares (it sets ``camera_xyz`` or ``camera_rpy``; the other one
-    takes its default), None when it declares none: then the offline tools know no extrinsic. ConfigError
-    naming a bad value, as :func:`load_node_options`."""
+    takes its default), None when it declares none: then the offline tools take the default mounting (a level
+    camera at base_link), as vo_node's defaults do. ConfigError naming a bad value, as :func:`load_node_options`."""
     if path is None or not {"camera_xyz", "camera_rpy"} & set(load_params_file(path)):
         return None
     opts = load_node_options(path)
@@ -135,4 +136,6 @@ def _yaml_value(value: Any) -> str:
     """One YAML scalar or flow list (tuples as lists), without the document end marker."""
     if isinstance(value, tuple):
         value = list(value)
+    if isinstance(value, enum.Enum):  # a mode: its text
+        value = value.value
     return yaml.safe_dump(value, default_flow_style=True).strip().replace("\n...", "")

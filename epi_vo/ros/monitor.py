@@ -29,10 +29,11 @@ unit of the first map), ``scale_rel_std``, the camera's pitch and roll to the fl
 before the first frame (a node whose camera never delivered); the latest frame's numbers win when newer.
 Data without these keys (an older node) is in VO units, source none.
 
-Distance travelled is the sum of the odometry position steps. With ``scale_source: none`` it is in VO
-units (the scale of the map built at initialisation: a monocular VO has no metric scale of its own).
-With a metric source the node holds the published position until metric scale is established (nothing
-in VO units is published as metres), so the distance stays 0 until then and is metres from then on.
+Distance travelled is the sum of the odometry position steps, of the topic that carries the motion in the
+units of the latest status: in metres ``vo/odometry``; in VO units (``scale_source: none``, or a metric
+source not established yet: the scale of the map built at initialisation, a monocular VO has no metric
+scale of its own) ``vo/odometry/vo_units``, since ``vo/odometry`` then holds its position (nothing in VO
+units is published where a robot could fuse it as metres).
 """
 
 from __future__ import annotations
@@ -57,6 +58,7 @@ from epi_vo.core.diagnostics import DiagnosticLevel
 from epi_vo.io import checks
 
 FRAME_STATUS_TOPIC = "vo/frame_status"  # the node's per-frame statuses, relative to its namespace
+VO_UNITS_TOPIC = "vo/odometry/vo_units"  # the node's motion in VO units, relative to its namespace
 HISTORY_LENGTH = 8  # distinct warning/error reasons kept
 SILENT_AFTER_S = 3.0  # no status for this long: the node (not only its camera) may be gone
 _NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?")
@@ -175,8 +177,10 @@ class MonitorState:
     frame_s: float = math.nan
     other_sources: frozenset[str] = frozenset()
     history: tuple[HistoryEntry, ...] = ()  # most recent first
-    distance: float = 0.0
+    distance: float = 0.0  # of vo/odometry (metres once established)
     position: tuple[float, float, float] | None = None
+    vo_distance: float = 0.0  # of vo/odometry/vo_units (VO units)
+    vo_position: tuple[float, float, float] | None = None
     n_odometry: int = 0
     odometry_s: float = math.nan
 
@@ -272,14 +276,24 @@ class MonitorState:
         return dataclasses.replace(state, frame=kv, frame_level=lvl, frame_message=message, frame_s=now_s,
                                    n_frames=self.n_frames + 1, latest=kv, latest_s=now_s)
 
-    def update_from_odometry(self, position: Iterable[float], now_s: float) -> MonitorState:
-        """Fold in one odometry position (x, y, z in the odometry frame); the step length adds to the distance."""
+    def update_from_odometry(self, position: Iterable[float], now_s: float, vo_units: bool = False) -> MonitorState:
+        """Fold in one odometry position (x, y, z in the odometry frame) of vo/odometry, or with ``vo_units`` of
+        vo/odometry/vo_units; the step length adds to that topic's distance."""
         p = tuple(float(v) for v in position)
         if len(p) != 3 or not all(math.isfinite(v) for v in p):
             return self  # a broken message must not poison the sum
+        if vo_units:
+            step = math.dist(p, self.vo_position) if self.vo_position is not None else 0.0
+            return dataclasses.replace(self, vo_position=(p[0], p[1], p[2]), vo_distance=self.vo_distance + step,
+                                       odometry_s=now_s)
         step = math.dist(p, self.position) if self.position is not None else 0.0
         return dataclasses.replace(self, position=(p[0], p[1], p[2]), distance=self.distance + step,
                                    n_odometry=self.n_odometry + 1, odometry_s=now_s)
+
+    @property
+    def travelled(self) -> tuple[float, tuple[float, float, float] | None]:
+        """(distance, position) in :attr:`units`: vo/odometry's in metres, vo/odometry/vo_units' in VO units."""
+        return (self.distance, self.position) if self.units == "m" else (self.vo_distance, self.vo_position)
 
     def render_text(self, now_s: float | None = None) -> str:
         """The snapshot as plain text. ``now_s`` (wall clock) dates the ages; default: the latest update."""
@@ -318,8 +332,9 @@ class MonitorState:
                      f"  reproj {_float(f, 'median_reproj_err_px', 2, ' px')}"
                      f"  depth>0 {_float(f, 'positive_depth_ratio', 2)}")
         lines.extend(_scale_lines(self.scale_values()))
-        pos = " ".join(f"{v:.3f}" for v in self.position) if self.position is not None else "n/a"
-        lines.append(f"  odometry    distance {self.distance:.3f} {units_label(self.units)}  position {pos}"
+        distance, position = self.travelled
+        pos = " ".join(f"{v:.3f}" for v in position) if position is not None else "n/a"
+        lines.append(f"  odometry    distance {distance:.3f} {units_label(self.units)}  position {pos}"
                      f"  messages {self.n_odometry}")
         lines.append(f"  updated     {_clock(self.status_s)}  ({age:.1f} s ago)  statuses {self.n_statuses}"
                      f"  frames {self.n_frames}")
@@ -468,6 +483,11 @@ class _Subscriber:
         self.node.create_subscription(DiagnosticArray, frame_status_topic(args.node_name, self.namespace),
                                       self._on_frame_status, qos)
         self.node.create_subscription(Odometry, args.odometry_topic, self._on_odometry, qos)
+        # The node of that namespace publishes the motion in VO units beside it (its vo/odometry/vo_units).
+        vo_units_topic = args.vo_units_topic
+        if vo_units_topic is None:
+            vo_units_topic = odometry_namespace(self.odometry_topic).rstrip("/") + "/" + VO_UNITS_TOPIC
+        self.node.create_subscription(Odometry, vo_units_topic, self._on_vo_units, qos)
         self.executor = SingleThreadedExecutor(context=context)
         self.executor.add_node(self.node)
 
@@ -488,6 +508,10 @@ class _Subscriber:
     def _on_odometry(self, msg: Any) -> None:
         p = msg.pose.pose.position
         self.state = self.state.update_from_odometry((p.x, p.y, p.z), time.time())
+
+    def _on_vo_units(self, msg: Any) -> None:
+        p = msg.pose.pose.position
+        self.state = self.state.update_from_odometry((p.x, p.y, p.z), time.time(), vo_units=True)
 
     def spin_until(self, predicate: Any, deadline: float, step_s: float = 0.1) -> bool:
         """Spin until ``predicate()`` (True) or the monotonic ``deadline`` (False)."""
@@ -535,6 +559,8 @@ def run(args: argparse.Namespace) -> int:
     from rclpy.signals import SignalHandlerOptions
 
     checks.topic_name(args.odometry_topic, "--odometry-topic")
+    if args.vo_units_topic is not None:
+        checks.topic_name(args.vo_units_topic, "--vo-units-topic")
     if args.node_name is not None:
         checks.node_name(args.node_name, "--node-name")
     if args.timeout is not None:

@@ -60,10 +60,9 @@ class NodeDiagnostics:
             arr.status.append(msg)
         return arr
 
-    def _publish_frame(self, r: FrameResult) -> None:
-        """The frame's status (with the input figures) on vo/frame_status; the frame is folded into the
-        tracking health published on /diagnostics."""
-        status = self._frame_status(r)
+    def _publish_frame(self, status: DiagnosticStatusRecord, r: FrameResult) -> None:
+        """The frame's status (``epi_vo.runner.outputs``), with the input figures, on vo/frame_status; the
+        frame is folded into the tracking health published on /diagnostics."""
         self._pub_frame_status.publish(self._array([DiagnosticStatusRecord(
             status.level, status.name, status.message, status.hardware_id, status.values + self._input_values())]))
         with self._lock:
@@ -135,12 +134,13 @@ class NodeDiagnostics:
                 f"{self.opts.queue_max_mb:g} ({queued} waiting, {held_mb:.1f} MB)")
 
     def _map_odom_values(self) -> tuple[tuple[str, str], ...]:
-        """With map_frame_id: how far the corrections have taken map from odom (vo/odometry's units)."""
+        """With map_frame_id: how far the corrections have taken map from odom (in the
+        frame status's ``units``: metres, or VO units while no map -> odom is broadcast)."""
         if not self.opts.map_frame_id:
             return ()
         M = self._converter.T_map_odom
         return ((f"{self.opts.map_frame_id}_to_{self.opts.frame_id}",
-                 f"{float(np.linalg.norm(M[:3, 3])):.4g} (units of vo/odometry), "
+                 f"{float(np.linalg.norm(M[:3, 3])):.4g} (the status's units), "
                  f"{rotation_angle_deg(M[:3, :3]):.3g} deg"),)
 
     def _wheel_values(self) -> tuple[tuple[str, str], ...]:

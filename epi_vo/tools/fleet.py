@@ -86,7 +86,7 @@ class FleetJob:
     map_frame_id: str = ""
     gt_topic: str | None = None  # the ground-truth topic of every bag (default: the one named as such)
     no_gt: bool = False  # no ground truth, whatever the bags hold
-    extrinsic: CameraExtrinsic | None = None  # the camera mounting the parameters declare
+    extrinsic: CameraExtrinsic | None = None  # the camera mounting of every bag (None: the default)
 
 
 _worker_events: Any = None  # the progress queue of this worker process (set by _init_worker)
@@ -286,7 +286,8 @@ def run_fleet(bags: Sequence[Path], output_dir: str | Path, cfg: VoConfig, *, jo
               inputs: Sequence[str | Path] = (), extrinsic: CameraExtrinsic | None = None) -> FleetResult:
     """Replay ``bags`` (see :func:`epi_vo.tools.fleet_bags.find_bags`) into ``output_dir/<name>/`` with ``jobs``
     processes (default: the number of cores) and write the summary. See the module doc for resume, signals and
-    failures. ``inputs``: other files the run reads (a parameter file).
+    failures. ``inputs``: other files the run reads (a parameter file); ``extrinsic``: the camera mounting
+    (``run_replay``'s).
 
     Raises:
         OutputError: an output of some bag (or the summary) would overwrite an input or write into a bag

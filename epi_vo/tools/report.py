@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 
 from epi_vo.core.config import config_fields, field_doc
 from epi_vo.core.errors import EpiVoError, EvaluationError, ReportError
-from epi_vo.io.odometry_bag import read_odometry
+from epi_vo.io.odometry_bag import read_estimate_odometry
 from epi_vo.tools.evaluation import NeesResult, replay_nees
 from epi_vo.tools.report_data import (
     NO_SIM3,
@@ -149,7 +149,7 @@ def run_nees(run: Run) -> tuple[NeesResult | None, str, TwistNees | None]:
     if not (run.directory / "output.mcap").is_file():
         return None, "no output.mcap (the published covariance)", None
     try:
-        odometry = read_odometry(run.directory / "output.mcap")
+        odometry = read_estimate_odometry(run.directory / "output.mcap")
     except EpiVoError as exc:
         return None, f"not computed: cannot read {run.directory / 'output.mcap'}: {exc}", None
     records = list(run.records)

@@ -41,10 +41,11 @@ from numpy.typing import NDArray
 from epi_vo.core.config import config_fields
 from epi_vo.core.errors import EpiVoError, ReportError
 from epi_vo.core.frame import Model, TrackingState
+from epi_vo.core.scale import Units
 from epi_vo.io import tum
+from epi_vo.io.trajectory import StampedPoses
 from epi_vo.tools.evaluation import (
     MIN_MATCHED_POSES,
-    StampedPoses,
     TrajectoryMetrics,
     evaluate_trajectory,
     metric_poses,
@@ -52,6 +53,7 @@ from epi_vo.tools.evaluation import (
 )
 from epi_vo.tools.json_check import fields_problem
 from epi_vo.tools.replay import stats_problem
+from epi_vo.tools.replay_outputs import PathLength
 
 _log = logging.getLogger(__name__)
 
@@ -136,9 +138,9 @@ def load_run(directory: str | Path) -> Run:
     if not (d / "trajectory.tum").is_file():
         msg = f"{d} is not an 'epi-vo replay' output directory: trajectory.tum is missing"
         raise ReportError(msg)
-    est = StampedPoses(*_read_tum(d / "trajectory.tum"))
+    est = _read_tum(d / "trajectory.tum")
     est_frame_index = _frame_index_of_stamps(records, est.stamps_s, d / "trajectory.tum")
-    gt = StampedPoses(*_read_tum(d / "groundtruth.tum")) if (d / "groundtruth.tum").is_file() else None
+    gt = _read_tum(d / "groundtruth.tum") if (d / "groundtruth.tum").is_file() else None
     stats = None
     if (d / "stats.json").is_file():
         try:
@@ -187,7 +189,7 @@ def _read_records(path: Path) -> tuple[dict[str, Any], ...]:
     return tuple(records)
 
 
-def _read_tum(path: Path) -> tuple[F64, F64, F64]:
+def _read_tum(path: Path) -> StampedPoses:
     try:
         return tum.read_tum(path)
     except EpiVoError as exc:  # bagio says BagError; here it is a report input
@@ -569,14 +571,19 @@ def run_figures(run: Run) -> RunFigures:
                 note = f"{held} pose(s) held before metric scale was established are not in the metrics"
         except EpiVoError as exc:
             note = f"metrics not computed: {exc}"
-    steps = np.diff(run.est.positions_xyz, axis=0)
+    path = PathLength()  # the replay's rule (stats.json path_length), from the records
+    for r in run.records:
+        if r.get("has_pose") and isinstance(r.get("position"), list):
+            path.add(np.asarray(r["position"], dtype=np.float64),
+                     Units.METRES if r.get("units") == Units.METRES else Units.VO)
+    scale = run_scale(run)
     return RunFigures(
         frames=len(run.records), frames_with_pose=sum(bool(r["has_pose"]) for r in run.records),
         keyframes=int(tl.is_keyframe.sum()), states=dict(collections.Counter(tl.state)),
         models=dict(collections.Counter(tl.model)), ms_per_frame=_nanmedian(tl.total_ms),
         stage_ms={k: _nanmedian(v) for k, v in tl.stage_ms.items()},
-        path_length=float(np.linalg.norm(steps, axis=1).sum()) if steps.size else 0.0,
-        metrics=metrics, metrics_note=note, scale=run_scale(run))
+        path_length=path.length(Units.METRES if scale.units == Units.METRES else Units.VO), metrics=metrics,
+        metrics_note=note, scale=scale)
 
 
 def _nanmedian(a: F64) -> float:

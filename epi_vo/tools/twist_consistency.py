@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 from epi_vo.core.odometry import default_T_base_cam
 from epi_vo.core.transforms import invert_T
 from epi_vo.io.odometry_bag import OdometryTrack
+from epi_vo.io.trajectory import StampedPoses
 from epi_vo.tools.evaluation import CHI2_3DOF_99, nearest_rows, poses_from_xyz_quat, rotation_vectors
 
 UNKNOWN_VARIANCE = 1.0e6  # a twist variance at or above this says "unknown": not evaluated
@@ -111,7 +112,7 @@ def poses_at(gt_stamps_s: NDArray[np.float64], gt_pos: NDArray[np.float64], gt_q
 
 
 def replay_twist_nees(records: list[dict], odometry: OdometryTrack,
-                      gt: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]],
+                      gt: StampedPoses,
                       T_base_cam: NDArray[np.float64] | None = None) -> TwistNees:
     """:func:`twist_consistency` of a replay: its frame records, its /vo/odometry and the ground-truth
     camera poses (TUM), turned into base poses with the extrinsic the odometry was made with

@@ -22,6 +22,7 @@ from epi_vo.io.bag_topics import is_ground_truth_name, recorded_topic_name
 from epi_vo.io.bagio import BagFrame, open_camera_bag
 from epi_vo.io.msgconv import image_to_gray, point_cloud2_fields, read_points_xyz
 from epi_vo.io.outbag import OutputBag
+from epi_vo.io.trajectory import StampedPoses
 from epi_vo.io.tum import read_tum, write_tum
 
 TS = get_typestore(Stores.ROS2_JAZZY)
@@ -477,10 +478,11 @@ def test_tum_round_trip(tmp_path: Path) -> None:
 def test_read_tum_skips_comments_and_blank_lines(tmp_path: Path) -> None:
     path = tmp_path / "traj.txt"
     path.write_text("# comment\n\n1.5 1 2 3 0 0 0 1\n  # indented comment\n2.5 4 5 6 0 0 1 0\n")
-    stamps_s, positions, quats_xyzw = read_tum(path)
-    np.testing.assert_array_equal(stamps_s, [1.5, 2.5])
-    np.testing.assert_array_equal(positions, [[1, 2, 3], [4, 5, 6]])
-    np.testing.assert_array_equal(quats_xyzw, [[0, 0, 0, 1], [0, 0, 1, 0]])
+    poses = read_tum(path)
+    assert isinstance(poses, StampedPoses)  # named fields, and unpacks as (stamps, positions, quaternions)
+    np.testing.assert_array_equal(poses.stamps_s, [1.5, 2.5])
+    np.testing.assert_array_equal(poses.positions_xyz, [[1, 2, 3], [4, 5, 6]])
+    np.testing.assert_array_equal(poses.quats_xyzw, [[0, 0, 0, 1], [0, 0, 1, 0]])
 
 
 def test_read_tum_empty_file(tmp_path: Path) -> None:

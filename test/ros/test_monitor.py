@@ -51,14 +51,15 @@ def _record(**over: str) -> dict[str, str]:
 
 
 def _tracking_session() -> MonitorState:
-    """Three initialising frames (WARN, numbers differing), then a tracking one, odometry in 3-4-5 steps."""
+    """Three initialising frames (WARN, numbers differing), then a tracking one, odometry in 3-4-5 steps (on
+    vo/odometry and on vo/odometry/vo_units alike)."""
     s = MonitorState()
     for i, parallax in enumerate(("0.21", "0.35", "0.48")):
         s = s.update_from_frame(NAME, b"\x01", f"initializing: low parallax ({parallax} deg < 0.5)",
                                  _record(state="initializing", index=str(i), model="none", rh="None"), 100.0 + i)
     s = s.update_from_frame(NAME, b"\x00", "tracking", _record(), 103.0, "monocular_camera")
     for t, p in enumerate([(0.0, 0.0, 0.0), (3.0, 4.0, 0.0), (6.0, 8.0, 0.0), (6.0, 8.0, 0.0), (6.0, 4.0, -3.0)]):
-        s = s.update_from_odometry(p, 100.0 + t)
+        s = s.update_from_odometry(p, 100.0 + t).update_from_odometry(p, 100.0 + t, vo_units=True)
     return s
 
 
@@ -81,6 +82,20 @@ def test_distance_is_the_sum_of_odometry_steps() -> None:
     assert "distance 15.000 (VO units)" in s.render_text()
     assert "position 6.000 4.000 -3.000" in s.render_text()
     assert s.update_from_odometry((math.nan, 0.0, 0.0), 110.0) is s  # a broken message is ignored
+    assert s.update_from_odometry((math.nan, 0.0, 0.0), 110.0, vo_units=True) is s
+
+
+def test_the_distance_is_of_the_topic_that_carries_the_motion_in_the_status_units() -> None:
+    """In VO units vo/odometry holds its position (the node publishes no VO units where a robot could fuse
+    them): the distance and position shown are vo/odometry/vo_units'; in metres, vo/odometry's."""
+    s = MonitorState().update_from_frame(NAME, 0, "tracking", _record(**VO_UNITS), 100.0)
+    for t, p in enumerate([(0.0, 0.0, 0.0), (3.0, 4.0, 0.0), (6.0, 8.0, 0.0)]):
+        s = s.update_from_odometry((0.0, 0.0, 0.0), 100.0 + t).update_from_odometry(p, 100.0 + t, vo_units=True)
+    assert (s.distance, s.vo_distance, s.n_odometry) == (0.0, 10.0, 3)
+    assert "distance 10.000 (VO units)  position 6.000 8.000 0.000  messages 3" in s.render_text()
+    s = s.update_from_frame(NAME, 0, "tracking", _record(**METRIC), 104.0)
+    s = s.update_from_odometry((0.0, 0.0, 0.0), 104.0).update_from_odometry((0.0, 1.5, 2.0), 105.0)
+    assert "distance 2.500 m  position 0.000 1.500 2.000  messages 5" in s.render_text()
 
 
 METRIC = {"units": "m", "scale_source": "ground_plane", "metric_scale": "True", "scale": "0.997",

@@ -2,7 +2,7 @@
 exits non-zero with one clear line on stderr (never a traceback), and nothing recorded is lost.
 
 Bags are written into tmp_path with rosbags from the real frames of bags/general_motion (640x480 JPEG,
-decoded with ``epi_vo.tools.replay.decode_frame``), so tracking is real and recovery after bad frames can be
+decoded with ``epi_vo.io.msgconv.decode_frame``), so tracking is real and recovery after bad frames can be
 checked.
 """
 

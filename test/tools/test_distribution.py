@@ -32,7 +32,8 @@ MOVED_FLOOR = 0.5  # % of the map's depth a still camera may be moved by (the is
 RPE_FLOOR = 0.02  # deg/frame
 SE3_FLOOR = 0.2  # % of the path
 
-# What epi_vo measures on each family's subset sequence today (2026-11-28, base 3f11d00): ATE % of the path
+# What epi_vo measures on each family's subset sequence as the code is (`epi-vo benchmark --suite subset`; a
+# change that moves them updates them and says why in its commit): ATE % of the path
 # (Sim(3); static families: none), frames with a pose %, RPE rotation deg/frame; static families: the
 # largest displacement as % of the map's depth; metric rows: SE(3)-only ATE %.
 TODAY: dict[str, dict[str, float]] = {

@@ -20,8 +20,10 @@ S = TypeVar("S")
 # step that lowers the cost and multiplied by ten after one that does not; past LM_MAX_DAMPING no step along the
 # gradient lowers the cost at the precision of float64 and the estimate is final.
 LM_START_DAMPING = 1e-3
-LM_MIN_DAMPING = 1e-9
 LM_MAX_DAMPING = 1e8
+# Damping is relative to the normal equations' diagonal: at a billionth the step is Gauss-Newton's, and a lower
+# floor would only cost more rejected steps to climb back when the cost stops falling.
+LM_MIN_DAMPING = 1e-9
 # A step that lowers the cost by less than this fraction ends the search: the remaining gain is below the
 # residuals' rounding.
 LM_RELATIVE_DECREASE = 1e-10
