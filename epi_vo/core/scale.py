@@ -38,8 +38,10 @@ from typing import ClassVar, Self
 import numpy as np
 from numpy.typing import NDArray
 
+from epi_vo.core.camera import CameraModel
 from epi_vo.core.config import VoConfig
 from epi_vo.core.floor import LEVEL_UP, GroundPlane, find_floor
+from epi_vo.core.floor_view import FloorView, floor_between
 
 # re-exported: callers name the wheel buffer through the scale stage
 from epi_vo.core.wheel_odometry import WheelInputCounts as WheelInputCounts
@@ -95,12 +97,17 @@ class ScaleStatus:
 @dataclass(frozen=True)
 class KeyframeStep:
     """A keyframe step as the scale stage sees it: map points of the new keyframe (its camera frame),
-    the step's camera-centre chord in map units, and the two stamps."""
+    the step's camera-centre chord in map units, and the two stamps; and the step's motion with the new
+    keyframe's image, for the floor's homography between the two images (``floor_view``)."""
 
     X_cur: F64  # (N, 3) map points in the new keyframe's camera frame, NaN rows: no depth
     step_length: float  # |c_cur - c_kf| in the current map units
     kf_stamp_ns: int
     stamp_ns: int
+    R_cur_kf: F64 | None = None  # X_cur = R_cur_kf X_kf + t_cur_kf (map units); None: not given
+    t_cur_kf: F64 | None = None
+    gray: NDArray[np.uint8] | None = None  # the new keyframe's image and its camera
+    camera: CameraModel | None = None
 
 
 @dataclass(frozen=True)
@@ -246,6 +253,11 @@ class ScaleSource:
         uncertain again (``NEW_MAP_REL_STD``)."""
         return dataclasses.replace(self, filter=self.filter.inflated(NEW_MAP_REL_STD))
 
+    def viewing(self, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int) -> Self:
+        """A keyframe was set on the image ``gray``: the source after it (``ground_plane`` keeps the image for
+        the floor's homography to the next keyframe; the others need none)."""
+        return self
+
     def on_keyframe(self, step_length: float, dt_s: float) -> Self:
         """A keyframe step of ``step_length`` map units over ``dt_s`` seconds was taken."""
         return dataclasses.replace(self, speed=step_length / dt_s) if dt_s > 0 else self
@@ -306,6 +318,10 @@ class GroundPlaneScale(ScaleSource):
     reason: str = "ground plane not seen yet: scale unknown (VO units)"
     normals: tuple[F64, ...] = ()  # the floor normals of the last FLOOR_HISTORY fits
     waiting: tuple[tuple[F64, float, float], ...] = ()  # fits before metric scale: (normal, z, r)
+    view: FloorView | None = None  # the last keyframe's image (``floor_view``)
+
+    def viewing(self, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int) -> Self:
+        return dataclasses.replace(self, view=FloorView(gray, camera, stamp_ns))
 
     def on_new_map(self) -> Self:
         return dataclasses.replace(super().on_new_map(), waiting=())
@@ -339,6 +355,23 @@ class GroundPlaneScale(ScaleSource):
         up when the robot stands level. The fits seen so far were judged against another: forgotten."""
         return dataclasses.replace(super().with_mounting_up(up), normals=(), waiting=())
 
+    def _floor_between_views(self, step: KeyframeStep) -> GroundPlane | None:
+        """The floor from its homography between the last keyframe's image and this one's (``floor_view``),
+        when the step brings its motion and image; None otherwise. Its normal's prior is the declared
+        mounting's up, not the floor seen so far: one step's homography trades the floor's tilt against its
+        height, and a prior on the fits' own median feeds a first fit's tilt error into every later height
+        (a road's camera a degree too level is a floor a few per cent too high, kept)."""
+        view = self.view
+        if (view is None or view.stamp_ns != step.kf_stamp_ns or step.gray is None or step.camera is None
+                or step.R_cur_kf is None or step.t_cur_kf is None):
+            return None
+        # The height expected (map units): metres once the scale is established (the map is corrected into
+        # them); before, every height is searched.
+        h_guess = self.camera_height_m if self.filter.established else None
+        fit = floor_between(view, step.gray, step.camera, step.R_cur_kf, step.t_cur_kf, self.up,
+                            max_tilt_deg=self.max_tilt_deg, h_guess=h_guess)
+        return fit.plane
+
     def _expected_up(self) -> tuple[F64, float]:
         """The floor normal seen over the last keyframes (the camera's mounting changes little), and how
         far a new fit may lie from it; before ``FLOOR_STEADY_FITS`` fits, the declared up and
@@ -349,6 +382,22 @@ class GroundPlaneScale(ScaleSource):
         return n / np.linalg.norm(n), min(FLOOR_STEADY_DEG, self.max_tilt_deg)
 
     def measure(self, step: KeyframeStep, wheel: WheelOdometry) -> tuple[Self, tuple[float, float] | None]:
+        """The floor among the map points when they hold one; else the floor's homography between the two
+        keyframes' images (``floor_view``): a sparsely textured floor (asphalt, concrete) gives the map few
+        points, yet it fills the lower image. Where the points hold a floor they are the better measurement
+        (on the distribution's floor-robot family the homography, whose tilt and height trade against each
+        other within one step, scatters more), so they are tried first."""
+        src, measured = self._measure_points(step)
+        if measured is not None:
+            return src, measured
+        seen = self._floor_between_views(step)
+        if seen is None:
+            return src, None
+        src = dataclasses.replace(src, normals=(*src.normals, seen.normal_up)[-FLOOR_HISTORY:])
+        r = seen.rel_std**2 + self.fit_min_rel_std**2
+        return dataclasses.replace(src, plane=seen, reason=""), (math.log(self.camera_height_m / seen.height), r)
+
+    def _measure_points(self, step: KeyframeStep) -> tuple[Self, tuple[float, float] | None]:
         up, tilt = self._expected_up()
         search = find_floor(step.X_cur, max_tilt_deg=tilt, inlier_ratio=self.inlier_ratio,
                             min_points=self.min_points, up=up)
