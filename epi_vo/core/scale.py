@@ -64,6 +64,9 @@ FLOOR_STEADY_DEG = 10.0
 FLOOR_STEADY_FITS = 3
 FLOOR_HISTORY = 7  # floor normals remembered (their median is the floor seen so far)
 WHEEL_STEPS = 500  # keyframe steps remembered for the wheel measurement (it needs the last few)
+# Measurements in a row beyond the window's 3-sigma gate on one side: the map's scale changed (a VO scale jump),
+# no outlier. Three fall there by chance once in ~10^8 (0.00135^3); the map then takes their median at once.
+SCALE_CHANGE_RUN = 3
 # A map rebuilt after a loss takes its baseline from the last keyframe speed over the time since its
 # keyframe: its scale is that uncertain (relative, 1 sigma) until a scale source measures it.
 NEW_MAP_REL_STD = 0.3
@@ -139,6 +142,7 @@ class ScaleFilter:
     var: float = math.inf
     total: float = 1.0  # product of every correction: metres per VO unit of the first map
     outlier: bool = False  # the last measurement was judged an outlier by the window
+    run: int = 0  # outliers in a row on one side (signed: + the map too small, - too large)
 
     @property
     def q(self) -> float:
@@ -187,11 +191,24 @@ class ScaleFilter:
             log_c = med
         else:
             if n >= 3 and (z - med) ** 2 > 9.0 * r_eff:
-                # kept in the window (it may be the start of a change), not applied
-                return dataclasses.replace(f, outlier=True), 1.0
+                side = 1 if z > med else -1
+                run = self.run + side if self.run * side > 0 else side
+                if abs(run) < SCALE_CHANGE_RUN:
+                    # kept in the window (it may be the start of a change), not applied
+                    return dataclasses.replace(f, outlier=True, run=run), 1.0
+                # The start of a change: the map's scale jumped. The measurements since are the window now.
+                recent = np.array([w[0] for w in window[-SCALE_CHANGE_RUN:]])
+                r_new = max(float(np.var(recent, ddof=1)), max(w[1] for w in window[-SCALE_CHANGE_RUN:]))
+                log_c = float(np.median(recent))
+                f = dataclasses.replace(f, window=window[-SCALE_CHANGE_RUN:], run=0)
+                var = 1.57 * r_new / SCALE_CHANGE_RUN
+                factor = math.exp(log_c)
+                return dataclasses.replace(f, window=tuple((x - log_c, v) for x, v in f.window), var=var,
+                                           total=self.total * factor), factor
             gain = self.var / (self.var + r_eff)
             var = (1.0 - gain) * self.var
             log_c = gain * z
+            f = dataclasses.replace(f, run=0)
         factor = math.exp(log_c)
         return dataclasses.replace(f, window=tuple((x - log_c, v) for x, v in window), var=var,
                                    total=self.total * factor), factor

@@ -183,6 +183,36 @@ def test_scale_filter_shrugs_off_an_outlier() -> None:
     assert factor == pytest.approx(1.0, abs=0.03) and f.outlier
 
 
+def test_scale_filter_follows_a_jump_of_the_maps_scale_the_measurements_agree_on() -> None:
+    """The map's scale jumps (a VO scale jump: the map suddenly 2x too small): every later measurement says
+    so, and after SCALE_CHANGE_RUN of them in a row beyond the window's gate the map takes their median. Before
+    (every one an outlier until the window's median moved): road-s5's map stayed 1.6-3x too small for the
+    last 10 keyframes. Fewer in a row are outliers, as one wild measurement is."""
+    f = ScaleFilter(0.02)
+    rng = np.random.default_rng(3)
+    for _ in range(8):
+        f, _ = f.predicted().updated(float(rng.normal(0.0, 0.02)), 0.0004)
+    for k in range(sc.SCALE_CHANGE_RUN - 1):
+        f, factor = f.predicted().updated(math.log(2.0 / f.total) + float(rng.normal(0.0, 0.02)), 0.0004)
+        assert factor == 1.0 and f.outlier and f.run == k + 1
+    f, factor = f.predicted().updated(math.log(2.0 / f.total) + float(rng.normal(0.0, 0.02)), 0.0004)
+    assert not f.outlier and f.total == pytest.approx(2.0, rel=0.05) and factor == pytest.approx(2.0, rel=0.05)
+    assert f.rel_std < 0.1  # the spread of the measurements that took it there
+    # and from there the filter goes on as before: a consistent measurement changes little
+    f, factor = f.predicted().updated(float(rng.normal(0.0, 0.02)), 0.0004)
+    assert factor == pytest.approx(1.0, abs=0.03) and not f.outlier
+
+
+def test_scale_filter_outliers_on_both_sides_are_no_jump() -> None:
+    f = ScaleFilter(0.02)
+    for z in (0.01, -0.01, 0.0, 0.02, -0.02, 0.01):
+        f, _ = f.predicted().updated(z, 0.0004)
+    for z in (math.log(3.0), math.log(0.3), math.log(3.0), math.log(0.3)):
+        f, factor = f.predicted().updated(z, 0.0004)
+        assert factor == 1.0 and f.outlier and abs(f.run) == 1
+    assert f.total == pytest.approx(1.0, abs=0.03)
+
+
 def test_wheel_scale_measures_distance_over_vo_step() -> None:
     w = WheelOdometry()
     for i in range(30):
