@@ -89,11 +89,14 @@ def test_an_upside_down_camera_declared_so_gets_its_floor() -> None:
     level = _floor_source()
     factor = 1.0
     for k in range(4):
-        X, _ = _upside_down_scene(0.45 / S, seed=k)
+        # the map as corrected so far: each correction scales it (and the floor's height in it) by its factor
+        X, _ = _upside_down_scene(0.45 / S * factor, seed=k)
         step = sc.KeyframeStep(X, 0.02, k * 100_000_000, (k + 1) * 100_000_000)
         declared, f = declared.correction(step, NO_WHEELS)
         factor *= f
-        level, _ = level.correction(step, NO_WHEELS)
+        X_level, _ = _upside_down_scene(0.45 / S, seed=k)
+        level, _ = level.correction(sc.KeyframeStep(X_level, 0.02, k * 100_000_000, (k + 1) * 100_000_000),
+                                    NO_WHEELS)
     assert declared.established and factor == pytest.approx(S, rel=0.01)
     assert abs(declared.status().floor_roll_deg) == pytest.approx(180.0, abs=1.0)  # the camera's, to the floor
     assert level.plane is None or abs(level.plane.height - 0.45 / S) > 0.2 * 0.45 / S
@@ -134,7 +137,8 @@ def test_scale_filter_trusts_no_early_pair_that_agrees_by_chance() -> None:
 def test_floor_scale_claims_the_spread_its_fits_have() -> None:
     """Monte Carlo: floor fits that scatter by 0.4 % (ground_robot's window MAD: 0.37 %) on a map whose
     scale drifts by 0.1 % per keyframe. The filter's claimed relative sigma must match the scale's actual
-    error over the runs (1.33x here). With the 2 % least noise of a fit used until 2026-11-27 it claimed 5.5x the
+    error over the runs (0.96x here; 1.33x with the Kalman update the window's median replaced). With
+    the 2 % least noise of a fit used until 2026-11-27 it claimed 5.5x the
     actual error (1.25 % on ground_robot, position NEES 0.27)."""
     rng = np.random.default_rng(7)
     errors, claimed = [], []
@@ -153,7 +157,8 @@ def test_floor_scale_claims_the_spread_its_fits_have() -> None:
         errors.append(math.log(S))
         claimed.append(src.filter.rel_std)
     actual = float(np.sqrt(np.mean(np.square(errors))))
-    assert 0.003 < actual < 0.006
+    # the median of a window of 15 fits of 0.4 % with the drift since: about 0.2 %
+    assert 0.001 < actual < 0.004
     assert 0.6 < float(np.mean(claimed)) / actual < 1.7
 
 
@@ -201,6 +206,20 @@ def test_scale_filter_follows_a_jump_of_the_maps_scale_the_measurements_agree_on
     # and from there the filter goes on as before: a consistent measurement changes little
     f, factor = f.predicted().updated(float(rng.normal(0.0, 0.02)), 0.0004)
     assert factor == pytest.approx(1.0, abs=0.03) and not f.outlier
+
+
+def test_scale_filter_is_not_held_by_a_first_pair_that_agreed_by_chance() -> None:
+    """floor_robot s6's floor fits (ground_plane), each as true / map of the uncorrected map: the first three
+    agree within 2 % at 0.15, the later ones at 0.195-0.207. A Kalman update weighed each against the
+    variance the first pair left and ended at 0.181 claiming 2.4 % (step scale 0.82 on the sequence); the
+    window's median follows the measurements."""
+    raw = (0.149, 0.152, 0.150, 0.162, 0.170, 0.203, 0.198, 0.195, 0.199, 0.195, 0.195, 0.199, 0.207, 0.204)
+    f = ScaleFilter(0.01)
+    for m in raw:
+        f, _ = f.predicted().updated(math.log(m / f.total), 0.01**2)  # measured against the map as corrected
+    later = float(np.median(raw[-8:]))
+    assert f.total == pytest.approx(later, rel=0.03)
+    assert abs(math.log(f.total / later)) < 3.0 * f.rel_std
 
 
 def test_scale_filter_outliers_on_both_sides_are_no_jump() -> None:
