@@ -15,12 +15,12 @@ chooses where the length comes from:
     stamps) over the VO's own step length. Only distances are used: the VO keeps its rotation and never
     takes the wheels' heading (or its drift).
 
-Both metric sources feed the same filter (:class:`ScaleFilter`): the median of a window of recent
-measurements of the log of the map's scale error, which also judges outliers and says how noisy the
-measurements are; its uncertainty grows by the VO's scale drift per keyframe between measurements. At a
-keyframe the pipeline asks :meth:`ScaleSource.correction` for the factor that takes the step from the last
-keyframe, and the new keyframe's map, into metres; without a measurement the factor is 1 and the
-uncertainty grows.
+Both metric sources feed the same filter (:class:`ScaleFilter`): a 1-D Kalman filter on the log of
+the map's scale error, with the VO's scale drift per keyframe as process noise; the window of recent
+measurements judges outliers, says how noisy the measurements are, and bounds how sure the filter may be
+(no surer than the mean of the window's measurements). At a keyframe the pipeline asks
+:meth:`ScaleSource.correction` for the factor that takes the step from the last keyframe, and the new
+keyframe's map, into metres; without a measurement the factor is 1 and the uncertainty grows.
 
 A source and what it remembers (the filter, the last speed, the floor normals seen, the wheel steps) is
 one frozen value: every call that learns something returns the source after it, which the pipeline's
@@ -131,9 +131,10 @@ class ScaleFilter:
     Each keyframe's measurement z = log(true / map) goes into a window of the last ``maxlen`` ones (kept
     relative to the map as it is now: a correction applied shifts them all). The window's median and
     MAD judge the newest (beyond 3 sigma: an outlier, not applied; ``SCALE_CHANGE_RUN`` of them in a row on
-    one side: a jump of the map's scale) and give the measurement noise. Metric scale is established once
-    ``min_count`` measurements are in the window, and at every keyframe the map takes the window's median;
-    its variance is the median's, grown by the VO's scale drift per keyframe while no measurement comes.
+    one side: a jump of the map's scale) and give the measurement noise; a 1-D Kalman filter whose process
+    noise is the VO's scale drift per keyframe takes each measurement once, its variance never below that
+    of the mean of the window's measurements at that noise. Metric scale is established once ``min_count``
+    measurements are in the window: the first correction is their median.
     """
 
     drift_per_keyframe: float
@@ -170,7 +171,8 @@ class ScaleFilter:
         (1.0 while not established).
 
         The window's median and MAD judge the new measurement (an outlier is kept in the window but not
-        applied) and say how noisy the measurements really are; the map then takes the window's median.
+        applied) and say how noisy the measurements really are; the filter then takes this one measurement
+        with that noise, so a measurement counts once however long it stays in the window.
         """
         window = (*self.window, (z, r))[-self.maxlen:]
         f = dataclasses.replace(self, window=window, outlier=False)
@@ -206,11 +208,13 @@ class ScaleFilter:
                 factor = math.exp(log_c)
                 return dataclasses.replace(f, window=tuple((x - log_c, v) for x, v in f.window), var=var,
                                            total=self.total * factor), factor
-            # The map takes the window's median, as when metric scale was established: a Kalman update
-            # weighs the new measurement against the filter's variance, which a first pair that agreed by
-            # chance leaves too small for the later measurements ever to move the map far.
-            log_c = med
-            var = 1.57 * r_eff / n
+            # The filter knows the scale no better than the mean of the window's measurements at the noise the
+            # window shows now: a first pair that agreed by chance leaves a variance too small for the later
+            # measurements ever to move the map far, and the window's spread reveals it.
+            prior = max(self.var, r_eff / n)
+            gain = prior / (prior + r_eff)
+            var = (1.0 - gain) * prior
+            log_c = gain * z
             f = dataclasses.replace(f, run=0)
         factor = math.exp(log_c)
         return dataclasses.replace(f, window=tuple((x - log_c, v) for x, v in window), var=var,
