@@ -40,7 +40,7 @@ FLOOR_MIN_DEPRESSION_DEG = 5.0
 # Pyramid levels of the alignment below the half-resolution image it starts from: a floor point a camera
 # height below moves tens of pixels over a keyframe step; each level halves that.
 FLOOR_LEVELS = 3
-FLOOR_PIXELS = 1500  # pixels of the floor region aligned per level: those whose brightness the height moves most
+FLOOR_PIXELS = 1500  # pixels of the floor region aligned per level, spread over it (``_spread``)
 # The search's heights, as multiples of the step's length: from a robot camera a few centimetres above a
 # floor it crosses in metre steps to a camera 40 steps above it.
 FLOOR_SEARCH_HEIGHTS = np.geomspace(0.03, 40.0, 32)
@@ -136,11 +136,12 @@ def _levels(base: NDArray[np.uint8], other: NDArray[np.uint8], camera: CameraMod
     """The pyramid (coarsest first), from half resolution down FLOOR_LEVELS - 1 more halvings: samples of
     ``base`` (its floor region ``mask``), to be warped into ``other`` (``t``: the translation to it).
 
-    The samples are the pixels whose brightness changes most with the floor's height: a change of height
-    moves a floor pixel along its epipolar line, away from the epipole, so what counts is the gradient
-    across that direction. An edge along it (a lane marking seen from a car driving along it) slides along
-    itself whatever the height and says nothing. Pixels whose texture did not change between the two
-    images are static (a timestamp burnt into the image, the car's own bonnet) and are left out."""
+    The samples are, in each cell of a grid over the region, the pixel whose brightness changes most with
+    the floor's height: a change of height moves a floor pixel along its epipolar line, away from the
+    epipole, so what counts is the gradient across that direction. An edge along it (a lane marking seen
+    from a car driving along it) slides along itself whatever the height and says nothing. Pixels whose
+    texture did not change between the two images are static (a timestamp burnt into the image, the car's
+    own bonnet) and are left out."""
     kf = np.asarray(cv2.pyrDown(base), np.uint8)
     cur = np.asarray(cv2.pyrDown(other), np.uint8)
     region = cv2.resize(mask, (kf.shape[1], kf.shape[0]), interpolation=cv2.INTER_NEAREST)
