@@ -324,6 +324,49 @@ def _rotation_by(deg: float, seed: int = 5) -> SimpleNamespace:
                            uv_cur_obs=uv_cur[inside] + rng.normal(0.0, 0.3, (n, 2)))
 
 
+def _rotation_through_a_lens(deg: float, k1: float, seed: int = 3) -> SimpleNamespace:
+    """A pan by ``deg`` (points 4-15 m away, 0.3 px noise) seen through a lens whose radial distortion ``k1``
+    the calibration (K, no distortion) does not declare."""
+    rng = np.random.default_rng(seed)
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+    uv_ref = rng.uniform([10.0, 10.0], [630.0, 470.0], size=(250, 2))
+    X = np.column_stack([(uv_ref - K[:2, 2]) / 500.0, np.ones(250)]) * rng.uniform(4.0, 15.0, 250)[:, None]
+    axis = np.array([0.1, 1.0, 0.05]) / np.linalg.norm([0.1, 1.0, 0.05])
+    R = geo.nearest_rotation(np.eye(3) + math.sin(math.radians(deg)) * geo.skew(axis)
+                             + (1.0 - math.cos(math.radians(deg))) * geo.skew(axis) @ geo.skew(axis))
+
+    def seen(Y: np.ndarray) -> np.ndarray:
+        x = Y[:, :2] / Y[:, 2:]
+        return x * (1.0 + k1 * np.sum(x * x, axis=1))[:, None] * 500.0 + K[:2, 2]
+
+    uv_ref, uv_cur = seen(X), seen(X @ R.T)
+    inside = np.all((uv_cur > 5.0) & (uv_cur < [635.0, 475.0]) & (uv_ref > 5.0) & (uv_ref < [635.0, 475.0]), axis=1)
+    n = int(np.count_nonzero(inside))
+    return SimpleNamespace(K=K, n=n, X_ref=X[inside], R_cur_ref=R, t_cur_ref=np.zeros(3),
+                           uv_ref_obs=uv_ref[inside] + rng.normal(0.0, 0.3, (n, 2)),
+                           uv_cur_obs=uv_cur[inside] + rng.normal(0.0, 0.3, (n, 2)))
+
+
+@pytest.mark.parametrize("deg", [12.0, 16.0, 20.0])
+def test_a_rotation_through_a_lens_distortion_the_calibration_does_not_declare_is_rotation_only(deg: float) -> None:
+    """A still camera panning through a lens with k1 0.05 that its CameraInfo does not declare (a cheap lens
+    nobody calibrated): the lens bends the rays by 0.5-1 deg over such a pan, which under the calibration is
+    taken for parallax, a plane and a translation (the camera then moves by a few % of the scene's depth).
+    Fitted to the points with the focal length (and the lens's distortion when that is not enough), the
+    rotation lines up to the noise: rotation only, the position held, and the reason says to check the
+    calibration. The rotation is within a degree: the focal length and k1 trade against a pan's angle (by
+    ~6 % here), which a single pan does not tell apart."""
+    s = _rotation_through_a_lens(deg, 0.05)
+    m, st, asked = _estimate(s, _no_map(s))
+    assert st.median_parallax_deg > CFG.rotation_only_parallax_deg  # taken for parallax without the fit
+    assert m is not None and m.state is TrackingState.ROTATION_ONLY and m.new_map is None
+    _check_motion(m)
+    np.testing.assert_array_equal(m.t_cur_kf, 0.0)
+    assert _rot_err_deg(m, s) < 0.07 * deg
+    assert asked == []
+    assert any("check the camera calibration" in r and r.endswith("position held") for r in _reasons(st))
+
+
 def test_a_rotation_within_the_calibrations_tolerance_is_a_rotation_without_blaming_it() -> None:
     """fx 2 % off and a 12 deg rotation: 0.18 deg of "parallax" under the calibration (a planar wait, the
     orientation held, before the check); a rotation under a focal length within 3 % of it is taken as the
@@ -346,7 +389,7 @@ def test_a_rotation_within_the_calibrations_tolerance_is_a_rotation_without_blam
 
 
 def test_once_a_focal_length_was_named_later_frames_agreeing_with_it_name_it_closer_to_the_calibration() -> None:
-    """A stage that took a rotation under 1.033 x the focal length names 1.028 x too (within 1 % of it),
+    """A stage that took a rotation under 1.036 x the focal length names 1.029 x too (within 1 % of it),
     which alone is within the 3 % tolerance: a focal length ~3 % off does not flip from frame to frame."""
     s = _rotation_by(12.0)
 
@@ -355,14 +398,14 @@ def test_once_a_focal_length_was_named_later_frames_agreeing_with_it_name_it_clo
         K[:2, :2] *= focal_scale
         return CameraModel.create(640, 480, K, [])
 
-    m, fresh, _ = _estimate(s, _no_map(s), cam=cam(0.97))
+    m, fresh, _ = _estimate(s, _no_map(s), cam=cam(0.972))
     assert m is not None and m.state is TrackingState.ROTATION_ONLY and math.isnan(fresh.focal_ratio)
     stage = _Stage()
     _, first, _ = _estimate(s, _no_map(s), cam=cam(0.965), stage=stage)
     assert first.focal_ratio == pytest.approx(1.0 / 0.965, rel=0.01)
-    m, later, _ = _estimate(s, _no_map(s), cam=cam(0.97), stage=stage)
+    m, later, _ = _estimate(s, _no_map(s), cam=cam(0.972), stage=stage)
     assert m is not None and m.state is TrackingState.ROTATION_ONLY
-    assert later.focal_ratio == pytest.approx(1.0 / 0.97, rel=0.01) and abs(later.focal_ratio - 1.0) < 0.03
+    assert later.focal_ratio == pytest.approx(1.0 / 0.972, rel=0.01) and abs(later.focal_ratio - 1.0) < 0.03
     assert "check the camera calibration" in _reasons(later)[0]
 
 
