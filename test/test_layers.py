@@ -26,7 +26,7 @@ import pytest
 PKG = Path(__file__).resolve().parents[1] / "epi_vo"
 LAYERS = ("core", "io", "runner", "ros", "tools")
 ROS_PACKAGES = {"rclpy", "builtin_interfaces", "diagnostic_msgs", "geometry_msgs", "nav_msgs", "rcl_interfaces",
-                "rosgraph_msgs", "sensor_msgs", "std_msgs", "std_srvs", "tf2_ros", "lifecycle_msgs"}
+                "rosgraph_msgs", "sensor_msgs", "std_msgs", "std_srvs", "tf2_msgs", "tf2_ros", "lifecycle_msgs"}
 THIRD_PARTY = {
     "core": {"numpy", "cv2", "gtsam", "scipy"},
     "io": {"numpy", "cv2", "rosbags", "mcap", "yaml"},

@@ -228,7 +228,9 @@ class VoConfig:
     camera_height_rel_sigma: float = _knob(
         0.02, "relative uncertainty (1 sigma) of camera_height_m: common to every floor measurement, so the metric "
         "scale is never known better (ground_plane)", 0.0, 1.0)
-    wheel_odometry_topic: str = _knob("/odom", "nav_msgs/Odometry topic of the wheel odometry (wheel_odometry)")
+    wheel_odometry_topic: str = _knob(
+        "odom", "nav_msgs/Odometry topic of the wheel odometry (wheel_odometry); relative names resolve in the "
+        "node's namespace (epi-vo replay reads a bag's as the root namespace's: odom is /odom)")
     wheel_odometry_rel_sigma: float = _knob(
         0.03, "relative calibration error (1 sigma) of the wheel distances (tyre radius): common to every keyframe, "
         "so the metric scale is never known better; their random error is measured from their spread", 0.001, 1.0)

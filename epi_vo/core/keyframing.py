@@ -79,6 +79,7 @@ def set_keyframe(state: TrackState, cfg: VoConfig, orb: cv2.ORB | None, gray: ND
     if movers.size < MIN_MOVERS:
         movers = np.zeros(0, np.int64)
     return dataclasses.replace(state, window=window, kf=kf, next_id=next_id, patches=patches, mover_ids=movers,
+                               scale=state.scale.viewing(gray, camera, stamp_ns),
                                tracks=Tracks(np.arange(kf.n_features, dtype=np.int64), kf.pts, gray),
                                T_cur_kf_prev=np.eye(4), n_keyframes=state.n_keyframes + 1)
 
@@ -164,7 +165,7 @@ def maybe_keyframe(state: TrackState, cfg: VoConfig, orb: cv2.ORB | None, solver
     t = motion.t_cur_kf
     jumped = False
     if tracking:
-        state, X_cur, t, step_scale, jumped = metric_step(state, motion, kf, X_cur, stamp_ns)
+        state, X_cur, t, step_scale, jumped = metric_step(state, motion, kf, X_cur, stamp_ns, gray, camera)
         state = dataclasses.replace(state, scale=state.scale.on_keyframe(float(np.linalg.norm(t)),
                                                                          (stamp_ns - kf.stamp_ns) * 1e-9))
     points_w = None
@@ -187,7 +188,8 @@ def maybe_keyframe(state: TrackState, cfg: VoConfig, orb: cv2.ORB | None, solver
     return state, dataclasses.replace(out, correction=correction, timings=timings, notes=out.notes + notes)
 
 
-def metric_step(state: TrackState, motion: mo.Motion, kf: Keyframe, X_cur: F64, stamp_ns: int
+def metric_step(state: TrackState, motion: mo.Motion, kf: Keyframe, X_cur: F64, stamp_ns: int,
+                gray: NDArray[np.uint8] | None = None, camera: CameraModel | None = None
                 ) -> tuple[TrackState, F64, F64, tuple[sc.WindowAnchor | None, float], bool]:
     """The scale source's correction of this keyframe step: the step from the last keyframe and the new
     keyframe's map points are scaled by it (and, when it establishes metric scale, the whole path of the
@@ -199,7 +201,7 @@ def metric_step(state: TrackState, motion: mo.Motion, kf: Keyframe, X_cur: F64, 
         state = dataclasses.replace(state, map_scale=state.map_scale.with_origin(kf.T_w_kf[:3, 3], kf.cov_w_kf),
                                     scale=state.scale.on_new_map())
     was_metric = state.scale.established
-    step = sc.KeyframeStep(X_cur, float(np.linalg.norm(t)), kf.stamp_ns, stamp_ns)
+    step = sc.KeyframeStep(X_cur, float(np.linalg.norm(t)), kf.stamp_ns, stamp_ns, motion.R_cur_kf, t, gray, camera)
     scale, factor = state.scale.correction(step, state.wheel)
     state = dataclasses.replace(state, scale=scale)
     step_scale = (scale.anchor(step, state.wheel), factor)

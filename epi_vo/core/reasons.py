@@ -34,8 +34,15 @@ def _static(d: Details) -> str:
             f"of the image; {what}; pose held")
 
 
+def _lens(d: Details) -> str:
+    """The undeclared radial distortion a rotation was fitted with, when it moves the image corner by a pixel."""
+    if not d.get("radial_px", 0.0) >= 1.0:
+        return ""
+    return f" and the lens's radial distortion k1 {d['k1']:+.3f} (undeclared: {d['radial_px']:.1f} px at the corner)"
+
+
 def _focal(d: Details) -> str:
-    return (f"pure rotation if the focal length were {d['ratio']:.3f} x the calibration's (parallax "
+    return (f"pure rotation if the focal length were {d['ratio']:.3f} x the calibration's{_lens(d)} (parallax "
             f"{d['parallax_focal']:.2f} deg instead of {d['parallax']:.2f}, rotation {d['angle']:.1f} deg; or a "
             "wall-like plane seen while turning about a point off the camera): check the camera calibration")
 
@@ -137,7 +144,7 @@ _TEXT: dict[Decision, str | Callable[[Details], str]] = {
     Decision.E_DISAGREES_WITH_MAP: _suspect,
     Decision.KEYFRAME_WITHOUT_DEPTH: "keyframe without parallax: no new depth",
     Decision.WINDOW_WORKER_FAILED: "{text}",
-    Decision.METRIC_SCALE_PENDING: "metric scale not established yet: position held",
+    Decision.METRIC_SCALE_PENDING: "metric scale not established yet: VO units",
 }
 
 

@@ -17,7 +17,8 @@ chooses where the length comes from:
 
 Both metric sources feed the same filter (:class:`ScaleFilter`): a 1-D Kalman filter on the log of
 the map's scale error, with the VO's scale drift per keyframe as process noise; the window of recent
-measurements judges outliers and says how noisy the measurements are. At a keyframe the pipeline asks
+measurements judges outliers, says how noisy the measurements are, and bounds how sure the filter may be
+(no surer than the mean of the window's measurements). At a keyframe the pipeline asks
 :meth:`ScaleSource.correction` for the factor that takes the step from the last keyframe, and the new
 keyframe's map, into metres; without a measurement the factor is 1 and the uncertainty grows.
 
@@ -39,8 +40,10 @@ from typing import ClassVar, Self
 import numpy as np
 from numpy.typing import NDArray
 
+from epi_vo.core.camera import CameraModel
 from epi_vo.core.config import ScaleSourceKind, VoConfig
 from epi_vo.core.floor import LEVEL_UP, GroundPlane, find_floor
+from epi_vo.core.floor_view import FloorView, floor_between
 
 # re-exported: callers name the wheel buffer through the scale stage
 from epi_vo.core.wheel_odometry import WheelInputCounts as WheelInputCounts
@@ -63,6 +66,9 @@ FLOOR_STEADY_DEG = 10.0
 FLOOR_STEADY_FITS = 3
 FLOOR_HISTORY = 7  # floor normals remembered (their median is the floor seen so far)
 WHEEL_STEPS = 500  # keyframe steps remembered for the wheel measurement (it needs the last few)
+# Measurements in a row beyond the window's 3-sigma gate on one side: the map's scale changed (a VO scale jump),
+# no outlier. Three fall there by chance once in ~10^8 (0.00135^3); the map then takes their median at once.
+SCALE_CHANGE_RUN = 3
 # A map rebuilt after a loss takes its baseline from the last keyframe speed over the time since its
 # keyframe: its scale is that uncertain (relative, 1 sigma) until a scale source measures it.
 NEW_MAP_REL_STD = 0.3
@@ -103,12 +109,17 @@ class ScaleStatus:
 @dataclass(frozen=True)
 class KeyframeStep:
     """A keyframe step as the scale stage sees it: map points of the new keyframe (its camera frame),
-    the step's camera-centre chord in map units, and the two stamps."""
+    the step's camera-centre chord in map units, and the two stamps; and the step's motion with the new
+    keyframe's image, for the floor's homography between the two images (``floor_view``)."""
 
     X_cur: F64  # (N, 3) map points in the new keyframe's camera frame, NaN rows: no depth
     step_length: float  # |c_cur - c_kf| in the current map units
     kf_stamp_ns: int
     stamp_ns: int
+    R_cur_kf: F64 | None = None  # X_cur = R_cur_kf X_kf + t_cur_kf (map units); None: not given
+    t_cur_kf: F64 | None = None
+    gray: NDArray[np.uint8] | None = None  # the new keyframe's image and its camera
+    camera: CameraModel | None = None
 
 
 @dataclass(frozen=True)
@@ -127,10 +138,11 @@ class ScaleFilter:
 
     Each keyframe's measurement z = log(true / map) goes into a window of the last ``maxlen`` ones (kept
     relative to the map as it is now: a correction applied shifts them all). The window's median and
-    MAD judge the newest (beyond 3 sigma: an outlier, not applied) and give the measurement noise; a
-    1-D Kalman filter whose process noise is the VO's scale drift per keyframe takes each measurement
-    once. Metric scale is established once ``min_count`` measurements are in the window: the first
-    correction is their median.
+    MAD judge the newest (beyond 3 sigma: an outlier, not applied; ``SCALE_CHANGE_RUN`` of them in a row on
+    one side: a jump of the map's scale) and give the measurement noise; a 1-D Kalman filter whose process
+    noise is the VO's scale drift per keyframe takes each measurement once, its variance never below that
+    of the mean of the window's measurements at that noise. Metric scale is established once ``min_count``
+    measurements are in the window: the first correction is their median.
     """
 
     drift_per_keyframe: float
@@ -140,6 +152,7 @@ class ScaleFilter:
     var: float = math.inf
     total: float = 1.0  # product of every correction: metres per VO unit of the first map
     outlier: bool = False  # the last measurement was judged an outlier by the window
+    run: int = 0  # outliers in a row on one side (signed: + the map too small, - too large)
 
     @property
     def q(self) -> float:
@@ -165,9 +178,9 @@ class ScaleFilter:
         """Fold in one measurement: the filter after it, and the correction factor to apply to the map
         (1.0 while not established).
 
-        The window's median and MAD judge the new measurement (an outlier is dropped) and say how noisy
-        the measurements really are; the filter then takes this one measurement with that noise, so a
-        measurement counts once however long it stays in the window.
+        The window's median and MAD judge the new measurement (an outlier is kept in the window but not
+        applied) and say how noisy the measurements really are; the filter then takes this one measurement
+        with that noise, so a measurement counts once however long it stays in the window.
         """
         window = (*self.window, (z, r))[-self.maxlen:]
         f = dataclasses.replace(self, window=window, outlier=False)
@@ -186,13 +199,31 @@ class ScaleFilter:
         if not self.established:
             var = 1.57 * r_eff / n  # the variance of a median of n
             log_c = med
+            f = dataclasses.replace(f, run=0)
         else:
             if n >= 3 and (z - med) ** 2 > 9.0 * r_eff:
-                # kept in the window (it may be the start of a change), not applied
-                return dataclasses.replace(f, outlier=True), 1.0
-            gain = self.var / (self.var + r_eff)
-            var = (1.0 - gain) * self.var
+                side = 1 if z > med else -1
+                run = self.run + side if self.run * side > 0 else side
+                if abs(run) < SCALE_CHANGE_RUN:
+                    # kept in the window (it may be the start of a change), not applied
+                    return dataclasses.replace(f, outlier=True, run=run), 1.0
+                # The start of a change: the map's scale jumped. The measurements since are the window now.
+                recent = np.array([w[0] for w in window[-SCALE_CHANGE_RUN:]])
+                r_new = max(float(np.var(recent, ddof=1)), max(w[1] for w in window[-SCALE_CHANGE_RUN:]))
+                log_c = float(np.median(recent))
+                f = dataclasses.replace(f, window=window[-SCALE_CHANGE_RUN:], run=0)
+                var = 1.57 * r_new / SCALE_CHANGE_RUN
+                factor = math.exp(log_c)
+                return dataclasses.replace(f, window=tuple((x - log_c, v) for x, v in f.window), var=var,
+                                           total=self.total * factor), factor
+            # The filter knows the scale no better than the mean of the window's measurements at the noise the
+            # window shows now: a first pair that agreed by chance leaves a variance too small for the later
+            # measurements ever to move the map far, and the window's spread reveals it.
+            prior = max(self.var, r_eff / n)
+            gain = prior / (prior + r_eff)
+            var = (1.0 - gain) * prior
             log_c = gain * z
+            f = dataclasses.replace(f, run=0)
         factor = math.exp(log_c)
         return dataclasses.replace(f, window=tuple((x - log_c, v) for x, v in window), var=var,
                                    total=self.total * factor), factor
@@ -254,6 +285,11 @@ class ScaleSource:
         uncertain again (``NEW_MAP_REL_STD``)."""
         return dataclasses.replace(self, filter=self.filter.inflated(NEW_MAP_REL_STD))
 
+    def viewing(self, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int) -> Self:
+        """A keyframe was set on the image ``gray``: the source after it (``ground_plane`` keeps the image for
+        the floor's homography to the next keyframe; the others need none)."""
+        return self
+
     def on_keyframe(self, step_length: float, dt_s: float) -> Self:
         """A keyframe step of ``step_length`` map units over ``dt_s`` seconds was taken."""
         return dataclasses.replace(self, speed=step_length / dt_s) if dt_s > 0 else self
@@ -314,6 +350,10 @@ class GroundPlaneScale(ScaleSource):
     reason: str = "ground plane not seen yet: scale unknown (VO units)"
     normals: tuple[F64, ...] = ()  # the floor normals of the last FLOOR_HISTORY fits
     waiting: tuple[tuple[F64, float, float], ...] = ()  # fits before metric scale: (normal, z, r)
+    view: FloorView | None = None  # the last keyframe's image (``floor_view``)
+
+    def viewing(self, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int) -> Self:
+        return dataclasses.replace(self, view=FloorView(gray, camera, stamp_ns))
 
     def on_new_map(self) -> Self:
         return dataclasses.replace(super().on_new_map(), waiting=())
@@ -347,6 +387,23 @@ class GroundPlaneScale(ScaleSource):
         up when the robot stands level. The fits seen so far were judged against another: forgotten."""
         return dataclasses.replace(super().with_mounting_up(up), normals=(), waiting=())
 
+    def _floor_between_views(self, step: KeyframeStep) -> GroundPlane | None:
+        """The floor from its homography between the last keyframe's image and this one's (``floor_view``),
+        when the step brings its motion and image; None otherwise. Its normal's prior is the declared
+        mounting's up, not the floor seen so far: one step's homography trades the floor's tilt against its
+        height, and a prior on the fits' own median feeds a first fit's tilt error into every later height
+        (a road's camera a degree too level is a floor a few per cent too high, kept)."""
+        view = self.view
+        if (view is None or view.stamp_ns != step.kf_stamp_ns or step.gray is None or step.camera is None
+                or step.R_cur_kf is None or step.t_cur_kf is None):
+            return None
+        # The height expected (map units): metres once the scale is established (the map is corrected into
+        # them); before, every height is searched.
+        h_guess = self.camera_height_m if self.filter.established else None
+        fit = floor_between(view, step.gray, step.camera, step.R_cur_kf, step.t_cur_kf, self.up,
+                            max_tilt_deg=self.max_tilt_deg, h_guess=h_guess)
+        return fit.plane
+
     def _expected_up(self) -> tuple[F64, float]:
         """The floor normal seen over the last keyframes (the camera's mounting changes little), and how
         far a new fit may lie from it; before ``FLOOR_STEADY_FITS`` fits, the declared up and
@@ -357,6 +414,22 @@ class GroundPlaneScale(ScaleSource):
         return n / np.linalg.norm(n), min(FLOOR_STEADY_DEG, self.max_tilt_deg)
 
     def measure(self, step: KeyframeStep, wheel: WheelOdometry) -> tuple[Self, tuple[float, float] | None]:
+        """The floor among the map points when they hold one; else the floor's homography between the two
+        keyframes' images (``floor_view``): a sparsely textured floor (asphalt, concrete) gives the map few
+        points, yet it fills the lower image. Where the points hold a floor they are the better measurement
+        (on the distribution's floor-robot family the homography, whose tilt and height trade against each
+        other within one step, scatters more), so they are tried first."""
+        src, measured = self._measure_points(step)
+        if measured is not None:
+            return src, measured
+        seen = self._floor_between_views(step)
+        if seen is None:
+            return src, None
+        src = dataclasses.replace(src, normals=(*src.normals, seen.normal_up)[-FLOOR_HISTORY:])
+        r = seen.rel_std**2 + self.fit_min_rel_std**2
+        return dataclasses.replace(src, plane=seen, reason=""), (math.log(self.camera_height_m / seen.height), r)
+
+    def _measure_points(self, step: KeyframeStep) -> tuple[Self, tuple[float, float] | None]:
         up, tilt = self._expected_up()
         search = find_floor(step.X_cur, max_tilt_deg=tilt, inlier_ratio=self.inlier_ratio,
                             min_points=self.min_points, up=up)

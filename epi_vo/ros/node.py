@@ -8,10 +8,15 @@ Topics (relative names, so namespaces and remapping work):
   in:  ``camera/image_raw`` (sensor_msgs/Image) and/or ``camera/image_raw/compressed`` (CompressedImage):
        ``image_transport: auto`` subscribes to both and keeps whichever delivers first (logged and in the
        diagnostics), ``raw`` / ``compressed`` to one; ``camera/camera_info``
-  out: ``vo/odometry`` (nav_msgs/Odometry, odom -> base_link, REP-105), ``vo/points`` (PointCloud2 of
-       the points triangulated at keyframes, frame odom), ``vo/path`` (bounded nav_msgs/Path),
-       ``/diagnostics`` (``<fully qualified node name>: tracking`` per frame and from the watchdog, and a
-       ``<...>: summary`` once a second), ``vo/debug_image`` (off by default); TF odom -> base_link when
+  out: ``vo/odometry`` (nav_msgs/Odometry, odom -> base_link, REP-105: what a filter may fuse; metres once a
+       metric scale source is established, else the position held with the "unknown" variance and the
+       orientation as estimated), ``vo/odometry/vo_units`` (the motion in VO units while there are no metres,
+       odom_vo_units -> base_link_vo_units: frames in no TF tree; ``epi_vo.runner.outputs``), ``vo/points``
+       (PointCloud2 of the points triangulated at keyframes, in odom, or odom_vo_units in VO units),
+       ``vo/path`` (bounded nav_msgs/Path, the same frame rule), ``vo/frame_status`` (DiagnosticArray per
+       frame: ``<fully qualified node name>: tracking``, the frame record), ``/diagnostics`` (once a second:
+       ``<node>: tracking``, ``input``, ``extrinsic``, ``scale``; ``epi_vo.ros.node_diagnostics``),
+       ``vo/debug_image`` (off by default); TF odom -> base_link when
        tf2_ros is importable.
   in:  ``set_pose`` (PoseWithCovarianceStamped, reliable): base's pose in odom from the next frame on
        (``epi_vo.ros.node_pose``)
@@ -25,7 +30,7 @@ NodeOptions (``epi_vo.ros.node_params``); a pipeline knob changed at runtime is 
 and applied at the next frame (a new map from the last pose), a parameter that needs a restart is
 read-only. Diagnostics: every DiagnosticArray is stamped with the node's clock (ROS time, simulated
 under use_sim_time); ages (image staleness, the watchdog) are measured on the steady clock, and the
-watchdog and summary timers run on it, so they keep reporting when a simulated clock stops.
+watchdog and /diagnostics timers run on it, so they keep reporting when a simulated clock stops.
 
 The wiring is :class:`VoNodeBase`, shared with the managed variant ``vo_lifecycle_node``
 (``epi_vo.ros.lifecycle_node``), which runs the same session between configure and cleanup.
@@ -53,8 +58,8 @@ from std_srvs.srv import Trigger
 from epi_vo.core.config import ScaleSourceKind, VoConfig, live_advice
 from epi_vo.core.debug_image import draw_matches
 from epi_vo.core.decisions import Decision
-from epi_vo.core.diagnostics import DiagnosticStatusRecord
 from epi_vo.core.errors import clipped
+from epi_vo.core.health import TrackingHealth
 from epi_vo.core.odometry import T_base_cam_from_params
 from epi_vo.io import msgconv
 from epi_vo.io.association import Ready
@@ -140,7 +145,8 @@ class VoNodeBase(NodeDiagnostics, PoseSetting):
         self._wheel_pending: list[WheelMessage] = []
         self._wheel_received = self._wheel_lost = 0  # wheel messages, and those the worker never took (stalled)
         self._camera_frame = ""  # header.frame_id of the first image
-        self._last_frame_status: DiagnosticStatusRecord | None = None
+        self._tracking = TrackingHealth()  # the frames since /diagnostics was last published
+        self._wheel_topic_name = ""
         self._changes: list[str] = []  # runtime changes applied, for the summary
 
         in_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=self.opts.qos_depth,
@@ -157,12 +163,15 @@ class VoNodeBase(NodeDiagnostics, PoseSetting):
             None if self.opts.image_transport is ImageTransport.AUTO else self.opts.image_transport
         self.create_subscription(CameraInfo, "camera/camera_info", self._on_camera_info, in_qos)
         if self.cfg.scale_source is ScaleSourceKind.WHEEL_ODOMETRY:
-            self.create_subscription(Odometry, self.cfg.wheel_odometry_topic, self._on_wheel_odometry,
-                                     QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100))
-            self.get_logger().info(f"metric scale from wheel odometry on {self.cfg.wheel_odometry_topic}")
+            wheel_sub = self.create_subscription(Odometry, self.cfg.wheel_odometry_topic, self._on_wheel_odometry,
+                                                 QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100))
+            self._wheel_topic_name = wheel_sub.topic_name
+            self.get_logger().info(f"metric scale from wheel odometry on {self._wheel_topic_name}")
         self._pub_odom = self._create_output_publisher(Odometry, "vo/odometry", 10)
+        self._pub_odom_vo_units = self._create_output_publisher(Odometry, "vo/odometry/vo_units", 10)
         self._pub_points = self._create_output_publisher(PointCloud2, "vo/points", 10)
         self._pub_path = self._create_output_publisher(Path, "vo/path", 10)
+        self._pub_frame_status = self._create_output_publisher(DiagnosticArray, "vo/frame_status", 10)
         if getattr(self, "_pub_diag", None) is None:  # the managed node has one of its own, for every state
             self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._pub_debug = self._create_output_publisher(Image, "vo/debug_image", 2) \
@@ -184,7 +193,7 @@ class VoNodeBase(NodeDiagnostics, PoseSetting):
         # Both timers on the steady clock: with use_sim_time a ROS-time timer stops with the simulated clock.
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(0.5, self._watchdog, clock=steady)
-        self.create_timer(1.0, self._publish_summary, clock=steady)
+        self.create_timer(1.0, self._publish_diagnostics, clock=steady)
         self._worker = threading.Thread(target=self._work, name="vo_worker", daemon=True)
         self._worker.start()
 
@@ -451,10 +460,10 @@ class VoNodeBase(NodeDiagnostics, PoseSetting):
     def _publish(self, handled: HandledFrame) -> None:
         """The frame's outputs as messages: odometry, path, points, TF, its status, the debug image."""
         out = handled.outputs
-        self._last_frame_status = out.status
+        if out.odometry_vo_units is not None:
+            self._pub_odom_vo_units.publish(odometry_msg(out.odometry_vo_units))
         if out.odometry is not None:
-            odom = odometry_msg(out.odometry)
-            self._pub_odom.publish(odom)
+            self._pub_odom.publish(odometry_msg(out.odometry))
             if self._arrived_s is not None:
                 self._last_latency_ms = (time.monotonic() - self._arrived_s) * 1e3
         if out.path is not None:
@@ -466,7 +475,7 @@ class VoNodeBase(NodeDiagnostics, PoseSetting):
         if out.points is not None:
             self._pub_points.publish(point_cloud_msg(header_msg(out.result.stamp_ns, out.points.frame_id),
                                                      out.points.points_xyz))
-        self._publish_status(out.status, self._diagnostics_stamp())
+        self._publish_frame(out.status, out.result)
         if self._pub_debug is not None and handled.gray is not None and not out.result.skipped:
             self._pub_debug.publish(bgr_image_msg(header_msg(out.result.stamp_ns, self.opts.frame_id),
                                                   draw_matches(out.result, handled.gray)))
@@ -517,8 +526,9 @@ class VoNode(VoNodeBase, Node):
 HELP_TEXT = """usage: vo_node [--ros-args --params-file FILE -p NAME:=VALUE -r FROM:=TO ...]
 
 Monocular visual odometry node (epi_vo). Subscribes camera/image_raw (+ /compressed) and
-camera/camera_info (and set_pose); publishes vo/odometry, vo/points, vo/path, /diagnostics; services
-vo/reset and reset_pose.
+camera/camera_info and set_pose; publishes vo/odometry (metres, or the position held while the scale is
+unknown), vo/odometry/vo_units (the motion in VO units), vo/points, vo/path, vo/frame_status, /diagnostics;
+services vo/reset and reset_pose.
 Its parameters, with their defaults (the same file as `epi-vo params` and config/epi_vo.yaml):
 
 """

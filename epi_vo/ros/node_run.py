@@ -163,6 +163,9 @@ def run_node(make_node: Callable[[], Node], program: str, help_text: str, args: 
         print(f"{program}: error: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
         sys.exit(2)
+    except (KeyboardInterrupt, ExternalShutdownException):  # stopped while starting (Ctrl-C, launch): as in spin
+        rclpy.try_shutdown()
+        return
     try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):

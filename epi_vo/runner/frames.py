@@ -120,7 +120,8 @@ class FrameHandler:
         self.cfg = cfg or VoConfig()
         self.status_name = status_name
         self._pipeline = make_pipeline(self.cfg)
-        self._outputs = OutputMaker(frames, T_base_cam, path_max_length=path_max_length)
+        self._outputs = OutputMaker(frames, T_base_cam, path_max_length=path_max_length,
+                                    unknown_position_variance=self.cfg.lost_position_variance)
         if T_base_cam is not None:
             self._pipeline.set_mounting(self._outputs.T_base_cam)
         self._cameras = CameraModelCache()
@@ -182,6 +183,7 @@ class FrameHandler:
         self._pipeline.reset(announce)
         self._anchor = Anchor(last.T_w_c, last.covariance, last.index + 1)
         self._ahead = None
+        self._outputs.unknown_position_variance = cfg.lost_position_variance
         self.cfg = cfg
 
     def handle(self, frame: FrameInput, next_frame: FrameInput | None = None, hardware_id: str = "") -> HandledFrame:

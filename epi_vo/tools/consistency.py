@@ -17,6 +17,7 @@ import numpy as np
 
 from epi_vo.core.odometry import OdometrySample
 from epi_vo.io.odometry_bag import OdometryTrack
+from epi_vo.io.trajectory import StampedPoses
 
 # stats.json ``metrics`` keys this module adds (NaN, written as null, when there is nothing to judge)
 NEES_KEYS = ("nees_frames", "nees_pos", "nees_pos_inside_percent", "nees_rot", "nees_rot_inside_percent",
@@ -48,10 +49,12 @@ class OdometryLog:
                              stack([x.linear_velocity for x in s], (3,)), stack([x.angular_velocity for x in s], (3,)))
 
 
-def consistency_metrics(log: OdometryLog, gt: tuple[np.ndarray, np.ndarray, np.ndarray], frame_id: str,
+def consistency_metrics(log: OdometryLog, gt: StampedPoses, frame_id: str,
                         child_frame_id: str, T_base_cam: np.ndarray | None = None) -> dict[str, Any]:
     """Mean NEES (3 dof each; consistent: 3) of the tracking frames' position, rotation, linear and angular
-    velocity against the published covariances, and the share inside the chi-square 99 % bound.
+    velocity against the published covariances, and the share inside the chi-square 99 % bound. The
+    ground-truth camera poses become base poses with the odometry's extrinsic ``T_base_cam`` (default: the
+    optical rotation).
 
     Raises:
         EvaluationError: no odometry sample, or none with ground truth.

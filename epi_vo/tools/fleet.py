@@ -41,6 +41,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from epi_vo.core.config import VoConfig
 from epi_vo.core.errors import EpiVoError, Interrupted
 from epi_vo.io.node_options import CameraExtrinsic
@@ -56,7 +58,7 @@ from epi_vo.tools.fleet_summary import (
     write_json_atomic,
     write_summary,
 )
-from epi_vo.tools.replay import ReplaySummary, StopRequest, gt_choice, run_replay, stop_on_signals
+from epi_vo.tools.replay import ReplaySummary, StopRequest, extrinsic_record, gt_choice, run_replay, stop_on_signals
 from epi_vo.tools.replay_outputs import STATUS_FILE, check_outputs_clear, ensure_output_dir, output_paths
 
 _log = logging.getLogger(__name__)
@@ -126,7 +128,7 @@ def completed(job: FleetJob) -> ReplaySummary | None:
                                                           BagStatus.FAILED.value):
         return None
     if summary.bag != job.bag or summary.parameters != parameters_json(job.cfg) or \
-            summary.map_frame_id != job.map_frame_id:
+            summary.map_frame_id != job.map_frame_id or _extrinsic_json_of(summary) != _extrinsic_json(job.extrinsic):
         return None
     if job.image_topic not in (None, summary.image_topic) or \
             job.camera_info_topic not in (None, summary.camera_info_topic):
@@ -134,6 +136,20 @@ def completed(job: FleetJob) -> ReplaySummary | None:
     if summary.gt_choice != gt_choice(gt_topic=job.gt_topic, no_gt=job.no_gt):
         return None
     return summary
+
+
+def _extrinsic_json(extrinsic: CameraExtrinsic | None) -> dict[str, Any]:
+    """What stats.json says of the extrinsic of a job (its source and parameters), to compare a finished run's with."""
+    record = extrinsic_record(extrinsic, np.eye(4))
+    return {k: v for k, v in record.items() if k != "T_base_cam"}
+
+
+def _extrinsic_json_of(summary: ReplaySummary) -> dict[str, Any]:
+    """A finished run's extrinsic (source and parameters); an older stats.json without one was made with the
+    default (the replay took no extrinsic from the parameters then)."""
+    if summary.extrinsic is None:
+        return _extrinsic_json(None)
+    return {k: v for k, v in summary.extrinsic.items() if k != "T_base_cam"}
 
 
 def replay_one(job: FleetJob) -> BagRow:

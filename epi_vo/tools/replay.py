@@ -4,7 +4,9 @@ Writes into the output directory:
 - ``trajectory.tum``: ``stamp tx ty tz qx qy qz qw`` per frame that has a pose, the camera optical
   frame relative to the first frame (the pipeline's ``T_w_c``), stamp = image header stamp in seconds;
 - ``frames.jsonl``: one JSON object per input frame (:meth:`FrameResult.to_record`), flushed per line;
-- ``output.mcap``: /vo/odometry, /vo/points, /vo/path, /diagnostics stamped with the image stamps;
+- ``output.mcap``: what vo_node publishes, stamped with the image stamps: /vo/odometry (what a robot may
+  fuse: metres, or the position held with the "unknown" variance), /vo/odometry/vo_units (the motion in VO
+  units, while it is in VO units), /vo/points, /vo/path, /tf, /vo/frame_status (``epi_vo.runner.outputs``);
 - ``stats.json``: run totals, per-stage median times and, with ground truth, evo metrics;
 - ``groundtruth.tum``: the ground truth used (when there is one), in the same TUM form.
 
@@ -31,14 +33,16 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from epi_vo.core.config import ScaleSourceKind, VoConfig
 from epi_vo.core.errors import BagError, EpiVoError, Interrupted, OutputError
 from epi_vo.core.frame import FrameResult
 from epi_vo.core.scale import Units
-from epi_vo.io import bagio, outbag, tum
+from epi_vo.io import bag_topics, bagio, outbag, tum
 from epi_vo.io.node_options import CameraExtrinsic
 from epi_vo.io.paths import check_bag_path, refuse_special_file
+from epi_vo.io.trajectory import StampedPoses
 from epi_vo.io.wheel_feed import WheelFeed
 from epi_vo.runner.frames import FrameHandler, FrameInput
 from epi_vo.runner.outputs import FrameOutputs, OutputFrames
@@ -49,6 +53,7 @@ from epi_vo.tools.replay_outputs import (
     OUTPUT_BAG,
     OUTPUT_FLUSH_FRAMES,
     TRAJECTORY_FILE,
+    PathLength,
     check_outputs_clear,
     ensure_output_dir,
     open_output,
@@ -98,7 +103,7 @@ class ReplaySummary:
     models: dict[str, int]
     ms_per_frame: float
     stage_ms: dict[str, float]
-    path_length: float
+    path_length: float  # in ``units`` (``PathLength``)
     metrics: dict[str, Any] | None = None
     gt_source: str = ""
     output_dir: str = ""
@@ -123,6 +128,9 @@ class ReplaySummary:
     # it stays continuous and /tf carries them as map_frame_id -> odom
     # scale_source wheel_odometry: the messages of its topic and what became of them (WheelInputCounts)
     wheel_odometry: dict[str, int] | None = None
+    # The camera extrinsic of /vo/odometry (:func:`extrinsic_record`): declared by the parameters, or the default
+    # (camera level at base_link, no offset: the base frame is the camera's); None in an older stats.json
+    extrinsic: dict[str, Any] | None = None
 
     @property
     def has_problems(self) -> bool:
@@ -246,10 +254,11 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     puts the corrections into the ``map_frame_id -> odom`` transform on /tf (beside ``odom -> base_link``,
     written at every frame with a pose either way), as the node broadcasts them.
     Ground truth: ``gt_tum`` (a TUM file) when given, else the bag's ``gt_topic``, else its one topic named
-    as ground truth (:func:`epi_vo.io.bagio.is_ground_truth_name`); none with ``no_gt``. ``inputs``: other
+    as ground truth (:func:`epi_vo.io.bag_topics.is_ground_truth_name`); none with ``no_gt``. ``inputs``: other
     files the run reads (a parameter file), which no output may overwrite either. ``extrinsic``: the camera
-    mounting the parameters declare (``camera_xyz`` / ``camera_rpy``), used as vo_node uses it without TF (the
-    odometry, /tf, the floor search); None: the default (a level camera at base_link), as the node's defaults.
+    mounting the parameters declare (``camera_xyz`` / ``camera_rpy``), used as vo_node uses it without TF (for
+    /vo/odometry, /tf and the floor search); None: the default (camera level at base_link), as the node's
+    defaults give. ``stats.json`` records which (``extrinsic``).
 
     Raises:
         BagError: unreadable or empty bag, missing or ambiguous topics, a bag that is no regular file or
@@ -278,10 +287,9 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     first_rejected: dict[str, int] = {}
     n_frames = n_pose = n_kf = 0
     focal_ratios: list[float] = []  # frames that fit a pure rotation under another focal length
-    path_length = 0.0
-    last_pos: np.ndarray | None = None
+    path = PathLength()
     metric_from: int | None = None
-    units = "vo"
+    units = Units.VO
     odo_log: OdometryLog | None = None  # with ground truth
 
     try:
@@ -335,12 +343,10 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                     results_pose.append((result.stamp_ns * 1e-9, p.copy(), q.copy()))
                     if result.scale.metric:
                         metric_stamps.append({"stamp_ns": result.stamp_ns, "metric_scale": True})
-                    if last_pos is not None:
-                        path_length += float(np.linalg.norm(p - last_pos))
-                    last_pos = p.copy()
+                    path.add(p, result.scale.units)
                 write_outputs(obag, outputs)  # a skipped frame gets its record and status, but no pose
-                if odo_log is not None and outputs.odometry is not None:
-                    odo_log.add(outputs.odometry.sample, record)
+                if odo_log is not None and (estimate := outputs.estimate) is not None:
+                    odo_log.add(estimate.sample, record)  # the motion as estimated, in its own units
                 if n_frames % OUTPUT_FLUSH_FRAMES == 0:
                     obag.flush()  # a complete chunk on disk: what epi-vo recover can copy after a kill
                 bar.update()
@@ -386,13 +392,14 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
         bag=str(bag_path), image_topic=bag.image_topic, camera_info_topic=bag.camera_info_topic,
         frames=n_frames, frames_with_pose=n_pose, tracked_percent=100.0 * n_pose / n_frames, keyframes=n_kf,
         states=dict(states), models=dict(models), ms_per_frame=float(np.median(totals)),
-        stage_ms={k: float(np.median(v)) for k, v in stage_times.items()}, path_length=path_length,
+        stage_ms={k: float(np.median(v)) for k, v in stage_times.items()}, path_length=path.length(units),
         metrics=metrics, gt_source=gt_source, output_dir=str(out), notes=notes, parameters=asdict(cfg),
         rejected=[f"{n} frame(s) from frame {first_rejected[r]}: {r}" for r, n in rejected.items()],
         rejected_frames=sum(rejected.values()), skipped_messages=skipped, scale_source=cfg.scale_source,
         units=units, metric_from_frame=metric_from, poses_before_metric=held, wall_s=wall_s,
         end_to_end_fps=n_frames / max(wall_s, 1e-9), map_frame_id=map_frame_id,
         wheel_odometry=None if wheel_counts is None else wheel_counts.record(),
+        extrinsic=extrinsic_record(extrinsic, handler.output.T_base_cam),
         gt_choice=gt_choice(gt_tum, gt_topic, no_gt))
     write_stats(out, summary.to_json())
     return summary
@@ -401,8 +408,20 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
 CALIBRATION_NOTE = "check the camera calibration"  # how the note on rotation-only frames under another focal begins
 
 
+def extrinsic_record(extrinsic: CameraExtrinsic | None, T_base_cam: NDArray[np.float64]) -> dict[str, Any]:
+    """``stats.json``'s ``extrinsic``: ``source`` ('parameters' or 'default'), the parameters (zeros for the
+    default) and ``T_base_cam`` (4x4 rows, camera optical frame -> base_link, as /vo/odometry was made with)."""
+    return {"source": "default" if extrinsic is None else "parameters",
+            "camera_xyz": [0.0] * 3 if extrinsic is None else [float(v) for v in extrinsic.camera_xyz],
+            "camera_rpy": [0.0] * 3 if extrinsic is None else [float(v) for v in extrinsic.camera_rpy],
+            "T_base_cam": [[float(v) for v in row] for row in T_base_cam]}
+
+
 def _wheel_topic(cfg: VoConfig) -> str | None:
-    return cfg.wheel_odometry_topic if cfg.scale_source is ScaleSourceKind.WHEEL_ODOMETRY else None
+    """The bag topic of the wheel odometry: the node's parameter as a node in the root namespace resolves it."""
+    if cfg.scale_source is not ScaleSourceKind.WHEEL_ODOMETRY:
+        return None
+    return bag_topics.recorded_topic_name(cfg.wheel_odometry_topic)
 
 
 
@@ -506,10 +525,12 @@ def stop_on_signals() -> Iterator[StopRequest]:
 def write_outputs(obag: outbag.OutputBag, outputs: FrameOutputs) -> None:
     """One frame's outputs into output.mcap, as vo_node publishes them (each message at the image stamp)."""
     stamp = outputs.result.stamp_ns
-    if (odom := outputs.odometry) is not None:
-        s = odom.sample
-        obag.write_odometry(stamp, odom.frame_id, odom.child_frame_id, s.position, s.quat_xyzw, s.pose_covariance,
-                            s.linear_velocity, s.angular_velocity, s.twist_covariance)
+    for odom, topic in ((outputs.odometry, bagio.ODOMETRY_TOPIC),
+                        (outputs.odometry_vo_units, bagio.VO_UNITS_ODOMETRY_TOPIC)):
+        if odom is not None:
+            s = odom.sample
+            obag.write_odometry(stamp, odom.frame_id, odom.child_frame_id, s.position, s.quat_xyzw, s.pose_covariance,
+                                s.linear_velocity, s.angular_velocity, s.twist_covariance, topic)
     if outputs.points is not None:
         obag.write_points(stamp, outputs.points.frame_id, outputs.points.points_xyz)
     if (path := outputs.path) is not None:
@@ -520,13 +541,14 @@ def write_outputs(obag: outbag.OutputBag, outputs: FrameOutputs) -> None:
 
 
 def _ground_truth(bag: bagio.CameraBag, gt_tum: str | Path | None
-                  ) -> tuple[str, tuple[np.ndarray, np.ndarray, np.ndarray]] | None:
+                  ) -> tuple[str, StampedPoses] | None:
     if gt_tum is not None:
         return str(gt_tum), tum.read_tum(gt_tum)
     gt = bag.read_ground_truth()
     if gt is None:
         return None
-    return gt_topic_source(gt.topic), (gt.stamps_ns * 1e-9, gt.positions, gt.quats_xyzw)
+    stamps_s = np.asarray(gt.stamps_ns * 1e-9, dtype=np.float64)
+    return gt_topic_source(gt.topic), StampedPoses(stamps_s, gt.positions, gt.quats_xyzw)
 
 
 def gt_topic_source(topic: str) -> str:
@@ -535,7 +557,7 @@ def gt_topic_source(topic: str) -> str:
 
 
 def _evaluate(poses: list[tuple[float, np.ndarray, np.ndarray]], metric_stamps: list[dict[str, Any]],
-              gt: tuple[np.ndarray, np.ndarray, np.ndarray]) -> tuple[TrajectoryMetrics, int]:
+              gt: StampedPoses) -> tuple[TrajectoryMetrics, int]:
     """The metrics of the run's poses (its metric ones once it established metres) and how many poses
     were left out (held before metric scale)."""
     from epi_vo.tools.evaluation import evaluate_trajectory, metric_poses  # evo: only with ground truth
@@ -543,7 +565,7 @@ def _evaluate(poses: list[tuple[float, np.ndarray, np.ndarray]], metric_stamps: 
     stamps = np.array([s for s, _, _ in poses])
     pos = np.array([p for _, p, _ in poses]).reshape(-1, 3)
     quat = np.array([q for _, _, q in poses]).reshape(-1, 4)
-    est, held = metric_poses((stamps, pos, quat), metric_stamps)
+    est, held = metric_poses(StampedPoses(stamps, pos, quat), metric_stamps)
     return evaluate_trajectory(est, gt), held
 
 

@@ -24,7 +24,10 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import IO, Any
 
+import numpy as np
+
 from epi_vo.core.errors import OutputError
+from epi_vo.core.scale import Units
 from epi_vo.io.msgconv import ns_to_ros_time
 from epi_vo.io.paths import find_overlap, special_file_kind
 
@@ -117,3 +120,61 @@ def tum_stamp(stamp_ns: int) -> str:
     """The stamp in seconds with 9 decimals, exact (a float would round large stamps)."""
     sec, nanosec = ns_to_ros_time(stamp_ns)
     return f"{sec}.{nanosec:09d}"
+
+
+class PathLength:
+    """The length of a replay's camera path in the units it ends in (``stats.json`` ``path_length``).
+
+    In VO units: the sum of the steps between consecutive poses. In metres: the path of the positions a robot
+    could take as metres, as vo/odometry publishes them (``epi_vo.runner.outputs``): a pose before metres were
+    established counts as held at the last metric position (or the start), so the first metric pose adds its
+    distance from there and the path in VO units before it adds nothing.
+    """
+
+    def __init__(self) -> None:
+        self._vo = self._metric = 0.0
+        self._last: np.ndarray | None = None
+        self._held = np.zeros(3)
+        self._last_published: np.ndarray | None = None
+
+    def add(self, position: np.ndarray, units: Units) -> None:
+        """The camera position of the next frame with a pose, in ``units``."""
+        metric = units is Units.METRES
+        if self._last is not None:
+            self._vo += float(np.linalg.norm(position - self._last))
+        self._last = position.copy()
+        if metric:
+            self._held = position.copy()
+        published = self._held
+        if self._last_published is not None:
+            self._metric += float(np.linalg.norm(published - self._last_published))
+        self._last_published = published
+
+    def length(self, units: Units) -> float:
+        return self._metric if units is Units.METRES else self._vo
+
+
+def recorded_extrinsic(stats: Any) -> np.ndarray | None:
+    """``T_base_cam`` (4x4) a replay made its odometry with when the parameters declared the extrinsic
+    (``stats.json`` ``extrinsic``, source ``parameters``); None for the default (camera level at base_link)
+    or a ``stats.json`` older than the record. ValueError when the record is no rigid 4x4 transform."""
+    record = stats.get("extrinsic") if isinstance(stats, dict) else None
+    if not isinstance(record, dict) or record.get("source") in (None, "default"):
+        return None
+    try:
+        T = np.asarray(record["T_base_cam"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        T = np.zeros((0,))
+    R = T[:3, :3] if T.shape == (4, 4) else np.zeros((3, 3))
+    if not (T.shape == (4, 4) and np.all(np.isfinite(T)) and np.allclose(R @ R.T, np.eye(3), atol=1e-6)
+            and np.linalg.det(R) > 0 and np.allclose(T[3], [0.0, 0.0, 0.0, 1.0])):
+        msg = "extrinsic.T_base_cam is no rigid 4x4 transform"
+        raise ValueError(msg)
+    return T
+
+
+def read_recorded_extrinsic(directory: str | Path) -> np.ndarray | None:
+    """:func:`recorded_extrinsic` of ``directory``'s stats.json (None without one). OSError, ValueError (JSON,
+    the record) as reading it raises."""
+    path = Path(directory) / "stats.json"
+    return recorded_extrinsic(json.loads(path.read_text(encoding="utf-8"))) if path.is_file() else None

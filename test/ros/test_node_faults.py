@@ -148,11 +148,10 @@ def test_header_stamp_that_is_no_ros_time_is_a_rejected_frame(ros: RosSession) -
     """As in replay: nanosec >= 1e9 is no valid ROS time; the frame gets a status with the reason and no
     odometry, and the frames after it track on (the bad stamp was not booked)."""
     node = _make_node(ros)
-    statuses: list[Any] = []
+    statuses: list[Any] = []  # the DiagnosticArrays of vo/frame_status
     published: list[FrameResult] = []
-    real_status, real_publish = node._publish_status, node._publish
-    node._publish_status = lambda status, stamp_msg: (statuses.append((status, stamp_msg)),
-                                                      real_status(status, stamp_msg))
+    real_status, real_publish = node._pub_frame_status.publish, node._publish
+    node._pub_frame_status.publish = lambda arr: (statuses.append(arr), real_status(arr))
     node._publish = lambda h: (published.append(h.result) if not h.result.skipped else None, real_publish(h))
     try:
         img, info = _image(0)
@@ -167,7 +166,7 @@ def test_header_stamp_that_is_no_ros_time_is_a_rejected_frame(ros: RosSession) -
         assert _wait(lambda: len(published) >= 1)
     finally:
         node.destroy_node()
-    status, stamp_msg = statuses[0]
+    (status,) = statuses[0].status
     assert "header stamp sec 5 nanosec 1500000000 is not a valid ROS time" in status.message
-    assert 0 <= stamp_msg.nanosec < 1_000_000_000
+    assert 0 <= statuses[0].header.stamp.nanosec < 1_000_000_000
     assert published[0].stamp_ns == 5_100_000_000 and Decision.TIME_JUMPED_BACK not in published[0].decisions

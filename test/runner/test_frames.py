@@ -11,12 +11,15 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from epi_vo.core.camera import CameraModel
 from epi_vo.core.config import VoConfig
 from epi_vo.core.decisions import Decision
-from epi_vo.core.frame import TrackingState
+from epi_vo.core.frame import FrameResult, TrackingState
+from epi_vo.core.odometry import UNKNOWN_TWIST_VARIANCE
 from epi_vo.io import bagio
+from epi_vo.io.msgconv import decode_frame
 from epi_vo.runner.frames import FrameHandler, FrameInput, HandledFrame
-from epi_vo.runner.outputs import OutputFrames
+from epi_vo.runner.outputs import OutputFrames, OutputMaker
 
 BAG = Path(__file__).resolve().parents[2] / "bags" / "general_motion" / "bag"
 
@@ -75,24 +78,80 @@ def test_a_frame_is_skipped_rejected_or_processed_and_says_why(inputs: list[Fram
     assert Decision.TIME_JUMPED_BACK not in {d for h in on for d in h.result.decisions}
 
 
-def test_outputs_of_a_frame_with_a_pose(inputs: list[FrameInput]) -> None:
-    """Odometry odom -> base_link, the TF equal to it, the path growing by its pose, the status's pose the
-    odometry's, points in odom; with map_frame_id also map -> odom."""
+def test_in_vo_units_the_fusable_odometry_holds_the_position_and_the_vo_unit_one_moves(
+        inputs: list[FrameInput]) -> None:
+    """scale_source none: vo/odometry (odom -> base_link) holds the position where tracking started with the
+    "unknown" variance and no linear velocity ("unknown" variance), with the orientation and angular velocity
+    as estimated; TF follows it (no map -> odom in VO units); vo/odometry/vo_units carries the motion,
+    between frames that exist in no TF tree, and the path and points are in its frame; the status's pose is
+    vo/odometry's."""
     handler = FrameHandler(frames=OutputFrames("odom", "base_link", "map"), path_max_length=5)
-    handled = _run(handler, inputs[:12], ahead=False)
+    handled = _run(handler, inputs[:20], ahead=False)
     lengths = [len(h.outputs.path.stamps_ns) for h in handled if h.outputs.path is not None]
-    assert lengths == [1, 2, 3, 4, 5, 5, 5, 5, 5, 5, 5, 5]
+    assert lengths == [1, 2, 3, 4] + [5] * 16
     last = handled[-1].outputs
-    assert last.odometry is not None and last.path is not None
-    s = last.odometry.sample
+    assert last.odometry is not None and last.odometry_vo_units is not None and last.path is not None
+    held, vo = last.odometry.sample, last.odometry_vo_units.sample
     assert (last.odometry.frame_id, last.odometry.child_frame_id) == ("odom", "base_link")
-    assert [(t.parent, t.child) for t in last.transforms] == [("odom", "base_link"), ("map", "odom")]
-    np.testing.assert_array_equal(last.transforms[0].xyz, s.position)
-    np.testing.assert_array_equal(last.path.positions[-1], s.position)
+    assert (last.odometry_vo_units.frame_id, last.odometry_vo_units.child_frame_id) == (
+        "odom_vo_units", "base_link_vo_units")
+    assert last.estimate is last.odometry_vo_units
+    np.testing.assert_array_equal(held.position, np.zeros(3))
+    assert float(np.linalg.norm(vo.position)) > 0.5 and float(np.linalg.norm(vo.linear_velocity)) > 0.1
+    var = VoConfig().lost_position_variance
+    np.testing.assert_array_equal(held.pose_covariance[:3, :3], np.eye(3) * var)
+    np.testing.assert_array_equal(held.pose_covariance[:3, 3:], np.zeros((3, 3)))
+    np.testing.assert_array_equal(held.pose_covariance[3:, 3:], vo.pose_covariance[3:, 3:])
+    assert np.max(np.diag(vo.pose_covariance)[:3]) < 1.0  # tight, in VO units
+    np.testing.assert_array_equal(held.linear_velocity, np.zeros(3))
+    np.testing.assert_array_equal(held.twist_covariance[:3, :3], np.eye(3) * UNKNOWN_TWIST_VARIANCE)
+    np.testing.assert_array_equal(held.angular_velocity, vo.angular_velocity)
+    np.testing.assert_array_equal(held.twist_covariance[3:, 3:], vo.twist_covariance[3:, 3:])
+    np.testing.assert_array_equal(held.quat_xyzw, vo.quat_xyzw)
+    assert [(t.parent, t.child) for t in last.transforms] == [("odom", "base_link")]
+    np.testing.assert_array_equal(last.transforms[0].xyz, held.position)
+    assert last.path.frame_id == "odom_vo_units"
+    np.testing.assert_array_equal(last.path.positions[-1], vo.position)
     values = dict(last.status.values)
-    assert values["position_frame"] == "odom -> base_link"
-    np.testing.assert_allclose([float(v) for v in values["position"].split()], s.position, atol=1e-5)
-    assert any(h.outputs.points is not None and h.outputs.points.frame_id == "odom" for h in handled)
+    assert values["position_frame"] == "odom -> base_link" and values["units"] == "vo"
+    assert [float(v) for v in values["position"].split()] == [0.0, 0.0, 0.0]
+    assert any(h.outputs.points is not None and h.outputs.points.frame_id == "odom_vo_units" for h in handled)
+
+
+def _metres(result: FrameResult, at: int) -> FrameResult:
+    """``result`` as a metric scale source would give it from frame ``at`` on."""
+    if result.index < at:
+        return result
+    return dataclasses.replace(result, scale=dataclasses.replace(result.scale, metric=True))
+
+
+def test_once_metres_are_established_the_odometry_is_metric_and_starts_afresh(inputs: list[FrameInput]) -> None:
+    """Before metres vo/odometry holds the position; from the first metric frame on it is the pose (metres),
+    TF carries map -> odom too, nothing is published in VO units, and the change of units starts the twist,
+    the path and map -> odom afresh."""
+    pipeline = FrameHandler().pipeline
+    results = [_metres(pipeline.process(*_decoded(f)), 10) for f in inputs[:20]]
+    maker = OutputMaker(OutputFrames("odom", "base_link", "map"))
+    outs = [maker.outputs(r, "epi_vo", "test") for r in results]
+    before, first, after = outs[9], outs[10], outs[19]
+    assert before.odometry is not None and before.odometry_vo_units is not None
+    np.testing.assert_array_equal(before.odometry.sample.position, np.zeros(3))
+    assert first.odometry_vo_units is None and after.odometry_vo_units is None and after.odometry is not None
+    assert first.odometry is not None and first.estimate is first.odometry
+    # a new converter at the change: the first metric frame has no twist yet, the next one has
+    np.testing.assert_array_equal(first.odometry.sample.linear_velocity, np.zeros(3))
+    assert first.odometry.sample.twist_covariance[0, 0] == UNKNOWN_TWIST_VARIANCE
+    assert float(np.linalg.norm(outs[11].odometry.sample.linear_velocity)) > 0.1  # type: ignore[union-attr]
+    assert after.odometry.sample.pose_covariance[0, 0] < 1.0
+    assert first.path is not None and first.path.frame_id == "odom" and len(first.path.stamps_ns) == 1
+    assert [(t.parent, t.child) for t in after.transforms] == [("odom", "base_link"), ("map", "odom")]
+    np.testing.assert_array_equal(after.transforms[0].xyz, after.odometry.sample.position)
+    assert dict(after.status.values)["units"] == "m"
+
+
+def _decoded(frame: FrameInput) -> tuple[np.ndarray, CameraModel, int]:
+    camera = CameraModel.from_camera_info(frame.camera_info)
+    return decode_frame(frame.image, frame.compressed, (camera.width, camera.height)), camera, frame.stamp_ns
 
 
 def test_a_runtime_change_continues_from_the_last_pose(inputs: list[FrameInput]) -> None:

@@ -40,8 +40,10 @@ def inputs() -> list[FrameInput]:
 
 
 def _odometry(h: HandledFrame) -> OdometryRecord:
-    assert h.outputs.odometry is not None
-    return h.outputs.odometry
+    """The motion: vo/odometry/vo_units while the units are VO units (vo/odometry holds its position then)."""
+    odometry = h.outputs.odometry_vo_units or h.outputs.odometry
+    assert odometry is not None
+    return odometry
 
 
 def _pose(h: HandledFrame) -> np.ndarray:

@@ -5,6 +5,8 @@
 * ``epipolar_refine``: a relative pose refined on its Sampson distances;
 * ``pose``: pose recovery with cheirality, homography rotation / planar pose, parallax, refinement
   of a pose on map points;
+* ``camera_error``: a rotation fitted with the focal length and radial distortion a calibration may have
+  wrong;
 * ``triangulation``: triangulation through its gates, scale of a direction from map points;
 * ``common``: homogeneous coordinates, cross-product matrix, ray depths, nearest rotation, reprojection
   errors.
@@ -12,6 +14,7 @@
 Everything is re-exported here: ``from epi_vo.core import geometry as geo`` then ``geo.recover_pose``.
 """
 
+from epi_vo.core.geometry.camera_error import CameraErrorRotation, rotation_under_camera_error
 from epi_vo.core.geometry.common import (
     F64,
     Mask,
@@ -53,7 +56,6 @@ from epi_vo.core.geometry.pose import (
     parallax_deg,
     pose_from_homography,
     recover_pose,
-    refine_focal_for_rotation,
     refine_planar_pose,
     refine_pose_pnp,
     rotation_from_homography,
@@ -78,6 +80,7 @@ __all__ = [
     "PNP_MIN_SIGMA_PX",
     "ROBUST_METHOD_FLAGS",
     "USAC_POLISHES",
+    "CameraErrorRotation",
     "Mask",
     "PlanarSolution",
     "ScaleEstimate",
@@ -107,7 +110,6 @@ __all__ = [
     "pose_undetermined",
     "ray_depths",
     "recover_pose",
-    "refine_focal_for_rotation",
     "refine_planar_pose",
     "refine_pose_pnp",
     "refine_relative_pose",
@@ -115,6 +117,7 @@ __all__ = [
     "reprojection_rms",
     "rh_ratio",
     "rotation_from_homography",
+    "rotation_under_camera_error",
     "sampson_distance_sq",
     "sampson_rms",
     "scale_from_points",

@@ -79,7 +79,7 @@ def focal_for_rotation(H: F64, K: F64) -> float | None:
     ``f^2``: solved in least squares. A rotation about the optical axis alone, or the homography of a
     translation across a plane facing the camera (a pure shift of the image), constrains no focal length.
     This algebraic fit is biased by a few per cent with noisy points (2 % at 0.3 px and 5 deg):
-    ``refine_focal_for_rotation`` takes it from there.
+    ``rotation_under_camera_error`` takes it from there.
     """
     T = np.array([[1.0, 0.0, -K[0, 2]], [0.0, 1.0, -K[1, 2]], [0.0, 0.0, 1.0]])
     Hc = T @ H @ np.linalg.inv(T)
@@ -99,36 +99,7 @@ def focal_for_rotation(H: F64, K: F64) -> float | None:
     return math.sqrt(f2)
 
 
-def refine_focal_for_rotation(H: F64, K: F64, f0: float, uv_ref: F64, uv_cur: F64) -> float:
-    """``focal_for_rotation``'s estimate ``f0`` refined on the correspondences ``uv_ref`` / ``uv_cur``
-    (H's inliers, undistorted pixels): a golden-section search within 15 % of it for the focal length
-    whose rotation (the nearest to ``K_f^-1 H K_f``) leaves the least median parallax (``parallax_deg``)."""
-    c = K[:2, 2]
-
-    def cost(f_try: float) -> float:
-        K_f = K.copy()
-        K_f[0, 0] = K_f[1, 1] = f_try
-        return float(np.median(parallax_deg(rotation_from_homography(H, K_f), (uv_ref - c) / f_try,
-                                            (uv_cur - c) / f_try)))
-
-    lo, hi = 0.85 * f0, 1.15 * f0
-    g = (math.sqrt(5.0) - 1.0) / 2.0
-    x1, x2 = hi - g * (hi - lo), lo + g * (hi - lo)
-    c1, c2 = cost(x1), cost(x2)
-    for _ in range(FOCAL_SEARCH_STEPS):
-        if c1 <= c2:
-            hi, x2, c2 = x2, x1, c1
-            x1 = hi - g * (hi - lo)
-            c1 = cost(x1)
-        else:
-            lo, x1, c1 = x1, x2, c2
-            x2 = lo + g * (hi - lo)
-            c2 = cost(x2)
-    return 0.5 * (lo + hi)
-
-
 PNP_MIN_SIGMA_PX = 0.05  # floor of the a posteriori image noise behind refine_pose_pnp's covariance (px per axis)
-FOCAL_SEARCH_STEPS = 24  # golden-section steps over +-15 %: the bracket shrinks to ~1e-5 of the focal length
 
 
 PLANE_MOTION_AGREE = (0.5, 30.0)  # deg: a motion this close in rotation and direction is the plane's
