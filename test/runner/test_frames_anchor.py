@@ -148,3 +148,21 @@ def test_a_pose_set_is_the_next_frames_pose_and_later_motion_composes_from_it(in
     assert grown[:3].sum() < ref_diag[:3].sum() and grown[3:].sum() < ref_diag[3:].sum()
     assert got[12].outputs.record["set_pose"] == {"source": "set_pose"}
     assert [i for i, h in enumerate(got) if "set_pose" in h.outputs.record] == [12]
+
+
+def test_without_metres_a_pose_set_is_where_vo_odometry_holds(inputs: list[FrameInput]) -> None:
+    """scale_source none: vo/odometry holds its position with the 'unknown' variance; after set_pose it holds
+    the position given (the orientation goes on as estimated), and vo/odometry/vo_units starts at the pose."""
+    handler = FrameHandler(frames=OutputFrames("odom", "base_link"), T_base_cam=T_TRUE)
+    before = [handler.handle(f) for f in inputs[:12]]
+    assert before[-1].outputs.odometry is not None
+    np.testing.assert_allclose(before[-1].outputs.odometry.sample.position, np.zeros(3))
+    T_set = make_T(rotation_from_quat_xyzw([0.0, 0.0, math.sin(0.6), math.cos(0.6)]), [5.0, -2.0, 0.1])
+    handler.set_pose(T_set, _cov([0.2, 0.2, 0.01, 0.01, 0.01, 0.05]), {"source": "set_pose"})
+    after = [handler.handle(f) for f in inputs[12:20]]
+    for h in after:
+        held = h.outputs.odometry
+        assert held is not None and h.outputs.odometry_vo_units is not None
+        np.testing.assert_allclose(held.sample.position, T_set[:3, 3])
+        assert np.all(np.diag(held.sample.pose_covariance)[:3] >= 1e3)  # the position is not known
+    np.testing.assert_allclose(_pose(after[0]), T_set, atol=1e-9)
