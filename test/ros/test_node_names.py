@@ -183,8 +183,8 @@ def test_a_configure_that_fails_half_way_undoes_what_it_made_and_a_later_one_wor
         assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
         assert node._state_machine.current_state[0] == State.PRIMARY_STATE_INACTIVE
         topics = {s.topic_name for s in node.subscriptions}
-        assert {"/camera/camera_info", "/camera/image_raw/compressed"} <= topics
-        assert _entities(node)[0] == before[0] + 2
+        assert {"/camera/camera_info", "/camera/image_raw/compressed", "/set_pose"} <= topics
+        assert _entities(node)[0] == before[0] + 3  # camera_info, the compressed images, set_pose
         assert node.trigger_cleanup() == TransitionCallbackReturn.SUCCESS
         assert _entities(node) == before
     finally:
