@@ -98,6 +98,16 @@ def _add_benchmark(sub: argparse._SubParsersAction) -> None:
                                                  "or ~/.cache/epi_vo/scenarios)")
     p.add_argument("--data", default=None, help="distribution: folder of the real clips (default ../shared/data)")
     p.add_argument("--no-real", action="store_true", help="distribution: leave the real clips out")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", dest="overrides",
+                   help="distribution: change one parameter after --params (repeatable); with --baseline, the "
+                        "run without the change, this is how a rule is judged with and without it")
+    p.add_argument("--baseline", default=None, metavar="RECORD.json",
+                   help="distribution: an earlier record's JSON; prints every family's figures before -> after")
+    p.add_argument("--ablate", nargs="*", default=None, metavar="RULE",
+                   help="distribution: run the defaults and each rule switched off (all rules, or these), and "
+                        "say which pay on which family (docs/distribution.md)")
+    p.add_argument("--no-reference", action="store_true",
+                   help="distribution: leave the seed reference pipeline out (faster; for ablations)")
     p.add_argument("--record-dir", default=None,
                    help="where the dated record goes (default: docs/benchmarks of the source tree)")
     p.add_argument("--no-record", action="store_true", help="print only: write no dated record")
@@ -122,7 +132,10 @@ def _add_monitor(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--once", action="store_true", help="print one snapshot and exit")
     p.add_argument("--timeout", type=float, default=None,
                    help="exit non-zero if no VO status arrived within this many seconds")
-    p.add_argument("--odometry-topic", default="vo/odometry", help="odometry topic (for distance travelled)")
+    p.add_argument("--odometry-topic", default="vo/odometry", help="odometry topic (distance travelled in metres)")
+    p.add_argument("--vo-units-topic", default=None,
+                   help="odometry in VO units, for the distance while there are no metres (default: vo/odometry/"
+                        "vo_units in the odometry topic's namespace)")
     p.add_argument("--node-name", default=None, help="only statuses of this node ('<name>: tracking')")
 
 
@@ -162,9 +175,10 @@ def _add_params(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_play(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("play", help="publish a bag's image and camera_info topics over ROS 2 (ros2 bag play stand-in)",
-                       description="Publish the image and camera_info topics of a bag (and /clock) in real time or "
-                                   "scaled, as recorded. DDS settings come from the environment (ROS_DOMAIN_ID, "
+    p = sub.add_parser("play", help="publish a bag's topics vo_node consumes over ROS 2 (ros2 bag play stand-in)",
+                       description="Publish the image and camera_info topics of a bag, its wheel odometry and /tf, "
+                                   "/tf_static when it has them (and /clock), in real time or scaled, in the bag's "
+                                   "order, as recorded. DDS settings come from the environment (ROS_DOMAIN_ID, "
                                    "ROS_AUTOMATIC_DISCOVERY_RANGE).")
     p.add_argument("bag", help="bag directory or .mcap file")
     p.add_argument("--rate", type=float, default=1.0,
@@ -175,6 +189,10 @@ def _add_play(sub: argparse._SubParsersAction) -> None:
                    help="published image topic (default camera/image_raw, or camera/image_raw/compressed)")
     p.add_argument("--remap-camera-info", metavar="TOPIC",
                    help="published camera_info topic (default camera/camera_info)")
+    p.add_argument("--wheel-topic", help="bag topic of the wheel odometry (default: the only nav_msgs/Odometry one "
+                                         "not named as ground truth)")
+    p.add_argument("--remap-wheel", metavar="TOPIC",
+                   help="published wheel odometry topic (default odom, vo_node's wheel_odometry_topic)")
     p.add_argument("--namespace", default="", help="namespace of the player node (applies to relative topics)")
     p.add_argument("--clock", action="store_true", help="publish /clock with the bag time before each message")
     p.add_argument("--qos-reliability", choices=("reliable", "best_effort"), default="reliable",
@@ -293,6 +311,12 @@ def _benchmark(args: argparse.Namespace) -> int:
 
     record = None if args.no_record else (Path(args.record_dir) if args.record_dir else default_record_dir())
     if args.suite == "bundled":
+        for flag, given in (("--set", args.overrides), ("--baseline", args.baseline),
+                            ("--no-reference", args.no_reference), ("--ablate", args.ablate is not None)):
+            if given:
+                _say(f"epi-vo: error: {flag} is an option of --suite distribution and subset, not of the bundled "
+                     "suite")
+                return 2
         from epi_vo.tools.benchmark import run_benchmark
 
         return run_benchmark(args.bags, args.kitti, args.params, args.output, record)
@@ -301,10 +325,20 @@ def _benchmark(args: argparse.Namespace) -> int:
             _say(f"epi-vo: error: {flag} is an option of the bundled suite, not of --suite {args.suite} (its JSON "
                  "is written beside the dated record)")
             return 2
+    if args.ablate is not None:
+        if args.overrides or args.baseline:
+            _say("epi-vo: error: --ablate runs its own baseline and overrides: leave --set and --baseline out")
+            return 2
+        from epi_vo.tools.ablation import run_ablation
+
+        return run_ablation(args.suite, args.params, args.ablate, record_dir=record, families=args.families,
+                            seeds=args.seeds, jobs=args.jobs, cache=args.cache, data_dir=args.data,
+                            real=not args.no_real)
     from epi_vo.tools.distribution import run_distribution
 
     return run_distribution(args.suite, args.params, families=args.families, seeds=args.seeds, jobs=args.jobs,
-                            cache=args.cache, data_dir=args.data, real=not args.no_real, record_dir=record)
+                            cache=args.cache, data_dir=args.data, real=not args.no_real, record_dir=record,
+                            reference=not args.no_reference, overrides=args.overrides, baseline=args.baseline)
 
 
 def _one_line(text: str) -> str:
@@ -328,7 +362,7 @@ def _say(line: str, *, stdout: bool = False) -> None:
 
 def _replay(args: argparse.Namespace) -> int:
     from epi_vo.io import checks
-    from epi_vo.io.params import load_config, load_node_options
+    from epi_vo.io.params import load_config, load_extrinsic, load_node_options
     from epi_vo.tools.fleet_bags import is_fleet, nested_bags
     from epi_vo.tools.replay import format_summary, run_replay
 
@@ -349,7 +383,8 @@ def _replay(args: argparse.Namespace) -> int:
                          camera_info_topic=args.camera_info_topic, gt_tum=args.gt,
                          progress=not args.no_progress, rate=args.rate,
                          map_frame_id=load_node_options(args.params).map_frame_id, gt_topic=args.gt_topic,
-                         no_gt=args.no_gt, inputs=[args.params] if args.params else [])
+                         no_gt=args.no_gt, inputs=[args.params] if args.params else [],
+                         extrinsic=load_extrinsic(args.params))
     _say(format_summary(summary), stdout=True)
     if args.report:
         from epi_vo.tools.report import write_report
@@ -363,7 +398,7 @@ def _replay(args: argparse.Namespace) -> int:
 
 def _replay_fleet(args: argparse.Namespace) -> int:
     from epi_vo.io import checks
-    from epi_vo.io.params import load_config, load_node_options
+    from epi_vo.io.params import load_config, load_extrinsic, load_node_options
     from epi_vo.tools.fleet import run_fleet
     from epi_vo.tools.fleet_bags import find_bags
     from epi_vo.tools.fleet_summary import exit_code
@@ -380,7 +415,8 @@ def _replay_fleet(args: argparse.Namespace) -> int:
                        progress=not args.no_progress, image_topic=args.image_topic,
                        camera_info_topic=args.camera_info_topic,
                        map_frame_id=load_node_options(args.params).map_frame_id, gt_topic=args.gt_topic,
-                       no_gt=args.no_gt, inputs=[args.params] if args.params else [])
+                       no_gt=args.no_gt, inputs=[args.params] if args.params else [],
+                       extrinsic=load_extrinsic(args.params))
     _print_rows(result.rows, result.summary_files)
     if result.signum is not None:
         hangup = result.signum == getattr(signal, "SIGHUP", None)
@@ -421,7 +457,8 @@ def _play(args: argparse.Namespace) -> int:
     from epi_vo.ros.play import PlayOptions, Reliability, format_summary, run_play
 
     options = PlayOptions(rate=args.rate, image_topic=args.image_topic, camera_info_topic=args.camera_info_topic,
-                          remap_image=args.remap_image, remap_camera_info=args.remap_camera_info, clock=args.clock,
+                          remap_image=args.remap_image, remap_camera_info=args.remap_camera_info,
+                          wheel_topic=args.wheel_topic, remap_wheel=args.remap_wheel, clock=args.clock,
                           qos_reliability=Reliability(args.qos_reliability), qos_depth=args.qos_depth,
                           start_delay_s=args.start_delay, loop=args.loop)
     print(format_summary(run_play(args.bag, options, namespace=args.namespace)))

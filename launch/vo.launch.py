@@ -14,7 +14,8 @@ The node subscribes ``camera/image_raw`` (sensor_msgs/Image), ``camera/image_raw
 ``image_topic`` / ``camera_info_topic`` remap them (the compressed topic follows image_transport's
 convention, ``<image_topic>/compressed``). Parameters come from ``params_file``; ``image_transport`` and
 ``use_sim_time`` given here override the file. Outputs: ``vo/odometry``, ``vo/path``, ``vo/points``,
-``vo/debug_image`` (``publish_debug_image: true`` in the file), ``/diagnostics``, TF odom -> base_link.
+``vo/frame_status``, ``vo/debug_image`` (``publish_debug_image: true`` in the file), ``/diagnostics``, TF
+odom -> base_link.
 """
 
 # ruff takes `launch` for this repository's launch/ folder (first party); these are ROS 2's launch packages.
@@ -30,7 +31,7 @@ PACKAGE = "epi_vo"
 BOOLEAN = ["true", "false"]
 
 # The topics RViz2's config names (absolute, as RViz stores them), remapped into the launch namespace below.
-RVIZ_TOPICS = ("vo/odometry", "vo/path", "vo/points", "vo/debug_image")
+RVIZ_TOPICS = ("vo/odometry", "vo/odometry/vo_units", "vo/path", "vo/points", "vo/debug_image")
 
 
 def generate_launch_description() -> LaunchDescription:
@@ -44,6 +45,7 @@ def generate_launch_description() -> LaunchDescription:
     log_level = LaunchConfiguration("log_level")
     rviz = LaunchConfiguration("rviz")
     rviz_config = LaunchConfiguration("rviz_config")
+    rviz_fixed_frame = LaunchConfiguration("rviz_fixed_frame")
     managed = LaunchConfiguration("managed")
 
     arguments = [
@@ -69,6 +71,10 @@ def generate_launch_description() -> LaunchDescription:
                               description="also start RViz2 with the epi_vo display config"),
         DeclareLaunchArgument("rviz_config", default_value=PathJoinSubstitution([share, "config", "epi_vo.rviz"]),
                               description="RViz2 config file (used with rviz:=true)"),
+        DeclareLaunchArgument("rviz_fixed_frame", default_value="odom",
+                              description="RViz2's fixed frame: odom shows the outputs in metres; without metres "
+                                          "(scale_source none, or not established yet) the path, points and "
+                                          "vo/odometry/vo_units are in odom_vo_units, which no TF tree joins"),
     ]
 
     # The same node either way (name, parameters, remappings); managed:=true makes it a lifecycle node.
@@ -104,7 +110,7 @@ def generate_launch_description() -> LaunchDescription:
         name="rviz2",
         namespace=namespace,
         output="screen",
-        arguments=["-d", rviz_config],
+        arguments=["-d", rviz_config, "-f", rviz_fixed_frame],
         parameters=[{"use_sim_time": ParameterValue(use_sim_time, value_type=bool)}],
         remappings=[("/" + topic, topic) for topic in RVIZ_TOPICS],
         condition=IfCondition(rviz),

@@ -57,7 +57,7 @@ def main(argv: list[str]) -> int:
         if args.motion_blur else (0, 1)
 
     import epi_vo.io.bagio as bagio
-    import epi_vo.tools.replay as replay
+    import epi_vo.runner.frames as frames_module
     from epi_vo.cli import main as cli_main
     from epi_vo.core.camera import CameraModel
 
@@ -82,7 +82,7 @@ def main(argv: list[str]) -> int:
                         yield f
             cls.iter_frames = frames
 
-    decode = replay.decode_frame
+    decode = frames_module.decode_frame  # the frame handler's decoder (replay and node)
     rng = np.random.default_rng(0)
     count = [0]
 
@@ -104,7 +104,7 @@ def main(argv: list[str]) -> int:
             g += rng.normal(0.0, args.noise, g.shape).astype(np.float32)
         return np.clip(g + 0.5, 0, 255).astype(np.uint8)
 
-    replay.decode_frame = perturbed
+    frames_module.decode_frame = perturbed
     return cli_main(argv[cut + 1:])
 
 

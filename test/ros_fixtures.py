@@ -164,15 +164,16 @@ def odom_pose(msg: Any) -> Any:
     return np.array([p.x, p.y, p.z, q.x, q.y, q.z, q.w])
 
 
-def replay_odometry(bag: Any, out: Any) -> dict[int, Any]:
-    """The offline replay's /vo/odometry poses (x y z qx qy qz qw) by header stamp (ns)."""
+def replay_odometry(bag: Any, out: Any, topic: str = "/vo/odometry", run: bool = True) -> dict[int, Any]:
+    """The offline replay's ``topic`` poses (x y z qx qy qz qw) by header stamp (ns); ``run``: replay first."""
     import numpy as np
 
     from epi_vo.io.odometry_bag import read_odometry
     from epi_vo.tools.replay import run_replay
 
-    run_replay(bag, out)
-    odo = read_odometry(out / "output.mcap")
+    if run:
+        run_replay(bag, out)
+    odo = read_odometry(out / "output.mcap", topic)
     return {int(t): np.concatenate([p, q]) for t, p, q in zip(odo.stamps_ns, odo.positions, odo.quats_xyzw,
                                                              strict=True)}
 
@@ -209,9 +210,9 @@ def call_service(executor: Any, client: Any, request: Any, timeout_s: float = PR
 
 
 class ProbeBase:
-    """A test-side node with its own executor, subscribed to the VO's odometry and diagnostics (reliable,
-    deep queues: nothing may be lost). The tests' probes add the publishers, subscriptions and clients
-    they need, with ``self.qos``."""
+    """A test-side node with its own executor, subscribed to the VO's odometry, its per-frame statuses and
+    /diagnostics (reliable, deep queues: nothing may be lost). The tests' probes add the publishers,
+    subscriptions and clients they need, with ``self.qos``."""
 
     def __init__(self, ros: RosSession, name: str, namespace: str = "") -> None:
         import rclpy
@@ -225,9 +226,13 @@ class ProbeBase:
         self.executor.add_node(self.node)
         self.qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
         self.odom: list[Any] = []
-        self.diag: list[Any] = []
+        self.odom_vo_units: list[Any] = []  # vo/odometry/vo_units: the motion in VO units
+        self.diag: list[Any] = []  # /diagnostics: the node's health, once a second
+        self.frame_status: list[Any] = []  # vo/frame_status: one array per frame
         self.node.create_subscription(Odometry, "vo/odometry", self.odom.append, self.qos)
+        self.node.create_subscription(Odometry, "vo/odometry/vo_units", self.odom_vo_units.append, self.qos)
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self.diag.append, self.qos)
+        self.node.create_subscription(DiagnosticArray, "vo/frame_status", self.frame_status.append, self.qos)
 
     def spin_until(self, predicate: Callable[[], bool], timeout_s: float = PROBE_WAIT_S) -> bool:
         return spin_until(self.executor, predicate, timeout_s)

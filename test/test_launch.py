@@ -34,7 +34,8 @@ NODE_SOURCE = REPO / "epi_vo" / "ros" / "node.py"
 PREFIX = "/opt/ws/install/epi_vo"  # stands for the install prefix FindPackageShare would find
 
 # What the displays must show: the node's outputs (relative names, so namespaces apply).
-SHOWN_TOPICS = {"odometry": "vo/odometry", "path": "vo/path", "points": "vo/points", "debug_image": "vo/debug_image"}
+SHOWN_TOPICS = {"odometry": "vo/odometry", "odometry_vo_units": "vo/odometry/vo_units", "path": "vo/path",
+                "points": "vo/points", "debug_image": "vo/debug_image"}
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -462,13 +463,16 @@ def test_rviz_true_adds_rviz2_with_the_installed_config(description: LaunchDescr
     rviz = _by_executable(nodes, "rviz2")
     assert rviz.package == "rviz2"
     config = PREFIX + "/share/epi_vo/config/epi_vo.rviz"
-    assert rviz.arguments == ["-d", config]
+    assert rviz.arguments == ["-d", config, "-f", "odom"]  # the fixed frame: the node's frame_id, in metres
     assert installed_files()[config] == "config/epi_vo.rviz"
     assert rviz.parameters == [{"use_sim_time": True}]
     # the config's absolute topics are remapped to relative ones: they resolve in the launch namespace
     assert rviz.namespace == "robot1"
     assert sorted(rviz.remappings) == sorted(("/" + t, t) for t in SHOWN_TOPICS.values())
     assert {src for src, _ in rviz.remappings} == rviz_topics()
+    # Without metres the outputs to see are in <frame_id>_vo_units, in no TF tree: RViz2 fixed there.
+    vo_units = _by_executable(evaluate(description, {"rviz": "true", "rviz_fixed_frame": "odom_vo_units"}), "rviz2")
+    assert vo_units.arguments == ["-d", config, "-f", "odom_vo_units"]
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -492,13 +496,14 @@ def test_the_node_publishes_what_the_displays_show() -> None:
 def test_rviz_config_shows_odometry_path_points_and_debug_image_in_odom() -> None:
     doc = yaml.safe_load(RVIZ_FILE.read_text())
     assert doc["Visualization Manager"]["Global Options"]["Fixed Frame"] == "odom"
-    by_class = {d["Class"]: d for d in rviz_displays()}
-    expected = {"rviz_default_plugins/Odometry": "odometry", "rviz_default_plugins/Path": "path",
-                "rviz_default_plugins/PointCloud2": "points", "rviz_default_plugins/Image": "debug_image"}
-    for cls, key in expected.items():
-        assert by_class[cls]["Topic"]["Value"] == "/" + SHOWN_TOPICS[key], cls
-        assert by_class[cls]["Enabled"] is True
-    assert "rviz_default_plugins/TF" in by_class
+    by_topic = {d["Topic"]["Value"]: d for d in rviz_displays() if "Topic" in d}
+    expected = {"odometry": "rviz_default_plugins/Odometry", "odometry_vo_units": "rviz_default_plugins/Odometry",
+                "path": "rviz_default_plugins/Path", "points": "rviz_default_plugins/PointCloud2",
+                "debug_image": "rviz_default_plugins/Image"}
+    for key, cls in expected.items():
+        display = by_topic["/" + SHOWN_TOPICS[key]]
+        assert display["Class"] == cls and display["Enabled"] is True, key
+    assert "rviz_default_plugins/TF" in {d["Class"] for d in rviz_displays()}
     assert rviz_topics() == {"/" + t for t in SHOWN_TOPICS.values()}
 
 
@@ -524,14 +529,17 @@ def test_foxglove_layout_shows_odometry_path_points_image_twist_and_diagnostics(
     kinds = {pid.split("!")[0]: cfg for pid, cfg in panels.items()}
     assert {"3D", "Image", "Plot", "DiagnosticSummary"} <= set(kinds)
     scene_topics = kinds["3D"]["topics"]
-    for key in ("odometry", "path", "points"):
+    for key in ("odometry", "odometry_vo_units", "path", "points"):
         assert scene_topics["/" + SHOWN_TOPICS[key]]["visible"] is True
     assert kinds["3D"]["followTf"] == "odom"
     assert kinds["Image"]["imageMode"]["imageTopic"] == "/" + SHOWN_TOPICS["debug_image"]
     plotted = [p["value"] for p in kinds["Plot"]["paths"]]
     assert plotted, "the twist plot has no series"
-    assert all(v.startswith("/" + SHOWN_TOPICS["odometry"] + ".twist.twist.") for v in plotted), plotted
-    assert {"/vo/odometry.twist.twist.linear.x", "/vo/odometry.twist.twist.angular.z"} <= set(plotted)
+    assert all(v.startswith(("/" + SHOWN_TOPICS["odometry"] + ".twist.twist.",
+                             "/" + SHOWN_TOPICS["odometry_vo_units"] + ".twist.twist.")) for v in plotted), plotted
+    # the yaw rate (no scale touches it) and the forward speed in metres, and in VO units while there are none
+    assert {"/vo/odometry.twist.twist.linear.x", "/vo/odometry.twist.twist.angular.z",
+            "/vo/odometry/vo_units.twist.twist.linear.x"} <= set(plotted)
     assert kinds["DiagnosticSummary"]["topicToRender"] == "/diagnostics"
     named = set(scene_topics) | {kinds["Image"]["imageMode"]["imageTopic"], kinds["DiagnosticSummary"]["topicToRender"]}
     published = {t if t.startswith("/") else "/" + t for t in node_published_topics()}

@@ -1,12 +1,14 @@
 """The layers are visible and kept: what each folder of ``epi_vo`` may import, no import circle, no
 private name taken from another module, no module over 700 lines.
 
-    cli.py  ->  ros/  ->  io/, runner/  ->  core/
-            ->  tools/ ->  io/, runner/  ->  core/
+    cli.py  ->  ros/  ->  runner/  ->  io/  ->  core/
+            ->  tools/ ->  runner/  ->  io/  ->  core/
 
 * core/: numpy, cv2 and the standard library only (plus the optimiser the metric-scale work adds); no
   threads, processes or their queues: the per-frame step computes, a runner decides what runs where;
-* runner/: core and the standard library's threads and processes (what runs ahead of and beside the step);
+* runner/: core, io and the standard library's threads and processes: what runs ahead of and beside the step,
+  and the one frame handler of both front doors (decode with io, process, outputs as plain records that the
+  node publishes and the replay writes); never rclpy;
 * io/: core, rosbags, mcap, yaml; never rclpy;
 * ros/: core, io, rclpy and ROS message packages (and rich for the monitor); never tools;
 * tools/: core, io, evo, matplotlib, tqdm; never rclpy, never ros;
@@ -24,7 +26,7 @@ import pytest
 PKG = Path(__file__).resolve().parents[1] / "epi_vo"
 LAYERS = ("core", "io", "runner", "ros", "tools")
 ROS_PACKAGES = {"rclpy", "builtin_interfaces", "diagnostic_msgs", "geometry_msgs", "nav_msgs", "rcl_interfaces",
-                "rosgraph_msgs", "sensor_msgs", "std_msgs", "std_srvs", "tf2_ros", "lifecycle_msgs"}
+                "rosgraph_msgs", "sensor_msgs", "std_msgs", "std_srvs", "tf2_msgs", "tf2_ros", "lifecycle_msgs"}
 THIRD_PARTY = {
     "core": {"numpy", "cv2", "gtsam", "scipy"},
     "io": {"numpy", "cv2", "rosbags", "mcap", "yaml"},
@@ -32,7 +34,7 @@ THIRD_PARTY = {
     "ros": {"numpy", "cv2", "rich"} | ROS_PACKAGES,  # rich: the monitor's terminal view
     "tools": {"numpy", "cv2", "evo", "matplotlib", "tqdm", "rosbags", "mcap", "yaml"},
 }
-MAY_IMPORT = {"core": {"core"}, "io": {"core", "io"}, "runner": {"core", "runner"},
+MAY_IMPORT = {"core": {"core"}, "io": {"core", "io"}, "runner": {"core", "io", "runner"},
               "ros": {"core", "io", "runner", "ros"}, "tools": {"core", "io", "runner", "tools"}}
 # What runs where is the runner's: the core computes in the calling thread.
 CORE_REFUSES = {"threading", "concurrent", "subprocess", "multiprocessing", "queue", "pickle", "asyncio"}

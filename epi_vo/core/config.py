@@ -11,16 +11,70 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import enum
 import math
 from dataclasses import dataclass, field
 from typing import Any
 
 from epi_vo.core.errors import ConfigError
 
-SCALE_SOURCES = ("none", "ground_plane", "wheel_odometry")  # epi_vo.core.scale
-ROBUST_METHODS = ("magsac", "ransac", "lmeds", "usac_default", "usac_accurate", "usac_fast")
-FRONTENDS = ("klt", "orb")
-BA_SOLVERS = ("process", "inline")
+
+# The modes of the pipeline: each knob's text in a parameter file is its member's value. A string is converted
+# once, where the config is made (``VoConfig.__post_init__``, so also ``from_dict`` and the node's parameters);
+# code compares members, never text. ``StrEnum``: a member is its text wherever text is written (JSON, YAML,
+# ROS parameters).
+class Frontend(enum.StrEnum):
+    """Where the correspondences come from."""
+
+    KLT = "klt"  # tracked frame to frame (Lucas-Kanade), corners re-detected at keyframes
+    ORB = "orb"  # ORB descriptors matched against the keyframe
+
+
+class ScaleSourceKind(enum.StrEnum):
+    """Where metric scale comes from (``epi_vo.core.scale``)."""
+
+    NONE = "none"  # VO units
+    GROUND_PLANE = "ground_plane"  # the floor and camera_height_m
+    WHEEL_ODOMETRY = "wheel_odometry"  # wheel odometry's distances
+
+    @property
+    def metric(self) -> bool:
+        """Whether the source can establish metres."""
+        return self is not ScaleSourceKind.NONE
+
+
+class RobustMethod(enum.StrEnum):
+    """OpenCV's robust estimators for E and H (``epi_vo.core.geometry.models.ROBUST_METHOD_FLAGS``)."""
+
+    MAGSAC = "magsac"
+    RANSAC = "ransac"
+    LMEDS = "lmeds"
+    USAC_DEFAULT = "usac_default"
+    USAC_ACCURATE = "usac_accurate"
+    USAC_FAST = "usac_fast"
+
+
+class BaSolver(enum.StrEnum):
+    """Where the windowed bundle adjustment runs."""
+
+    PROCESS = "process"  # a worker process beside the frame loop
+    INLINE = "inline"  # in the frame loop
+
+
+def choices_of(kind: type[enum.StrEnum]) -> tuple[str, ...]:
+    """The texts a parameter of the mode ``kind`` may take, in declaration order."""
+    return tuple(m.value for m in kind)
+
+
+def shown(value: object) -> str:
+    """``repr`` of a parameter value as a parameter file writes it: a mode by its text (``'orb'``)."""
+    return repr(value.value) if isinstance(value, enum.Enum) else repr(value)
+
+
+SCALE_SOURCES = choices_of(ScaleSourceKind)
+ROBUST_METHODS = choices_of(RobustMethod)
+FRONTENDS = choices_of(Frontend)
+BA_SOLVERS = choices_of(BaSolver)
 
 # The node's own parameters (``NodeOptions`` in epi_vo/node.py, which imports rclpy): valid names in a
 # parameter file, which the offline tools (replay, inspect, benchmark, soak) accept and ignore. A test
@@ -36,14 +90,16 @@ ROS_PARAMETER_NAMES: tuple[str, ...] = ("use_sim_time", "start_type_description_
 
 
 def _knob(default: Any, doc: str, lo: float | None = None, hi: float | None = None,
-          choices: tuple[str, ...] | None = None, off: float | None = None) -> Any:
+          mode: type[enum.StrEnum] | None = None, off: float | None = None) -> Any:
     """A config field with its doc line and allowed range, kept in the dataclass metadata.
 
     The range is physical (what a camera, an image, a robot can be), not a sign: every value in it must
     work (``test/core/test_config_ranges.py`` runs the pipeline at the ends of each). ``off``: the one
     value outside ``[lo, hi]`` that is also allowed, meaning "off" or "not set" (its doc line says which).
+    ``mode``: the enum of a mode's values (``choices`` in the metadata: their texts).
     """
-    return field(default=default, metadata={"doc": doc, "min": lo, "max": hi, "choices": choices, "off": off})
+    return field(default=default, metadata={"doc": doc, "min": lo, "max": hi, "mode": mode,
+                                             "choices": None if mode is None else choices_of(mode), "off": off})
 
 
 @dataclass(frozen=True)
@@ -51,8 +107,8 @@ class VoConfig:
     """Every threshold of the pipeline, with its default and one line saying why it exists."""
 
     # --- frontend -------------------------------------------------------------------------
-    frontend: str = _knob("klt", "feature frontend: 'klt' (track + re-detect, fast) or 'orb' (descriptor matching)",
-                          choices=FRONTENDS)
+    frontend: Frontend = _knob(Frontend.KLT, "feature frontend: 'klt' (track + re-detect, fast) or 'orb' (descriptor "
+                               "matching)", mode=Frontend)
     max_features: int = _knob(200, "features kept per keyframe, spread over the grid", 20, 5000)
     grid_rows: int = _knob(6, "rows of the bucketing grid that spreads features over the image", 1, 64)
     grid_cols: int = _knob(8, "columns of the bucketing grid", 1, 64)
@@ -70,10 +126,10 @@ class VoConfig:
                                  off=0)
 
     # --- two-view models --------------------------------------------------------------------
-    essential_method: str = _knob("magsac", "robust estimator for the 5-point essential matrix",
-                                  choices=ROBUST_METHODS)
-    homography_method: str = _knob("usac_fast", "robust estimator for the homography (findHomography)",
-                                   choices=ROBUST_METHODS)
+    essential_method: RobustMethod = _knob(RobustMethod.MAGSAC, "robust estimator for the 5-point essential matrix",
+                                           mode=RobustMethod)
+    homography_method: RobustMethod = _knob(RobustMethod.USAC_FAST, "robust estimator for the homography "
+                                            "(findHomography)", mode=RobustMethod)
     ransac_threshold_px: float = _knob(1.0, "inlier threshold of the E and H robust estimators (px)", 0.05, 50.0)
     ransac_confidence: float = _knob(0.999, "robust estimator confidence", 0.5, 0.999999)
     ransac_max_iters: int = _knob(1000, "robust estimator iteration cap", 10, 100000)
@@ -138,9 +194,10 @@ class VoConfig:
                                      "it needs three); 0: off", 3, 50, off=0)
     ba_every_keyframes: int = _knob(3, "run the windowed bundle adjustment every this many tracking keyframes",
                                     1, 1000)
-    ba_solver: str = _knob("process", "where the windowed bundle adjustment runs: 'process' (a worker process beside "
-                           "the frame loop) or 'inline' (in it); its result is applied at the next keyframe either "
-                           "way, so both give the same poses", choices=BA_SOLVERS)
+    ba_solver: BaSolver = _knob(
+        BaSolver.PROCESS, "where the windowed bundle adjustment runs: 'process' (a worker process beside the frame "
+        "loop) or 'inline' (in it); its result is applied at the next keyframe either way, so both give the same "
+        "poses", mode=BaSolver)
     ba_wait: bool = _knob(True, "at the keyframe after an adjustment started, wait for its result if the worker is "
                           "not done: a replay gives the same poses run to run; false: never wait, a late result is "
                           "applied at the first keyframe after it is back (a live node keeps its frame rate; the "
@@ -163,15 +220,17 @@ class VoConfig:
         360.0, "the platform's largest plausible angular acceleration (deg/s^2), as max_accel_mps2", 0.1, 100000.0)
 
     # --- metric scale ----------------------------------------------------------------------------
-    scale_source: str = _knob(
-        "none", "where metric scale comes from: 'none' (VO units), 'ground_plane' (needs camera_height_m) or "
-        "'wheel_odometry' (reads wheel_odometry_topic)", choices=SCALE_SOURCES)
+    scale_source: ScaleSourceKind = _knob(
+        ScaleSourceKind.NONE, "where metric scale comes from: 'none' (VO units), 'ground_plane' (needs "
+        "camera_height_m) or 'wheel_odometry' (reads wheel_odometry_topic)", mode=ScaleSourceKind)
     camera_height_m: float = _knob(0.0, "height of the camera's optical centre above the floor (m; ground_plane; "
                                    "0: not set)", 0.01, 100.0, off=0.0)
     camera_height_rel_sigma: float = _knob(
         0.02, "relative uncertainty (1 sigma) of camera_height_m: common to every floor measurement, so the metric "
         "scale is never known better (ground_plane)", 0.0, 1.0)
-    wheel_odometry_topic: str = _knob("/odom", "nav_msgs/Odometry topic of the wheel odometry (wheel_odometry)")
+    wheel_odometry_topic: str = _knob(
+        "odom", "nav_msgs/Odometry topic of the wheel odometry (wheel_odometry); relative names resolve in the "
+        "node's namespace (epi-vo replay reads a bag's as the root namespace's: odom is /odom)")
     wheel_odometry_rel_sigma: float = _knob(
         0.03, "relative calibration error (1 sigma) of the wheel distances (tyre radius): common to every keyframe, "
         "so the metric scale is never known better; their random error is measured from their spread", 0.001, 1.0)
@@ -206,6 +265,15 @@ class VoConfig:
     lost_rotation_variance: float = _knob(1.0e2, "rotation variance (rad^2) reported when no pose can be justified "
                                           "(a turn known within a radian is no unknown one)", 1.0, 1.0e6)
 
+    def __post_init__(self) -> None:
+        """A mode given as its text becomes its member: the one conversion (a text no member has is left for
+        :func:`validate` to name)."""
+        for f in _MODE_FIELDS:
+            value = getattr(self, f.name)
+            mode = f.metadata["mode"]
+            if isinstance(value, str) and not isinstance(value, mode) and value in choices_of(mode):
+                object.__setattr__(self, f.name, mode(value))
+
 
 def config_fields() -> tuple[dataclasses.Field[Any], ...]:
     """The config fields in declaration order (for declaring ROS parameters)."""
@@ -213,6 +281,7 @@ def config_fields() -> tuple[dataclasses.Field[Any], ...]:
 
 
 PIPELINE_NAMES: tuple[str, ...] = tuple(f.name for f in config_fields())
+_MODE_FIELDS = tuple(f for f in config_fields() if f.metadata.get("mode") is not None)
 
 
 def field_doc(f: dataclasses.Field[Any]) -> str:
@@ -238,6 +307,10 @@ def validate(cfg: VoConfig) -> None:
     for f in config_fields():
         value = getattr(cfg, f.name)
         kind = type(f.default)
+        if (mode := f.metadata.get("mode")) is not None:
+            if not isinstance(value, mode):
+                problems.append(f"{f.name}={shown(value)} (choose one of {', '.join(choices_of(mode))})")
+            continue
         if kind is float and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)
         if not isinstance(value, kind) or isinstance(value, bool) != isinstance(f.default, bool):
@@ -246,10 +319,8 @@ def validate(cfg: VoConfig) -> None:
         if isinstance(value, float) and not math.isfinite(value):
             problems.append(f"{f.name}={value!r} (not finite)")
             continue
-        lo, hi, choices = f.metadata.get("min"), f.metadata.get("max"), f.metadata.get("choices")
+        lo, hi = f.metadata.get("min"), f.metadata.get("max")
         off = f.metadata.get("off")
-        if choices is not None and value not in choices:
-            problems.append(f"{f.name}={value!r} (choose one of {', '.join(choices)})")
         if off is not None and value == off:
             continue
         if lo is not None and value < lo:
@@ -260,10 +331,11 @@ def validate(cfg: VoConfig) -> None:
         problems.append(f"klt_window_px={cfg.klt_window_px} (must be odd)")
     if isinstance(cfg.klt_patch_refine_px, int) and cfg.klt_patch_refine_px and cfg.klt_patch_refine_px % 2 == 0:
         problems.append(f"klt_patch_refine_px={cfg.klt_patch_refine_px} (0, or odd)")
-    if cfg.scale_source == "ground_plane" and isinstance(cfg.camera_height_m, float) and not cfg.camera_height_m > 0:
+    if cfg.scale_source is ScaleSourceKind.GROUND_PLANE and isinstance(cfg.camera_height_m, float) \
+            and not cfg.camera_height_m > 0:
         problems.append("scale_source='ground_plane' needs camera_height_m > 0 (height of the camera's optical "
                         "centre above the floor, m)")
-    if cfg.scale_source == "wheel_odometry" and isinstance(cfg.wheel_odometry_topic, str) \
+    if cfg.scale_source is ScaleSourceKind.WHEEL_ODOMETRY and isinstance(cfg.wheel_odometry_topic, str) \
             and not cfg.wheel_odometry_topic.strip():
         problems.append("scale_source='wheel_odometry' needs wheel_odometry_topic (a nav_msgs/Odometry topic)")
     if problems:

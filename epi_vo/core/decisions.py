@@ -77,7 +77,7 @@ class Decision(enum.Enum):
     # --- keyframes, map, window and scale -----------------------------------------------------------
     KEYFRAME_WITHOUT_DEPTH = "keyframe_without_depth"  # a keyframe at low parallax: no new depth
     WINDOW_WORKER_FAILED = "window_worker_failed"  # the adjustment's worker stopped (``text``)
-    METRIC_SCALE_PENDING = "metric_scale_pending"  # metres asked for, not established: position held
+    METRIC_SCALE_PENDING = "metric_scale_pending"  # metres asked for, not established: the pose in VO units
 
 
 @dataclass(frozen=True)

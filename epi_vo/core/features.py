@@ -15,12 +15,15 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from epi_vo.core.config import VoConfig
+from epi_vo.core.config import Frontend, VoConfig
 from epi_vo.core.decisions import Decision, Note, note
 
 F32 = NDArray[np.float32]
 Mask = NDArray[np.bool_]
 
+# Iterations stop when the window moves less than a hundredth of a pixel (Lucas-Kanade) or three hundredths
+# (corner refinement): an order below the tracks' own noise, so a later iteration changes no decision; the
+# counts only bound the work on a window that does not converge (an ambiguous or blurred patch).
 _LK_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 10, 0.03)
 
@@ -67,7 +70,7 @@ def min_image_side(cfg: VoConfig) -> int:
 
     KLT needs its window twice over (corner refinement and the LK search); ORB its descriptor border.
     """
-    if cfg.frontend == "orb":
+    if cfg.frontend is Frontend.ORB:
         return _ORB_MIN_SIDE_PX
     return 2 * cfg.klt_window_px + 2
 
@@ -115,8 +118,10 @@ def detect_corners(gray: NDArray[np.uint8], existing: F32, cfg: VoConfig) -> F32
 # measured on the tracks themselves (the median ratio of 5x5 patch means at both ends, over the leading
 # EXPOSURE_MAX_TRACKS rows; from the image means when fewer than EXPOSURE_MIN_TRACKS survived). When it
 # moves the mean grey level by EXPOSURE_MIN_LEVELS or more, the current image is scaled onto the previous
-# one and tracked again; the second attempt is taken unless it keeps fewer of those tracks. On the
-# bundled bags (no exposure changes) the estimate moved the mean by at most 4.5 levels.
+# one and tracked again; the second attempt is taken unless it keeps fewer of those tracks. Without an
+# exposure change the estimate still moves by a few levels (under 5: each patch's view changes): the
+# threshold is about twice that noise. The track counts bound the median's noise from below and its cost
+# from above.
 EXPOSURE_MIN_LEVELS = 10.0
 EXPOSURE_MIN_TRACKS = 20
 EXPOSURE_MAX_TRACKS = 100
@@ -227,8 +232,8 @@ def _klt_both_ways(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pt
                                           criteria=_LK_CRITERIA)
     # Backward pass seeded with the start points: a good track converges there at once, so the
     # full-resolution level alone suffices (0.9 ms instead of 1.6 with two levels, 200 points); a bad
-    # one does not come back. Without the coarse level the check is also stricter: it dropped the
-    # tracks behind ground_robot's rare 0.1-0.35 deg rotation errors between frames.
+    # one does not come back. Without the coarse level the check is also stricter: it drops the few tracks
+    # behind occasional rotation errors of tenths of a degree between frames.
     p0b, st2, _ = cv2.calcOpticalFlowPyrLK(gray_cur, gray_prev, p1, p0.copy(), winSize=win, maxLevel=0,
                                            criteria=_LK_CRITERIA, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
     p1 = p1.reshape(-1, 2)

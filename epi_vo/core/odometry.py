@@ -28,7 +28,7 @@ F64 = NDArray[np.float64]
 R_BASE_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 # Reported for twist when no motion estimate justifies it (finite, never 1e308: consumers square it).
-_UNKNOWN_TWIST_VARIANCE = 1.0e4
+UNKNOWN_TWIST_VARIANCE = 1.0e4
 
 
 def default_T_base_cam() -> F64:
@@ -118,7 +118,7 @@ class OdometryConverter:
         """One odometry sample. ``step_cov_w`` (the frame's ``step_covariance``, odometry frame of the
         pipeline) is the covariance of the motion since the previous frame: the twist's covariance is
         it over dt^2, in the child frame. Without it, the pose covariance gained over the step is used.
-        After a frame without a pose the twist is unknown (zero, ``_UNKNOWN_TWIST_VARIANCE``).
+        After a frame without a pose the twist is unknown (zero, ``UNKNOWN_TWIST_VARIANCE``).
         ``correction_w`` (the frame's ``correction``): the windowed adjustment moved the odometry frame's
         poses by it at this frame; the twist is the motion from the previous pose as moved, not the jump."""
         if correction_w is not None:
@@ -132,11 +132,11 @@ class OdometryConverter:
         R_ob = T_odom_base[:3, :3]
         cov_odom = self.odom_covariance(cov_w)
         lin, ang = np.zeros(3), np.zeros(3)
-        twist_cov = np.eye(6) * _UNKNOWN_TWIST_VARIANCE
+        twist_cov = np.eye(6) * UNKNOWN_TWIST_VARIANCE
         if has_pose and self._prev is not None and stamp_ns > self._prev[0]:
             lin, ang, twist_cov = self._twist(stamp_ns, T_odom_base, cov_odom)
             dt = (stamp_ns - self._prev[0]) * 1e-9
-            if step_cov_w is not None and np.all(np.isfinite(twist_cov)) and twist_cov[0, 0] < _UNKNOWN_TWIST_VARIANCE:
+            if step_cov_w is not None and np.all(np.isfinite(twist_cov)) and twist_cov[0, 0] < UNKNOWN_TWIST_VARIANCE:
                 step_base = rotate_covariance(self.odom_covariance(step_cov_w), R_ob.T)
                 step_twist = step_base / (dt * dt)
                 if np.all(np.isfinite(step_twist)):
@@ -170,7 +170,7 @@ class OdometryConverter:
             twist_cov = np.diag(step_var / (dt * dt))
             if not (np.all(np.isfinite(lin)) and np.all(np.isfinite(ang)) and np.all(np.isfinite(twist_cov))):
                 # A step too short for the motion (nanoseconds apart): no usable velocity this frame.
-                return np.zeros(3), np.zeros(3), np.eye(6) * _UNKNOWN_TWIST_VARIANCE
+                return np.zeros(3), np.zeros(3), np.eye(6) * UNKNOWN_TWIST_VARIANCE
         return lin, ang, twist_cov
 
 

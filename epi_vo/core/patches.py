@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from epi_vo.core.config import VoConfig
+from epi_vo.core.config import Frontend, VoConfig
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
@@ -239,4 +239,5 @@ class PatchTemplates:
 
 def patch_templates(cfg: VoConfig) -> PatchTemplates | None:
     """The refinement ``cfg`` asks for: None when ``klt_patch_refine_px`` is 0 or the frontend is not KLT."""
-    return PatchTemplates.empty(cfg.klt_patch_refine_px) if cfg.klt_patch_refine_px and cfg.frontend == "klt" else None
+    refine = cfg.klt_patch_refine_px and cfg.frontend is Frontend.KLT
+    return PatchTemplates.empty(cfg.klt_patch_refine_px) if refine else None

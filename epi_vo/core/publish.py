@@ -97,13 +97,11 @@ def publish(state: TrackState, cfg: VoConfig, stamp_ns: int, tracking: TrackingS
         cov[:3, :3] += np.eye(3) * cfg.lost_position_variance
         cov[3:, 3:] += np.eye(3) * cfg.lost_rotation_variance
     T_out = state.T_w_c
-    held_at_origin = has_pose and state.scale.metric_source and not state.scale.established
-    if held_at_origin:
-        # Metres were asked for and the scale is not known yet: the position holds where the map started
-        # (nothing in VO units is published as metres) and its covariance says so.
-        T_out = T_out.copy()
-        T_out[:3, 3] = state.map_scale.origin_w
-        cov[:3, :3] += np.eye(3) * cfg.lost_position_variance
+    if has_pose and state.scale.metric_source and not state.scale.established:
+        # Metres were asked for and the scale is not known yet: the pose is the map's, in VO units, and the
+        # record says so (``scale.units``). What a robot may fuse is the front doors' decision
+        # (``epi_vo.runner.outputs``: the position held with the "unknown" variance, nothing in VO units as
+        # metres).
         notes = (*notes, note(Decision.METRIC_SCALE_PENDING))
     elif state.scale.established:
         cov[:3, :3] += state.map_scale.systematic(state.scale, T_out[:3, 3])
@@ -127,7 +125,7 @@ def publish(state: TrackState, cfg: VoConfig, stamp_ns: int, tracking: TrackingS
         moving_fraction=o.n_moving / n_tracked if n_tracked else 0.0, moving_region=o.moving_region,
         static_score=o.static_score, focal_ratio=_finite_or_nan(o.focal_ratio),
         track_noise_px=_finite_or_nan(o.track_noise_px), n_refined=o.n_refined,
-        correction=None if o.correction is None or held_at_origin else frozen(o.correction),
+        correction=None if o.correction is None else frozen(o.correction),
         skipped=skipped, problem=problem,
         step_covariance=None if step_covariance is None else frozen(covm.floored(step_covariance)))
     return dataclasses.replace(state, index=state.index + 1), result

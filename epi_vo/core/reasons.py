@@ -137,7 +137,7 @@ _TEXT: dict[Decision, str | Callable[[Details], str]] = {
     Decision.E_DISAGREES_WITH_MAP: _suspect,
     Decision.KEYFRAME_WITHOUT_DEPTH: "keyframe without parallax: no new depth",
     Decision.WINDOW_WORKER_FAILED: "{text}",
-    Decision.METRIC_SCALE_PENDING: "metric scale not established yet: position held",
+    Decision.METRIC_SCALE_PENDING: "metric scale not established yet: VO units",
 }
 
 

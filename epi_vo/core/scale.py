@@ -31,6 +31,7 @@ held where the map started, with a covariance that says the scale is unknown.
 from __future__ import annotations
 
 import dataclasses
+import enum
 import math
 from dataclasses import dataclass, field
 from typing import ClassVar, Self
@@ -38,7 +39,7 @@ from typing import ClassVar, Self
 import numpy as np
 from numpy.typing import NDArray
 
-from epi_vo.core.config import VoConfig
+from epi_vo.core.config import ScaleSourceKind, VoConfig
 from epi_vo.core.floor import LEVEL_UP, GroundPlane, find_floor
 
 # re-exported: callers name the wheel buffer through the scale stage
@@ -67,6 +68,13 @@ WHEEL_STEPS = 500  # keyframe steps remembered for the wheel measurement (it nee
 NEW_MAP_REL_STD = 0.3
 
 
+class Units(enum.StrEnum):
+    """What a length is measured in."""
+
+    METRES = "m"  # a metric scale source is established
+    VO = "vo"  # VO units: the first map's keyframe baseline is 1
+
+
 @dataclass(frozen=True)
 class ScaleStatus:
     """What a frame's record and diagnostics say about scale.
@@ -77,7 +85,7 @@ class ScaleStatus:
     plane only, NaN otherwise); ``reason`` why the source gave no measurement at the last keyframe.
     """
 
-    source: str = "none"
+    source: ScaleSourceKind = ScaleSourceKind.NONE
     metric: bool = False
     scale: float = 1.0
     rel_std: float = math.nan
@@ -87,9 +95,9 @@ class ScaleStatus:
     wheel: WheelInputCounts | None = None  # wheel_odometry: the messages received and what became of them
 
     @property
-    def units(self) -> str:
-        """'m' when positions are metres, 'vo' for VO units."""
-        return "m" if self.metric else "vo"
+    def units(self) -> Units:
+        """METRES ('m') when positions are metres, VO ('vo') for VO units."""
+        return Units.METRES if self.metric else Units.VO
 
 
 @dataclass(frozen=True)
@@ -195,7 +203,7 @@ class ScaleSource:
     """A scale source and what it remembers between keyframes, frozen: every call that learns returns the
     source after it (``VoUnitsScale`` is the plain one)."""
 
-    name: ClassVar[str] = "none"
+    name: ClassVar[ScaleSourceKind] = ScaleSourceKind.NONE
     metric_source: ClassVar[bool] = False
 
     filter: ScaleFilter
@@ -293,7 +301,7 @@ class VoUnitsScale(ScaleSource):
 class GroundPlaneScale(ScaleSource):
     """Metric scale from the floor: ``camera_height_m`` over the floor's distance in map units."""
 
-    name: ClassVar[str] = "ground_plane"
+    name: ClassVar[ScaleSourceKind] = ScaleSourceKind.GROUND_PLANE
     metric_source: ClassVar[bool] = True
 
     camera_height_m: float
@@ -394,7 +402,7 @@ class WheelOdometryScale(ScaleSource):
     the sum of their VO step lengths (kept in the current map's units as corrections are applied).
     """
 
-    name: ClassVar[str] = "wheel_odometry"
+    name: ClassVar[ScaleSourceKind] = ScaleSourceKind.WHEEL_ODOMETRY
     metric_source: ClassVar[bool] = True
 
     rel_sigma: float
@@ -450,12 +458,12 @@ class WheelOdometryScale(ScaleSource):
 def source_from_config(cfg: VoConfig) -> ScaleSource:
     """The scale source ``cfg.scale_source`` names, before any keyframe."""
     f = ScaleFilter(cfg.scale_drift_per_keyframe)
-    if cfg.scale_source == "ground_plane":
+    if cfg.scale_source is ScaleSourceKind.GROUND_PLANE:
         return GroundPlaneScale(filter=f, camera_height_m=cfg.camera_height_m, max_tilt_deg=cfg.ground_max_tilt_deg,
                                 inlier_ratio=cfg.ground_inlier_ratio, min_points=cfg.ground_min_points,
                                 systematic_rel=cfg.camera_height_rel_sigma,
                                 fit_min_rel_std=cfg.ground_fit_min_rel_sigma)
-    if cfg.scale_source == "wheel_odometry":
+    if cfg.scale_source is ScaleSourceKind.WHEEL_ODOMETRY:
         return WheelOdometryScale(filter=f, rel_sigma=cfg.wheel_odometry_rel_sigma,
                                   systematic_rel=cfg.wheel_odometry_rel_sigma,
                                   timeout_ns=int(cfg.wheel_odometry_timeout_s * 1e9),

@@ -71,10 +71,3 @@ def frame_status(result: FrameResult, node_name: str, hardware_id: str,
     record["position_frame"] = f"{pose.frame} -> {pose.child_frame}" if pose is not None else CAMERA_POSITION_FRAME
     values = tuple((k, _fmt(v)) for k, v in record.items())
     return DiagnosticStatusRecord(level, f"{node_name}: tracking", message, hardware_id, values)
-
-
-def summary_status(node_name: str, hardware_id: str, level: DiagnosticLevel, message: str,
-                   values: tuple[tuple[str, str], ...]) -> DiagnosticStatusRecord:
-    """The node's once-a-second status, in diagnostic_updater's style: ``<node_name>: summary``, the worst
-    level of what it summarises, one message, and key/values (input, transport, extrinsic, ...)."""
-    return DiagnosticStatusRecord(level, f"{node_name}: summary", message, hardware_id, values)

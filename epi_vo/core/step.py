@@ -30,7 +30,7 @@ from epi_vo.core import covariance as covm
 from epi_vo.core import features as fe
 from epi_vo.core import motion as mo
 from epi_vo.core.camera import CameraModel
-from epi_vo.core.config import VoConfig
+from epi_vo.core.config import Frontend, VoConfig
 from epi_vo.core.decisions import Decision, Note, note
 from epi_vo.core.frame import MAX_STAMP_NS, FrameResult, Matches, TrackingState, clamp_stamp_ns
 from epi_vo.core.keyframe import Keyframe
@@ -66,7 +66,7 @@ class StepEnv:
 
     @staticmethod
     def of(cfg: VoConfig, workers: Workers) -> StepEnv:
-        return StepEnv(cfg, workers, fe.make_orb(cfg) if cfg.frontend == "orb" else None)
+        return StepEnv(cfg, workers, fe.make_orb(cfg) if cfg.frontend is Frontend.ORB else None)
 
 
 def _ms(t0: float) -> float:
@@ -223,7 +223,7 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
         H = sel.H if sel.H is not None else H
         timings["models"] = _ms(t0)
         ctx = mo.MotionContext(kf, rows_u, xn_u, uv_u, state.T_cur_kf_prev, state.scale.initial_baseline,
-                               _noise_since(state, kf, cfg), cfg.frontend == "klt", stamp_ns)
+                               _noise_since(state, kf, cfg), cfg.frontend is Frontend.KLT, stamp_ns)
         est = mo.estimate(cfg, ctx, sel, state.motion)
         state = dataclasses.replace(state, motion=est.memory)
         notes = notes + est.notes
@@ -296,7 +296,7 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
 def _noise_since(state: TrackState, kf: Keyframe, cfg: VoConfig) -> float:
     """The image noise the tracks gathered since ``kf`` for the pose's covariance (``MotionContext.noise_sq``);
     ORB matches the keyframe directly: 1 (``pixel_noise_px``)."""
-    if cfg.frontend != "klt" or state.tracked_noise.kf_index != kf.index:
+    if cfg.frontend is not Frontend.KLT or state.tracked_noise.kf_index != kf.index:
         return 1.0
     return state.tracked_noise.noise_sq
 

@@ -3,7 +3,7 @@
 ``open_camera_bag`` opens a rosbag2 directory (MCAP or sqlite3 storage) or a bare ``.mcap`` /
 ``.db3`` file, picks the image, camera_info and ground-truth topics, and yields ``BagFrame`` records
 in bag order. Messages are rosbags dataclasses; ``epi_vo.io.msgconv`` reads them by field name.
-``CameraTopicsBag`` gives the raw CDR bytes of the same topics (what ``epi-vo play`` republishes).
+``epi_vo.io.play_bag`` gives the raw CDR bytes of the topics the node consumes (what ``epi-vo play`` republishes).
 Writing results is ``epi_vo.io.outbag``; TUM trajectories ``epi_vo.io.tum``.
 
 Every failure to read as asked is a BagError with a one-line message naming the bag and the reason
@@ -14,22 +14,29 @@ from __future__ import annotations
 
 import bisect
 import logging
-import re
-import struct
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple, Self
 
 import numpy as np
 from numpy.typing import NDArray
-from rosbags.highlevel import AnyReader, AnyReaderError
-from rosbags.rosbag2 import ReaderError
-from rosbags.serde import SerdeError
-from rosbags.typesys import Stores, get_typestore
+from rosbags.highlevel import AnyReader
 
 from epi_vo.core.camera import CameraModelCache
 from epi_vo.core.errors import BagError, EpiVoError
 from epi_vo.core.frame import clamp_stamp_ns
+from epi_vo.io.bag_topics import (
+    CAMERA_INFO_KIND,
+    COMPRESSED_IMAGE_TYPE,
+    DECODE_ERRORS,
+    IMAGE_KIND,
+    READ_ERRORS,
+    TYPESTORE,
+    WHEEL_KIND,
+    choose_topic,
+    ground_truth_topic,
+    required_topic,
+)
 from epi_vo.io.msgconv import (
     decode_frame,
     odometry_position,
@@ -47,51 +54,12 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-IMAGE_TYPE = "sensor_msgs/msg/Image"
-COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"
-CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
-POSE_STAMPED_TYPE = "geometry_msgs/msg/PoseStamped"
-ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
-POINT_CLOUD2_TYPE = "sensor_msgs/msg/PointCloud2"
-PATH_TYPE = "nav_msgs/msg/Path"
-DIAGNOSTIC_ARRAY_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
-TF_MESSAGE_TYPE = "tf2_msgs/msg/TFMessage"
-
 ODOMETRY_TOPIC = "/vo/odometry"
+VO_UNITS_ODOMETRY_TOPIC = "/vo/odometry/vo_units"  # the motion in VO units (frames in no TF tree)
 POINTS_TOPIC = "/vo/points"
 PATH_TOPIC = "/vo/path"
-DIAGNOSTICS_TOPIC = "/diagnostics"
+FRAME_STATUS_TOPIC = "/vo/frame_status"  # the per-frame statuses, as vo_node publishes them
 TF_TOPIC = "/tf"
-
-# Message definitions for serialising output and for bags recorded without them (old sqlite3).
-_TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
-
-# What rosbags raises for a missing, truncated or corrupt bag (it wraps most parser errors in its own;
-# a metadata.yaml that is not UTF-8, or holds a field of the wrong type, comes out as the builtin errors).
-_READ_ERRORS = (
-    AnyReaderError,
-    ReaderError,
-    SerdeError,
-    OSError,
-    UnicodeDecodeError,
-    KeyError,
-    TypeError,
-    ValueError,
-)
-# What deserialising the CDR bytes of one damaged message can raise (AnyReader.deserialize wraps
-# rosbags' SerdeError in AnyReaderError): that message is bad input, the bag goes on.
-_DECODE_ERRORS = (
-    AnyReaderError,
-    SerdeError,
-    ValueError,
-    TypeError,
-    IndexError,
-    KeyError,
-    AttributeError,
-    OverflowError,
-    struct.error,
-)
-
 
 # --------------------------------------------------------------------------------------------------
 # Reading
@@ -135,133 +103,12 @@ class GroundTruth:
     quats_xyzw: NDArray[np.float64]
 
 
-@dataclass(frozen=True)
-class _TopicKind:
-    label: str  # for messages: 'sensor_msgs/Image or CompressedImage'
-    msgtypes: frozenset[str]
-    flag: str  # command-line flag that chooses the topic
-
-
-_IMAGE_KIND = _TopicKind(
-    "sensor_msgs/Image or CompressedImage",
-    frozenset({IMAGE_TYPE, COMPRESSED_IMAGE_TYPE}),
-    "--image-topic",
-)
-_CAMERA_INFO_KIND = _TopicKind(
-    "sensor_msgs/CameraInfo", frozenset({CAMERA_INFO_TYPE}), "--camera-info-topic"
-)
-_GT_KIND = _TopicKind(
-    "geometry_msgs/PoseStamped or nav_msgs/Odometry",
-    frozenset({POSE_STAMPED_TYPE, ODOMETRY_TYPE}),
-    "--gt-topic",
-)
-
-
-_WHEEL_KIND = _TopicKind("nav_msgs/Odometry", frozenset({ODOMETRY_TYPE}), "wheel_odometry_topic")
-
-
-def _describe_topics(topic_types: dict[str, str | None]) -> str:
-    if not topic_types:
-        return "(none)"
-    return ", ".join(
-        f"{name} ({msgtype or 'mixed types'})" for name, msgtype in topic_types.items()
-    )
-
-
-def _camera_namespace(topic: str) -> str:
-    """'/cam0/image_raw', '/cam0/image_raw/compressed' and '/cam0/camera_info' all give '/cam0'."""
-    topic = topic.rstrip("/")
-    topic = topic.removesuffix("/compressed")
-    return topic.rsplit("/", 1)[0]
-
-
-def _choose_topic(
-    topic_types: dict[str, str | None],
-    kind: _TopicKind,
-    explicit: str | None,
-    sibling_of: str | None = None,
-) -> str | None:
-    """The topic of ``kind``: ``explicit`` if given, else the only candidate; None if none.
-
-    With several candidates and ``sibling_of`` set, the single candidate in the same namespace is
-    taken (image_transport pairs '/cam0/image_raw' with '/cam0/camera_info'); otherwise BagError
-    lists them.
-    """
-    if explicit is not None:
-        if explicit not in topic_types:
-            msg = (
-                f"{kind.flag} {explicit!r} is not in the bag; "
-                f"topics: {_describe_topics(topic_types)}"
-            )
-            raise BagError(msg)
-        if topic_types[explicit] not in kind.msgtypes:
-            msg = (
-                f"{kind.flag} {explicit!r} has type {topic_types[explicit]}, expected {kind.label}"
-            )
-            raise BagError(msg)
-        return explicit
-
-    candidates = [name for name, msgtype in topic_types.items() if msgtype in kind.msgtypes]
-    if len(candidates) <= 1:
-        return candidates[0] if candidates else None
-    if sibling_of is not None:
-        siblings = [x for x in candidates if _camera_namespace(x) == _camera_namespace(sibling_of)]
-        if len(siblings) == 1:
-            return siblings[0]
-    msg = (
-        f"bag has several {kind.label} topics: {', '.join(candidates)}; choose one with {kind.flag}"
-    )
-    raise BagError(msg)
-
-
-_GT_WORDS = ("gt", "groundtruth")
-
-
-def is_ground_truth_name(topic: str) -> bool:
-    """Whether a topic is named as ground truth: a part of its name (between '/', '_' or '-', any case) is
-    ``gt`` or ``groundtruth``, or two neighbouring parts are ``ground`` and ``truth`` (``/ground_truth/pose``,
-    ``/gt/odom``, ``/mocap/pose_gt``). A pose topic named otherwise (``/wheel/odom``, ``/odom``,
-    ``/vicon/pose``) is the robot's own estimate or a sensor as far as a bag can tell: ground truth only
-    when chosen with ``--gt-topic``."""
-    words = [w for w in re.split(r"[/_\-]+", topic.lower()) if w]
-    pairs = ("".join(words[i:i + 2]) for i in range(len(words) - 1))
-    return any(w in _GT_WORDS for w in words) or "groundtruth" in pairs
-
-
-def _ground_truth_topic(topic_types: dict[str, str | None], explicit: str | None,
-                        wheel_topic: str | None) -> str | None:
-    """The ground-truth topic (see :func:`open_camera_bag`); None when the bag has none."""
-    if explicit is not None:
-        _choose_topic(topic_types, _GT_KIND, explicit)
-        if explicit == wheel_topic:
-            msg = (f"--gt-topic {explicit!r} is the wheel odometry topic, the scale source: ground truth must "
-                   "be independent of what it judges")
-            raise BagError(msg)
-        return explicit
-    named = {k: v for k, v in topic_types.items() if k != wheel_topic and is_ground_truth_name(k)}
-    return _choose_topic(named, _GT_KIND, None)
-
-
-def _required_topic(
-    topic_types: dict[str, str | None],
-    kind: _TopicKind,
-    explicit: str | None,
-    sibling_of: str | None = None,
-) -> str:
-    """``_choose_topic`` for a kind the bag must have."""
-    topic = _choose_topic(topic_types, kind, explicit, sibling_of)
-    if topic is None:
-        msg = f"bag has no {kind.label} topic; topics: {_describe_topics(topic_types)}"
-        raise BagError(msg)
-    return topic
-
-
 def _message_count(path: Path, topics: Any, topic: str) -> int:
     """The message count the bag announces for ``topic``; BagError when its metadata says no number."""
     try:
         count = topics[topic].msgcount
         return int(count)
-    except (*_READ_ERRORS, AttributeError) as err:
+    except (*READ_ERRORS, AttributeError) as err:
         msg = f"bag {path} has malformed metadata: message count of {topic}: {err}"
         raise BagError(msg) from err
 
@@ -366,7 +213,7 @@ class CameraBag:
             for connection, log_time_ns, rawdata in reader.messages(self._connections[topic]):
                 try:
                     message = reader.deserialize(rawdata, connection.msgtype)
-                except _DECODE_ERRORS as err:
+                except DECODE_ERRORS as err:
                     reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
                     yield (
                         int(log_time_ns),
@@ -376,7 +223,7 @@ class CameraBag:
                     )
                     continue
                 yield int(log_time_ns), message, None
-        except _READ_ERRORS as err:
+        except READ_ERRORS as err:
             msg = f"cannot read {topic} from bag {self.path}: {err}"
             raise BagError(msg) from err
 
@@ -520,9 +367,9 @@ def open_camera_bag(
         _check_metadata_text(path)
 
     try:
-        reader = AnyReader([path], default_typestore=_TYPESTORE)
+        reader = AnyReader([path], default_typestore=TYPESTORE)
         reader.open()
-    except _READ_ERRORS as err:
+    except READ_ERRORS as err:
         msg = f"cannot open bag {path}: {err}"
         raise BagError(msg) from err
 
@@ -531,22 +378,22 @@ def open_camera_bag(
             # rosbags parses the metadata lazily: a field of the wrong type surfaces here.
             message_count = int(reader.message_count)
             topic_types = {name: info.msgtype for name, info in reader.topics.items()}
-        except (*_READ_ERRORS, AttributeError) as err:
+        except (*READ_ERRORS, AttributeError) as err:
             msg = f"bag {path} has malformed metadata: {err}"
             raise BagError(msg) from err
         if message_count == 0:
             msg = f"bag {path} is empty (no messages)"
             raise BagError(msg)
-        chosen_image = _required_topic(topic_types, _IMAGE_KIND, image_topic)
+        chosen_image = required_topic(topic_types, IMAGE_KIND, image_topic)
         if _message_count(path, reader.topics, chosen_image) == 0:
             msg = f"image topic {chosen_image} in bag {path} has no messages"
             raise BagError(msg)
-        chosen_info = _required_topic(
-            topic_types, _CAMERA_INFO_KIND, camera_info_topic, sibling_of=chosen_image
+        chosen_info = required_topic(
+            topic_types, CAMERA_INFO_KIND, camera_info_topic, sibling_of=chosen_image
         )
         if wheel_topic is not None:
-            _choose_topic(topic_types, _WHEEL_KIND, wheel_topic)
-        chosen_gt = None if no_ground_truth else _ground_truth_topic(topic_types, gt_topic, wheel_topic)
+            choose_topic(topic_types, WHEEL_KIND, wheel_topic)
+        chosen_gt = None if no_ground_truth else ground_truth_topic(topic_types, gt_topic, wheel_topic)
         bag = CameraBag(path, reader, chosen_image, chosen_info, chosen_gt, wheel_topic)
     except BaseException:
         reader.close()
@@ -573,87 +420,7 @@ class WheelOdometrySamples(NamedTuple):
     positions: NDArray[np.float64]
 
 
-class BagMessage(NamedTuple):
-    """One recorded message: log time (ns), bag topic, raw CDR bytes as stored."""
-
-    log_time_ns: int
-    topic: str
-    rawdata: bytes
-
-
-class CameraTopicsBag:
-    """A rosbag2 bag opened for playing its image and camera_info topics: raw CDR bytes, no
-    deserialisation (``epi-vo play`` republishes them as they are).
-
-    Raises BagError (one line, naming the bag) for a missing path, a bag that cannot be opened, a
-    ROS 1 bag, and missing, empty or ambiguous topics.
-    """
-
-    def __init__(self, path: str | Path, image_topic: str | None = None,
-                 camera_info_topic: str | None = None) -> None:
-        self.path = check_bag_path(path)
-        try:
-            reader = AnyReader([self.path], default_typestore=_TYPESTORE)
-            reader.open()
-        except _READ_ERRORS as err:
-            msg = f"cannot open bag {self.path}: {err}"
-            raise BagError(msg) from err
-        self._reader: AnyReader | None = reader
-        try:
-            if not reader.is2:
-                msg = f"{self.path} is a ROS 1 bag; play publishes ROS 2 (rosbag2, CDR) bags only"
-                raise BagError(msg)
-            topic_types = {name: info.msgtype for name, info in reader.topics.items()}
-            self.image_topic = _required_topic(topic_types, _IMAGE_KIND, image_topic)
-            self.camera_info_topic = _required_topic(topic_types, _CAMERA_INFO_KIND, camera_info_topic,
-                                                     sibling_of=self.image_topic)
-            self.image_count = int(reader.topics[self.image_topic].msgcount)
-            if self.image_count == 0:
-                msg = f"image topic {self.image_topic} in bag {self.path} has no messages"
-                raise BagError(msg)
-            self.camera_info_count = int(reader.topics[self.camera_info_topic].msgcount)
-            self.image_msgtype = str(topic_types[self.image_topic])
-            self._connections = [c for c in reader.connections
-                                 if c.topic in (self.image_topic, self.camera_info_topic)]
-        except BaseException:
-            self.close()
-            raise
-
-    @property
-    def image_is_compressed(self) -> bool:
-        return self.image_msgtype == COMPRESSED_IMAGE_TYPE
-
-    def msgtype(self, topic: str) -> str:
-        """ROS type name ('sensor_msgs/msg/CameraInfo') of a chosen topic."""
-        return CAMERA_INFO_TYPE if topic == self.camera_info_topic else self.image_msgtype
-
-    def messages(self) -> Iterator[BagMessage]:
-        """Image and camera_info messages in bag (log time) order; each call starts from the beginning."""
-        if self._reader is None:
-            msg = f"bag {self.path} is closed"
-            raise BagError(msg)
-        try:
-            for connection, log_time_ns, rawdata in self._reader.messages(self._connections):
-                yield BagMessage(int(log_time_ns), connection.topic, bytes(rawdata))
-        except _READ_ERRORS as err:
-            msg = f"cannot read bag {self.path}: {err}"
-            raise BagError(msg) from err
-
-    def close(self) -> None:
-        """Close the reader; calling it again does nothing."""
-        reader, self._reader = self._reader, None
-        if reader is not None:
-            reader.close()
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc_val: BaseException | None,
-                 exc_tb: TracebackType | None) -> None:
-        self.close()
-
-
 def to_cdr(msg: Any) -> bytes:
     """The CDR bytes of a message read from a bag (a rosbags dataclass), e.g. to hand it to rclpy's
     ``deserialize_message``."""
-    return bytes(_TYPESTORE.serialize_cdr(msg, msg.__msgtype__))
+    return bytes(TYPESTORE.serialize_cdr(msg, msg.__msgtype__))

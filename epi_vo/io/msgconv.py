@@ -52,7 +52,7 @@ class PointFieldSpec(NamedTuple):
     name: str
     offset: int
     datatype: int
-    count: int
+    count: int  # type: ignore[assignment]  # PointField's name, over tuple.count
 
 
 def _bytes_of(data: Any, what: str) -> NDArray[np.uint8]:
@@ -127,10 +127,9 @@ def image_to_gray(msg: Any) -> NDArray[np.uint8]:
         )
         raise ImageConversionError(msg_text)
 
+    sample_dtype: np.dtype[Any] = np.dtype(np.uint8)
     if pixel_format.bytes_per_channel == 2:
         sample_dtype = np.dtype(">u2" if msg.is_bigendian else "<u2")
-    else:
-        sample_dtype = np.dtype(np.uint8)
     # A strided view over the message buffer: rows `step` bytes apart, so padding is never read.
     pixels = np.ndarray(
         shape=(height, width, pixel_format.channels),
@@ -142,8 +141,8 @@ def image_to_gray(msg: Any) -> NDArray[np.uint8]:
     if pixel_format.bytes_per_channel == 2:
         return (pixels[:, :, 0] >> 8).astype(np.uint8)
     if pixel_format.to_gray is None:
-        return np.ascontiguousarray(pixels[:, :, 0])
-    return cv2.cvtColor(np.ascontiguousarray(pixels), pixel_format.to_gray)
+        return np.ascontiguousarray(pixels[:, :, 0], dtype=np.uint8)
+    return np.asarray(cv2.cvtColor(np.ascontiguousarray(pixels), pixel_format.to_gray), dtype=np.uint8)
 
 
 # The most pixels a CompressedImage may declare: beyond every camera a VO runs on (8K is 33 Mpx), and a
@@ -192,7 +191,7 @@ def compressed_to_gray(msg: Any, expected_size: tuple[int, int] | None = None) -
     if gray.shape != (size.height, size.width):  # decoded otherwise than declared: not what was checked
         msg_text = f"{what}: decoded {gray.shape[1]}x{gray.shape[0]}, its header declares {size.width}x{size.height}"
         raise ImageConversionError(msg_text)
-    return gray
+    return np.asarray(gray, dtype=np.uint8)
 
 
 def decode_frame(msg: Any, compressed: bool, expected_size: tuple[int, int] | None = None) -> NDArray[np.uint8]:
@@ -269,7 +268,15 @@ def stamp_problem(stamp: Any) -> str | None:
     return None
 
 
-def odometry_position(msg: Any) -> tuple[int | None, NDArray[np.float64]]:
+class WheelMessage(NamedTuple):
+    """A wheel odometry message as the scale source takes it: its header stamp (None: no valid ROS time) and
+    the position of its pose (m, in its fixed odom frame; NaN where a field is not a number)."""
+
+    stamp_ns: int | None
+    position_xyz: NDArray[np.float64]
+
+
+def odometry_position(msg: Any) -> WheelMessage:
     """A nav_msgs/Odometry message as the wheel odometry buffer takes it (``epi_vo.core.scale.WheelOdometry``,
     the same for the node and the replay): its header stamp in ns, None when that is no valid ROS time, and
     its pose's position (NaN where a field is not a number). Never raises on a message's values."""
@@ -280,7 +287,7 @@ def odometry_position(msg: Any) -> tuple[int | None, NDArray[np.float64]]:
         xyz = np.array([float(p.x), float(p.y), float(p.z)], dtype=np.float64)
     except (TypeError, ValueError):
         xyz = np.full(3, np.nan)
-    return stamp_ns, xyz
+    return WheelMessage(stamp_ns, xyz)
 
 
 def ns_to_ros_time(stamp_ns: int) -> tuple[int, int]:

@@ -14,15 +14,35 @@ and every pipeline knob but ``RESTART_PIPELINE_KNOBS``) may be changed while it 
 from __future__ import annotations
 
 import dataclasses
+import enum
 import math
 from dataclasses import dataclass
 from typing import Any
 
-from epi_vo.core.config import PIPELINE_NAMES, VoConfig, from_dict
-from epi_vo.core.errors import ConfigError
+from numpy.typing import NDArray
 
-IMAGE_TRANSPORTS = ("auto", "raw", "compressed")
-QOS_RELIABILITIES = ("best_effort", "reliable")
+from epi_vo.core.config import PIPELINE_NAMES, VoConfig, choices_of, from_dict, shown
+from epi_vo.core.errors import ConfigError
+from epi_vo.core.odometry import T_base_cam_from_params
+
+
+class ImageTransport(enum.StrEnum):
+    """Which image topics the node subscribes to (converted from the parameter's text once, in NodeOptions)."""
+
+    AUTO = "auto"  # both; the first to deliver is kept
+    RAW = "raw"  # camera/image_raw (sensor_msgs/Image)
+    COMPRESSED = "compressed"  # camera/image_raw/compressed (sensor_msgs/CompressedImage)
+
+
+class QosReliability(enum.StrEnum):
+    """The input subscriptions' QoS reliability (the node maps it onto rclpy's ReliabilityPolicy)."""
+
+    BEST_EFFORT = "best_effort"  # sensor data
+    RELIABLE = "reliable"
+
+
+IMAGE_TRANSPORTS = choices_of(ImageTransport)
+QOS_RELIABILITIES = choices_of(QosReliability)
 
 
 @dataclass(frozen=True)
@@ -35,8 +55,8 @@ class NodeOptions:
     camera_xyz: tuple[float, ...] = (0.0, 0.0, 0.0)
     camera_rpy: tuple[float, ...] = (0.0, 0.0, 0.0)
     tf_timeout_s: float = 2.0
-    image_transport: str = "auto"
-    qos_reliability: str = "best_effort"
+    image_transport: ImageTransport = ImageTransport.AUTO
+    qos_reliability: QosReliability = QosReliability.BEST_EFFORT
     qos_depth: int = 5
     queue_size: int = 2
     process_every_frame: bool = False
@@ -47,6 +67,31 @@ class NodeOptions:
     watchdog_timeout_s: float = 1.0
     camera_info_wait_s: float = 0.2
     hardware_id: str = ""
+
+    def __post_init__(self) -> None:
+        """A mode given as its text becomes its member (a text no member has is left for
+        :func:`node_option_problems` to name)."""
+        for name, mode in _NODE_MODES.items():
+            value = getattr(self, name)
+            if isinstance(value, str) and not isinstance(value, mode) and value in choices_of(mode):
+                object.__setattr__(self, name, mode(value))
+
+
+_NODE_MODES: dict[str, type[enum.StrEnum]] = {"image_transport": ImageTransport, "qos_reliability": QosReliability}
+
+
+@dataclass(frozen=True)
+class CameraExtrinsic:
+    """A camera mounting declared by ``camera_xyz`` / ``camera_rpy`` (what vo_node takes when TF has none), for
+    the offline tools: the replay's odometry and floor search use it as the node does."""
+
+    camera_xyz: tuple[float, ...]
+    camera_rpy: tuple[float, ...]
+
+    @property
+    def T_base_cam(self) -> NDArray[Any]:
+        """4x4, camera optical frame -> base (the optical rotation appended)."""
+        return T_base_cam_from_params(self.camera_xyz, self.camera_rpy)
 
 
 NODE_DOCS: dict[str, str] = {
@@ -80,8 +125,7 @@ NODE_DOCS: dict[str, str] = {
                           "clock) before the nearest earlier one is used",
     "hardware_id": "hardware_id of the diagnostics statuses ('': the image's header.frame_id)",
 }
-NODE_CHOICES: dict[str, tuple[str, ...]] = {"image_transport": IMAGE_TRANSPORTS,
-                                             "qos_reliability": QOS_RELIABILITIES}
+NODE_CHOICES: dict[str, tuple[str, ...]] = {name: choices_of(mode) for name, mode in _NODE_MODES.items()}
 NODE_OPTION_NAMES: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(NodeOptions))
 
 # Node options that may change while the node runs (applied at once); every other one is read-only.
@@ -198,4 +242,4 @@ def apply_changes(cfg: VoConfig, opts: NodeOptions, changes: dict[str, Any]) -> 
 
 def changed_names(old: VoConfig, new: VoConfig) -> list[str]:
     """'name=value' for every knob that differs between two configs, in declaration order."""
-    return [f"{n}={getattr(new, n)!r}" for n in PIPELINE_NAMES if getattr(old, n) != getattr(new, n)]
+    return [f"{n}={shown(getattr(new, n))}" for n in PIPELINE_NAMES if getattr(old, n) != getattr(new, n)]

@@ -22,17 +22,14 @@ from numpy.typing import ArrayLike, NDArray
 from rosbags.typesys import Stores, get_typestore
 
 from epi_vo.core.errors import BagError
+from epi_vo.io.bag_topics import DIAGNOSTIC_ARRAY_TYPE, ODOMETRY_TYPE, PATH_TYPE, POINT_CLOUD2_TYPE, TF_MESSAGE_TYPE
 from epi_vo.io.bagio import (
-    DIAGNOSTIC_ARRAY_TYPE,
-    DIAGNOSTICS_TOPIC,
+    FRAME_STATUS_TOPIC,
     ODOMETRY_TOPIC,
-    ODOMETRY_TYPE,
     PATH_TOPIC,
-    PATH_TYPE,
-    POINT_CLOUD2_TYPE,
     POINTS_TOPIC,
-    TF_MESSAGE_TYPE,
     TF_TOPIC,
+    VO_UNITS_ODOMETRY_TOPIC,
 )
 from epi_vo.io.msgconv import (
     NS_PER_S,
@@ -67,9 +64,10 @@ OUTPUT_LIBRARY = "epi_vo"
 
 _OUTPUT_TOPICS: dict[str, str] = {
     ODOMETRY_TOPIC: ODOMETRY_TYPE,
+    VO_UNITS_ODOMETRY_TOPIC: ODOMETRY_TYPE,
     POINTS_TOPIC: POINT_CLOUD2_TYPE,
     PATH_TOPIC: PATH_TYPE,
-    DIAGNOSTICS_TOPIC: DIAGNOSTIC_ARRAY_TYPE,
+    FRAME_STATUS_TOPIC: DIAGNOSTIC_ARRAY_TYPE,
     TF_TOPIC: TF_MESSAGE_TYPE,
 }
 
@@ -196,12 +194,12 @@ _TIME = struct.Struct("<iI")
 class OutputBag:
     """Write VO results to one MCAP file with the ROS 2 profile (see the module docstring).
 
-    Topics: /vo/odometry (nav_msgs/Odometry), /vo/points (sensor_msgs/PointCloud2), /vo/path
-    (nav_msgs/Path), /diagnostics (diagnostic_msgs/DiagnosticArray), /tf (tf2_msgs/TFMessage); all five
-    channels are declared up front. Stamps are integer nanoseconds; each message is logged at its header
-    stamp (a TFMessage's transforms all carry it). A stamp that is no valid ROS time (outside
-    [0, (2**31 - 1) s + 999999999 ns]) is refused with a BagError before anything of that message is
-    written (the file stays valid and readable).
+    Topics: /vo/odometry and /vo/odometry/vo_units (nav_msgs/Odometry), /vo/points
+    (sensor_msgs/PointCloud2), /vo/path (nav_msgs/Path), /vo/frame_status (diagnostic_msgs/DiagnosticArray),
+    /tf (tf2_msgs/TFMessage); all six channels are declared up front. Stamps are integer nanoseconds; each
+    message is logged at its header stamp (a TFMessage's transforms all carry it). A stamp that is no valid
+    ROS time (outside [0, (2**31 - 1) s + 999999999 ns]) is refused with a BagError before anything of that
+    message is written (the file stays valid and readable).
 
     Use as a context manager: leaving the block, also by an exception or KeyboardInterrupt, writes
     the summary and index so the file stays readable.
@@ -316,14 +314,18 @@ class OutputBag:
         linear_velocity: ArrayLike,
         angular_velocity: ArrayLike,
         twist_covariance: ArrayLike,
+        topic: str = ODOMETRY_TOPIC,
     ) -> None:
-        """nav_msgs/Odometry on /vo/odometry.
+        """nav_msgs/Odometry on ``topic`` (/vo/odometry, or /vo/odometry/vo_units).
 
         Pose ``T_frame_child``: ``position`` (3,) and ``quat_xyzw`` (4,) of ``child_frame_id`` in
         ``frame_id``; twist (3,) + (3,) in ``child_frame_id``; covariances (6, 6) in the ROS order
         (x, y, z, rot x, rot y, rot z), written row-major.
         """
-        stamp_ns = self._check_time(ODOMETRY_TOPIC, stamp_ns)
+        if topic not in (ODOMETRY_TOPIC, VO_UNITS_ODOMETRY_TOPIC):
+            msg = f"{topic} is no odometry topic of an output bag"
+            raise BagError(msg)
+        stamp_ns = self._check_time(topic, stamp_ns)
         values = (
             checked_array(position, (3,), "position"),
             checked_array(quat_xyzw, (4,), "quat_xyzw"),
@@ -338,7 +340,7 @@ class OutputBag:
         # PoseWithCovariance (pose: point, quaternion; covariance) then TwistWithCovariance (twist: linear,
         # angular; covariance): 85 float64 fields with nothing between them.
         message.f64(np.concatenate(values))
-        self._write(ODOMETRY_TOPIC, stamp_ns, message)
+        self._write(topic, stamp_ns, message)
 
     def write_tf(self, stamp_ns: int, transforms: Sequence[tuple[str, str, ArrayLike, ArrayLike]]) -> None:
         """tf2_msgs/TFMessage on /tf: one geometry_msgs/TransformStamped per ``(parent, child, xyz (3,),
@@ -413,8 +415,9 @@ class OutputBag:
         return np.array([self._check_time(topic, int(x)) for x in array], dtype=np.int64)
 
     def write_diagnostics(self, stamp_ns: int, statuses: Sequence[DiagnosticStatusRecord]) -> None:
-        """diagnostic_msgs/DiagnosticArray on /diagnostics, one DiagnosticStatus per record."""
-        stamp_ns = self._check_time(DIAGNOSTICS_TOPIC, stamp_ns)
+        """diagnostic_msgs/DiagnosticArray on /vo/frame_status (as vo_node publishes each frame's), one
+        DiagnosticStatus per record."""
+        stamp_ns = self._check_time(FRAME_STATUS_TOPIC, stamp_ns)
         message = _Cdr()
         message.header(stamp_ns, "")
         message.u32(len(statuses))
@@ -427,4 +430,4 @@ class OutputBag:
             for key, value in record.values:
                 message.string(key)
                 message.string(value)
-        self._write(DIAGNOSTICS_TOPIC, stamp_ns, message)
+        self._write(FRAME_STATUS_TOPIC, stamp_ns, message)

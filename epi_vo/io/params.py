@@ -8,6 +8,7 @@ parameter name.
 
 from __future__ import annotations
 
+import enum
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +24,14 @@ from epi_vo.core.config import (
     unknown_names_text,
 )
 from epi_vo.core.errors import ConfigError
-from epi_vo.io.node_options import NODE_DOCS, NODE_OPTION_NAMES, NodeOptions, is_read_only, make_node_options
+from epi_vo.io.node_options import (
+    NODE_DOCS,
+    NODE_OPTION_NAMES,
+    CameraExtrinsic,
+    NodeOptions,
+    is_read_only,
+    make_node_options,
+)
 from epi_vo.io.paths import refuse_special_file
 
 
@@ -89,6 +97,16 @@ def load_node_options(path: str | Path | None = None) -> NodeOptions:
         raise ConfigError(f"parameter file {path}: {exc}") from None
 
 
+def load_extrinsic(path: str | Path | None = None) -> CameraExtrinsic | None:
+    """The camera mounting a parameter file declares (it sets ``camera_xyz`` or ``camera_rpy``; the other one
+    takes its default), None when it declares none: then the offline tools take the default mounting (a level
+    camera at base_link), as vo_node's defaults do. ConfigError naming a bad value, as :func:`load_node_options`."""
+    if path is None or not {"camera_xyz", "camera_rpy"} & set(load_params_file(path)):
+        return None
+    opts = load_node_options(path)
+    return CameraExtrinsic(opts.camera_xyz, opts.camera_rpy)
+
+
 def to_params_yaml(cfg: VoConfig, extra: dict[str, Any] | None = None, node: NodeOptions | None = None) -> str:
     """The config as a ROS 2 parameter file (``/**: ros__parameters:``) with doc comments.
 
@@ -118,4 +136,6 @@ def _yaml_value(value: Any) -> str:
     """One YAML scalar or flow list (tuples as lists), without the document end marker."""
     if isinstance(value, tuple):
         value = list(value)
+    if isinstance(value, enum.Enum):  # a mode: its text
+        value = value.value
     return yaml.safe_dump(value, default_flow_style=True).strip().replace("\n...", "")

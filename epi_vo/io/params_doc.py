@@ -9,6 +9,7 @@ cannot drift from the code. The YAML form of the same tables is :func:`epi_vo.io
 from __future__ import annotations
 
 import dataclasses
+import enum
 from typing import Any
 
 import yaml
@@ -119,6 +120,8 @@ def _value(value: Any) -> str:
     """The default as a parameter file writes it (YAML scalar or flow list)."""
     if isinstance(value, tuple):
         value = list(value)
+    if isinstance(value, enum.Enum):  # a mode: its text
+        value = value.value
     return yaml.safe_dump(value, default_flow_style=True).strip().replace("\n...", "")
 
 

@@ -6,11 +6,12 @@ import logging
 from pathlib import Path
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from epi_vo.core.errors import BagError
 from epi_vo.io.outbag import checked_array
 from epi_vo.io.paths import refuse_special_file
+from epi_vo.io.trajectory import StampedPoses
 
 logger = logging.getLogger(__name__)
 
@@ -20,12 +21,10 @@ TUM_FILE = "TUM trajectory file"  # what a path read by read_tum is called in a 
 # TUM trajectories
 
 
-def read_tum(
-    path: str | Path,
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+def read_tum(path: str | Path) -> StampedPoses:
     """Read a TUM trajectory: lines ``timestamp tx ty tz qx qy qz qw``, whitespace separated.
 
-    Returns ``stamps_s`` (N,), ``positions`` (N, 3), ``quats_xyzw`` (N, 4). Blank lines and lines
+    Returns the poses: ``stamps_s`` (N,), ``positions_xyz`` (N, 3), ``quats_xyzw`` (N, 4). Blank lines and lines
     starting with '#' are skipped. Raises BagError for a missing file or a malformed line (with its
     line number).
     """
@@ -58,7 +57,7 @@ def read_tum(
             raise BagError(msg)
         rows.append(values)
     table = np.asarray(rows, dtype=np.float64).reshape(-1, 8)
-    return table[:, 0].copy(), table[:, 1:4].copy(), table[:, 4:8].copy()
+    return StampedPoses(table[:, 0].copy(), table[:, 1:4].copy(), table[:, 4:8].copy())
 
 
 def write_tum(

@@ -6,18 +6,18 @@ The work is :class:`~epi_vo.ros.node.VoNodeBase`'s, the same as vo_node's: confi
 cleanup ends it. What each state means here:
 
 * **unconfigured** (at start, after cleanup, after a failed configure): no camera subscriptions, no VO
-  publishers, no worker. Only the ``<node>: summary`` status on ``/diagnostics`` once a second, saying
+  publishers, no worker. Only the ``<node>: lifecycle`` status on ``/diagnostics`` once a second, saying
   the state (and why the last configure failed, at ERROR).
 * **configure**: declares the parameters (at the first configure; later ones read their current values)
   and checks them all, as vo_node does at start-up. A bad value fails the transition (the service answers
   ``success: false``), the state stays unconfigured, and the reason, naming every bad parameter, is
-  logged at ERROR and put in the summary. A parameter that is not read-only can be fixed with
+  logged at ERROR and put in the lifecycle status. A parameter that is not read-only can be fixed with
   ``set_parameters`` while unconfigured (nothing is checked until configure) and configure tried again.
   A configure that fails after the checks (rcl refuses something the session makes) undoes what it made:
   failed configures leave no subscription, publisher or timer behind, and say why in the same way.
   Then the session is made: pipeline, subscriptions, *lifecycle* publishers (silent until activate),
   ``vo/reset``, watchdog: the node is **inactive**.
-* **inactive**: images that arrive are counted and ignored (the summary says how many); nothing is
+* **inactive**: images that arrive are counted and ignored (the lifecycle status says how many); nothing is
   published on ``vo/*``; the watchdog is silent (not receiving on purpose).
 * **activate**: the publishers are enabled, then images are processed. After a deactivate, tracking
   restarts from the last pose: odometry stays continuous, the first frame's status says "reactivated".
@@ -26,8 +26,8 @@ cleanup ends it. What each state means here:
 * **cleanup**: the session is destroyed (pipeline, map, path, pose, counters, subscriptions,
   publishers). A following configure + activate starts a **new map at the origin** (frame index 0), as
   a fresh node would; its first frame's status says so. (A pause that keeps the pose is deactivate.)
-* **shutdown** (from unconfigured, inactive or active): as cleanup, then **finalized**; one last summary
-  says so. The process stays up (get_state answers ``finalized``) until it is stopped, as rclcpp's
+* **shutdown** (from unconfigured, inactive or active): as cleanup, then **finalized**; one last lifecycle
+  status says so. The process stays up (get_state answers ``finalized``) until it is stopped, as rclcpp's
   lifecycle nodes do; launch or a supervisor decides what follows.
 """
 
@@ -42,9 +42,9 @@ from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.parameter import Parameter
 
-from epi_vo.core.diagnostics import DiagnosticLevel
+from epi_vo.core.diagnostics import DiagnosticStatusRecord
 from epi_vo.core.errors import ConfigError
-from epi_vo.core.status import summary_status
+from epi_vo.core.health import lifecycle_status
 from epi_vo.ros.node import VoNodeBase
 from epi_vo.ros.node_params import declare_all, effective_parameters_text, warn_undeclared_overrides
 from epi_vo.ros.node_run import run_node
@@ -74,7 +74,7 @@ class VoLifecycleNode(VoNodeBase, LifecycleNode):
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.add_on_set_parameters_callback(self._on_set_parameters_managed)
         self._guard_change_state()
-        self._state_timer = self.create_timer(1.0, self._publish_state_summary,
+        self._state_timer = self.create_timer(1.0, self._publish_lifecycle_alone,
                                               clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info("vo_node (managed) is unconfigured: configure it to declare and check its "
                                "parameters, activate it to track")
@@ -124,7 +124,7 @@ class VoLifecycleNode(VoNodeBase, LifecycleNode):
 
     def _configure_failed(self, reason: str) -> TransitionCallbackReturn:
         """The node stays unconfigured, as before the attempt; the reason (one line) is logged and in the
-        summary (ERROR) until a configure succeeds."""
+        lifecycle status (ERROR) until a configure succeeds."""
         self._configure_error = " ".join(reason.split())
         self.get_logger().error(f"configure failed, the node stays unconfigured: {self._configure_error}")
         return TransitionCallbackReturn.FAILURE
@@ -152,7 +152,7 @@ class VoLifecycleNode(VoNodeBase, LifecycleNode):
         self._end_session()
         self._state = "finalized"
         self.destroy_timer(self._state_timer)
-        self._publish_state_summary()  # the last status: finalized
+        self._publish_lifecycle_alone()  # the last status: finalized
         self.get_logger().info(f"shut down from {state.label}: finalized")
         return super().on_shutdown(state)
 
@@ -176,10 +176,15 @@ class VoLifecycleNode(VoNodeBase, LifecycleNode):
     def _destroy_output_publisher(self, publisher: Any) -> None:
         self.destroy_lifecycle_publisher(publisher)  # a plain one (TF's) is destroyed as such
 
-    def _summary_extra_values(self) -> tuple[tuple[str, str], ...]:
+    def _extra_statuses(self) -> tuple[DiagnosticStatusRecord, ...]:
+        return (self._lifecycle_status(),)
+
+    def _lifecycle_status(self) -> DiagnosticStatusRecord:
         ignored = self._n_ignored if self._session else 0
-        return (("lifecycle_state", self._state), ("configurations", str(self._configurations)),
-                ("frames_ignored_inactive", str(ignored)))
+        hardware_id = self.get_parameter("hardware_id").value if self.has_parameter("hardware_id") else ""
+        return lifecycle_status(self.get_fully_qualified_name(), hardware_id or "unknown camera", self._state,
+                                self._configure_error, (("configurations", str(self._configurations)),
+                                                        ("frames_ignored_inactive", str(ignored))))
 
     # -- parameters and diagnostics without a session -----------------------------------------------------
     def _on_set_parameters_managed(self, parameters: list[Parameter]) -> SetParametersResult:
@@ -189,21 +194,11 @@ class VoLifecycleNode(VoNodeBase, LifecycleNode):
             return self._on_set_parameters(parameters)
         return SetParametersResult(successful=True, reason="")
 
-    def _publish_state_summary(self) -> None:
-        """The summary while there is no session (the session's own summary runs while configured)."""
+    def _publish_lifecycle_alone(self) -> None:
+        """The lifecycle status while there is no session (the session's /diagnostics carry it while configured)."""
         if self._session:
             return
-        if self._configure_error:
-            level, message = DiagnosticLevel.ERROR, f"unconfigured: configure failed: {self._configure_error}"
-        elif self._state == "finalized":
-            level, message = DiagnosticLevel.OK, "finalized: shut down, no odometry"
-        else:
-            level, message = DiagnosticLevel.OK, "unconfigured: configure and activate to track"
-        name = self.get_fully_qualified_name()
-        values = (("lifecycle_state", self._state), ("configurations", str(self._configurations)))
-        hardware_id = self.get_parameter("hardware_id").value if self.has_parameter("hardware_id") else ""
-        status = summary_status(name, hardware_id or "unknown camera", level, message, values)
-        self._publish_status(status, self.get_clock().now().to_msg())
+        self._pub_diag.publish(self._array([self._lifecycle_status()]))
 
     def _input_values(self) -> tuple[tuple[str, str], ...]:
         return super()._input_values() if self._session else ()

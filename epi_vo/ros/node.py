@@ -1,16 +1,22 @@
-"""``vo_node``: the ROS 2 front door. Wiring only: the work is done by the same
-:class:`~epi_vo.core.pipeline.VoPipeline` that ``epi-vo replay`` drives, so a bag gives the same poses live
-and offline. Of the pipeline's two front doors, this is the only one that imports rclpy (the other
-ROS-facing tools, play, monitor and live_bench, do too; the core never does).
+"""``vo_node``: the ROS 2 front door. Wiring only: each frame goes through the same
+:class:`~epi_vo.runner.frames.FrameHandler` as in ``epi-vo replay`` (decode, process, outputs as records), so
+a bag gives the same outputs live and offline; the node turns those records into messages. Of the
+pipeline's two front doors, this is the only one that imports rclpy (the other ROS-facing tools, play,
+monitor and live_bench, do too; the core never does).
 
 Topics (relative names, so namespaces and remapping work):
   in:  ``camera/image_raw`` (sensor_msgs/Image) and/or ``camera/image_raw/compressed`` (CompressedImage):
        ``image_transport: auto`` subscribes to both and keeps whichever delivers first (logged and in the
        diagnostics), ``raw`` / ``compressed`` to one; ``camera/camera_info``
-  out: ``vo/odometry`` (nav_msgs/Odometry, odom -> base_link, REP-105), ``vo/points`` (PointCloud2 of
-       the points triangulated at keyframes, frame odom), ``vo/path`` (bounded nav_msgs/Path),
-       ``/diagnostics`` (``<fully qualified node name>: tracking`` per frame and from the watchdog, and a
-       ``<...>: summary`` once a second), ``vo/debug_image`` (off by default); TF odom -> base_link when
+  out: ``vo/odometry`` (nav_msgs/Odometry, odom -> base_link, REP-105: what a filter may fuse; metres once a
+       metric scale source is established, else the position held with the "unknown" variance and the
+       orientation as estimated), ``vo/odometry/vo_units`` (the motion in VO units while there are no metres,
+       odom_vo_units -> base_link_vo_units: frames in no TF tree; ``epi_vo.runner.outputs``), ``vo/points``
+       (PointCloud2 of the points triangulated at keyframes, in odom, or odom_vo_units in VO units),
+       ``vo/path`` (bounded nav_msgs/Path, the same frame rule), ``vo/frame_status`` (DiagnosticArray per
+       frame: ``<fully qualified node name>: tracking``, the frame record), ``/diagnostics`` (once a second:
+       ``<node>: tracking``, ``input``, ``extrinsic``, ``scale``; ``epi_vo.ros.node_diagnostics``),
+       ``vo/debug_image`` (off by default); TF odom -> base_link when
        tf2_ros is importable.
   srv: ``vo/reset`` (std_srvs/Trigger): restart tracking from the last pose.
 
@@ -20,7 +26,7 @@ NodeOptions (``epi_vo.ros.node_params``); a pipeline knob changed at runtime is 
 and applied at the next frame (a new map from the last pose), a parameter that needs a restart is
 read-only. Diagnostics: every DiagnosticArray is stamped with the node's clock (ROS time, simulated
 under use_sim_time); ages (image staleness, the watchdog) are measured on the steady clock, and the
-watchdog and summary timers run on it, so they keep reporting when a simulated clock stops.
+watchdog and /diagnostics timers run on it, so they keep reporting when a simulated clock stops.
 
 The wiring is :class:`VoNodeBase`, shared with the managed variant ``vo_lifecycle_node``
 (``epi_vo.ros.lifecycle_node``), which runs the same session between configure and cleanup.
@@ -29,13 +35,11 @@ The wiring is :class:`VoNodeBase`, shared with the managed variant ``vo_lifecycl
 from __future__ import annotations
 
 import collections
-import dataclasses
 import math
 import threading
 import time
 from typing import Any
 
-import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry, Path
@@ -47,26 +51,31 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from std_srvs.srv import Trigger
 
-from epi_vo.core import covariance as covm
-from epi_vo.core.camera import CameraModelCache
-from epi_vo.core.config import VoConfig, live_advice
+from epi_vo.core.config import ScaleSourceKind, VoConfig, live_advice
 from epi_vo.core.debug_image import draw_matches
 from epi_vo.core.decisions import Decision
-from epi_vo.core.diagnostics import DiagnosticStatusRecord
-from epi_vo.core.errors import CameraModelError, EpiVoError, clipped
-from epi_vo.core.frame import FrameResult
-from epi_vo.core.odometry import OdometryConverter, T_base_cam_from_params, status_pose
-from epi_vo.core.status import frame_status
-from epi_vo.core.transforms import invert_T
+from epi_vo.core.errors import clipped
+from epi_vo.core.health import TrackingHealth
+from epi_vo.core.odometry import T_base_cam_from_params
 from epi_vo.io import msgconv
 from epi_vo.io.association import Ready
 from epi_vo.io.frame_queue import NO_CAMERA_INFO_WAIT_S, FrameQueue
-from epi_vo.io.node_options import NodeOptions, changed_names
+from epi_vo.io.msgconv import WheelMessage
+from epi_vo.io.node_options import ImageTransport, NodeOptions, QosReliability, changed_names
 from epi_vo.ros.node_diagnostics import NodeDiagnostics
 from epi_vo.ros.node_params import check_change, declare_all, effective_parameters_text, warn_undeclared_overrides
-from epi_vo.ros.node_run import bgr_image_msg, point_cloud_msg, run_node, stamp_msg, transform_msg
+from epi_vo.ros.node_run import (
+    bgr_image_msg,
+    header_msg,
+    odometry_msg,
+    point_cloud_msg,
+    run_node,
+    stamp_msg,
+    transform_msg,
+)
 from epi_vo.ros.node_tf import Extrinsic, ExtrinsicResolver, TransformLookup, make_tf2_lookup, make_tf_broadcaster
-from epi_vo.runner import make_pipeline
+from epi_vo.runner.frames import FrameHandler, FrameInput, HandledFrame
+from epi_vo.runner.outputs import OutputFrames, OutputMaker, PathRecord
 
 __all__ = ["NodeOptions", "VoNode", "main"]
 
@@ -74,6 +83,8 @@ RAW_TOPIC, COMPRESSED_TOPIC = "camera/image_raw", "camera/image_raw/compressed"
 # Wheel messages waiting for the worker, which takes them at every frame and whenever woken: reached only
 # when it is stuck in one frame (100 s at 100 Hz); the oldest half is then dropped and counted.
 WHEEL_PENDING_MAX = 10000
+RELIABILITY_POLICIES = {QosReliability.BEST_EFFORT: ReliabilityPolicy.BEST_EFFORT,
+                        QosReliability.RELIABLE: ReliabilityPolicy.RELIABLE}
 
 
 class VoNodeBase(NodeDiagnostics):
@@ -95,11 +106,14 @@ class VoNodeBase(NodeDiagnostics):
         self._entities_before = self._entities()
         self._worker: threading.Thread | None = None
         self._status_name = self.get_fully_qualified_name()
-        self._pipeline = make_pipeline(self.cfg)
+        T_params = T_base_cam_from_params(self.opts.camera_xyz, self.opts.camera_rpy)
+        # The per-frame rule (decode, process, outputs) is the replay's: the node only turns its records into
+        # messages. Until the extrinsic is resolved, the parameters' stands (no frame is processed before).
+        self._handler = FrameHandler(
+            self.cfg, OutputFrames(self.opts.frame_id, self.opts.child_frame_id, self.opts.map_frame_id), T_params,
+            path_max_length=self.opts.path_max_length, status_name=self._status_name, announce=announce)
         for advice in live_advice(self.cfg):
             self.get_logger().warning(advice)
-        T_params = T_base_cam_from_params(self.opts.camera_xyz, self.opts.camera_rpy)
-        self._converter = OdometryConverter(T_params, continuous=bool(self.opts.map_frame_id))
         lookup = tf_lookup if tf_lookup is not None else make_tf2_lookup(self)
         self._resolver = ExtrinsicResolver(
             lookup, self.opts.child_frame_id, self.opts.tf_timeout_s, T_params,
@@ -115,43 +129,44 @@ class VoNodeBase(NodeDiagnostics):
         self._running = True
         self._active = active  # images are processed only while active (always, in vo_node)
         self._busy = False  # the worker is processing a frame
-        self._ahead: tuple[Ready, Any] | None = None  # the next queued frame and its image, decoded ahead
         self._n_processed = self._n_ignored = 0
+        # vo/path's poses as messages, the newest appended per frame (the handler's window, in its frame)
         self._path: collections.deque[PoseStamped] = collections.deque(maxlen=self.opts.path_max_length)
+        self._path_frame = ""
         self._path_published = 0.0
         self._arrived_s: float | None = None  # steady clock arrival of the frame in flight (latency figure)
         self._last_latency_ms = math.nan
-        self._cameras = CameraModelCache()
-        # Wheel messages (stamp or None, position) in arrival order, handed to the pipeline by the worker
-        self._wheel_pending: list[tuple[int | None, np.ndarray]] = []
+        # Wheel messages in arrival order, handed to the pipeline by the worker
+        self._wheel_pending: list[WheelMessage] = []
         self._wheel_received = self._wheel_lost = 0  # wheel messages, and those the worker never took (stalled)
         self._camera_frame = ""  # header.frame_id of the first image
-        self._last_frame_status: DiagnosticStatusRecord | None = None
-        # After a runtime change the pipeline is a new one, anchored at the pose the old one had reached.
-        self._anchor: tuple[np.ndarray, np.ndarray, int] | None = None  # T_w_a, cov_w_a, index offset
-        self._last_pose = (np.eye(4), np.zeros((6, 6)), -1)  # the last published T_w_c, covariance, index
+        self._tracking = TrackingHealth()  # the frames since /diagnostics was last published
+        self._wheel_topic_name = ""
         self._changes: list[str] = []  # runtime changes applied, for the summary
-        self._announce_change = announce  # told in the reason of the first frame after a change
 
         in_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=self.opts.qos_depth,
-                            reliability=ReliabilityPolicy.RELIABLE if self.opts.qos_reliability == "reliable"
-                            else ReliabilityPolicy.BEST_EFFORT)
-        self._image_subs: dict[str, Any] = {}
-        if self.opts.image_transport in ("auto", "raw"):
-            self._image_subs["raw"] = self.create_subscription(Image, RAW_TOPIC, self._on_image, in_qos)
-        if self.opts.image_transport in ("auto", "compressed"):
-            self._image_subs["compressed"] = self.create_subscription(CompressedImage, COMPRESSED_TOPIC,
-                                                                      self._on_image, in_qos)
+                            reliability=RELIABILITY_POLICIES[self.opts.qos_reliability])
+        self._image_subs: dict[ImageTransport, Any] = {}
+        if self.opts.image_transport in (ImageTransport.AUTO, ImageTransport.RAW):
+            self._image_subs[ImageTransport.RAW] = self.create_subscription(Image, RAW_TOPIC, self._on_image, in_qos)
+        if self.opts.image_transport in (ImageTransport.AUTO, ImageTransport.COMPRESSED):
+            self._image_subs[ImageTransport.COMPRESSED] = self.create_subscription(
+                CompressedImage, COMPRESSED_TOPIC, self._on_image, in_qos)
         self._image_topics = {k: sub.topic_name for k, sub in self._image_subs.items()}
-        self._transport = "" if self.opts.image_transport == "auto" else self.opts.image_transport
+        # The transport in use: None until the first image under AUTO
+        self._transport: ImageTransport | None = \
+            None if self.opts.image_transport is ImageTransport.AUTO else self.opts.image_transport
         self.create_subscription(CameraInfo, "camera/camera_info", self._on_camera_info, in_qos)
-        if self.cfg.scale_source == "wheel_odometry":
-            self.create_subscription(Odometry, self.cfg.wheel_odometry_topic, self._on_wheel_odometry,
-                                     QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100))
-            self.get_logger().info(f"metric scale from wheel odometry on {self.cfg.wheel_odometry_topic}")
+        if self.cfg.scale_source is ScaleSourceKind.WHEEL_ODOMETRY:
+            wheel_sub = self.create_subscription(Odometry, self.cfg.wheel_odometry_topic, self._on_wheel_odometry,
+                                                 QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100))
+            self._wheel_topic_name = wheel_sub.topic_name
+            self.get_logger().info(f"metric scale from wheel odometry on {self._wheel_topic_name}")
         self._pub_odom = self._create_output_publisher(Odometry, "vo/odometry", 10)
+        self._pub_odom_vo_units = self._create_output_publisher(Odometry, "vo/odometry/vo_units", 10)
         self._pub_points = self._create_output_publisher(PointCloud2, "vo/points", 10)
         self._pub_path = self._create_output_publisher(Path, "vo/path", 10)
+        self._pub_frame_status = self._create_output_publisher(DiagnosticArray, "vo/frame_status", 10)
         if getattr(self, "_pub_diag", None) is None:  # the managed node has one of its own, for every state
             self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._pub_debug = self._create_output_publisher(Image, "vo/debug_image", 2) \
@@ -172,7 +187,7 @@ class VoNodeBase(NodeDiagnostics):
         # Both timers on the steady clock: with use_sim_time a ROS-time timer stops with the simulated clock.
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(0.5, self._watchdog, clock=steady)
-        self.create_timer(1.0, self._publish_summary, clock=steady)
+        self.create_timer(1.0, self._publish_diagnostics, clock=steady)
         self._worker = threading.Thread(target=self._work, name="vo_worker", daemon=True)
         self._worker.start()
 
@@ -259,8 +274,8 @@ class VoNodeBase(NodeDiagnostics):
             with self._lock:
                 self._n_ignored += 1
             return
-        transport = "compressed" if isinstance(msg, CompressedImage) else "raw"
-        if transport != self._transport and not self._choose_transport(transport):
+        transport = ImageTransport.COMPRESSED if isinstance(msg, CompressedImage) else ImageTransport.RAW
+        if transport is not self._transport and not self._choose_transport(transport):
             return
         stamp = msgconv.stamp_to_ns(msg.header.stamp)
         with self._cv:
@@ -269,12 +284,12 @@ class VoNodeBase(NodeDiagnostics):
             if self._frames.add_image(stamp, msg, len(msg.data), time.monotonic()):
                 self._cv.notify()
 
-    def _choose_transport(self, transport: str) -> bool:
+    def _choose_transport(self, transport: ImageTransport) -> bool:
         """image_transport auto: the first transport to deliver is kept, the other subscription dropped."""
-        if self._transport:  # already chosen: a message of the other one still in flight
+        if self._transport is not None:  # already chosen: a message of the other one still in flight
             return False
         self._transport = transport
-        other = "raw" if transport == "compressed" else "compressed"
+        other = ImageTransport.RAW if transport is ImageTransport.COMPRESSED else ImageTransport.COMPRESSED
         sub = self._image_subs.pop(other, None)
         if sub is not None:
             self.destroy_subscription(sub)
@@ -311,6 +326,11 @@ class VoNodeBase(NodeDiagnostics):
         return response
 
     # -- processing -------------------------------------------------------------------------------------
+    @property
+    def _converter(self) -> OutputMaker:
+        """The outputs' mounting and map -> odom (``T_base_cam``, ``T_map_odom``), for the diagnostics."""
+        return self._handler.output
+
     def _work(self) -> None:
         while True:
             with self._cv:
@@ -329,7 +349,7 @@ class VoNodeBase(NodeDiagnostics):
             if item is not None and wanted is not self.cfg:
                 self._apply_config(wanted)
             for stamp_ns, xyz in wheel:  # the pipeline is only touched by this thread
-                self._pipeline.add_wheel_odometry(stamp_ns, xyz)
+                self._handler.add_wheel_odometry(stamp_ns, xyz)
             if head is None:
                 continue
             if item is None:
@@ -337,22 +357,14 @@ class VoNodeBase(NodeDiagnostics):
                 continue
             self._arrived_s = item.arrived_s
             if reset:
-                self._pipeline.reset(reset)
+                self._handler.reset(reset)
             try:
                 self._process(item)
-            except EpiVoError as exc:
-                # Bad input in this frame: it is accounted for like any other (held pose, reason).
-                self.get_logger().warning(f"frame rejected: {exc}", throttle_duration_sec=5.0)
-                r = self._anchored(self._pipeline.reject(item.stamp_ns, str(exc)))
-                self._publish(r, stamp_msg(r.stamp_ns), None)
             except Exception as exc:  # never let one frame kill the node; say what happened
-                # Not an input problem: a defect. The pipeline's state may be half-updated, so tracking
-                # restarts from the held pose; the status says it was an internal error.
+                # Not an input problem (those are records): a defect. Tracking restarts from the held pose
+                # and the status says it was an internal error.
                 self.get_logger().error(f"frame at {item.stamp_ns * 1e-9:.6f} s failed: {exc!r}")
-                self._pipeline.reset(f"internal error in the previous frame ({type(exc).__name__}): tracking "
-                                     "restarted from the last pose")
-                r = self._anchored(self._pipeline.reject(item.stamp_ns, f"internal error: {exc!r}"))
-                self._publish(r, stamp_msg(r.stamp_ns), None)
+                self._publish(self._handler.internal_error(self._frame_input(item), exc, self._hardware_id()))
             finally:
                 with self._cv:
                     self._busy = False
@@ -373,9 +385,8 @@ class VoNodeBase(NodeDiagnostics):
                     self._cv.wait(timeout=0.05)
             return
         self._waiting = ""
-        self._converter = OdometryConverter(extrinsic.T_base_cam, continuous=bool(self.opts.map_frame_id))
+        self._handler.set_mounting(extrinsic.T_base_cam)  # the odometry, and the floor along the up it declares
         self._extrinsic = extrinsic
-        self._pipeline.set_mounting(extrinsic.T_base_cam)  # the floor is sought along the up it declares
         (self.get_logger().warning if extrinsic.warn else self.get_logger().info)(extrinsic.text)
 
     def _apply_config(self, cfg: VoConfig) -> None:
@@ -383,141 +394,94 @@ class VoNodeBase(NodeDiagnostics):
         anchored at the pose (and covariance) the old one reached, so odometry stays continuous. Like a
         reset, the next frame starts a new map."""
         changed = changed_names(self.cfg, cfg)
-        T_w_a, cov_w_a, index = self._last_pose
-        self._pipeline = make_pipeline(cfg)
-        if self._extrinsic is not None:
-            self._pipeline.set_mounting(self._extrinsic.T_base_cam)
+        index = self._handler.last_pose.index
+        text = ", ".join(changed) or "no knob changed"
+        self._handler.apply_config(cfg, f"parameters changed ({text}): new map from the last pose")
         for advice in live_advice(cfg):
             self.get_logger().warning(advice)
-        self._anchor = (T_w_a, cov_w_a, index + 1)
         self.cfg = cfg
-        text = ", ".join(changed) or "no knob changed"
         self._changes.append(f"{text} (from frame {index + 1})")
-        self._announce_change = f"parameters changed ({text}): new map from the last pose"
         self.get_logger().info(f"parameters applied at frame {index + 1}: {text}; tracking restarts from the "
                                "last pose")
 
-    def _anchored(self, r: FrameResult) -> FrameResult:
-        """A result of the current pipeline in the odometry's world frame (after a runtime change)."""
-        reason = r.reason
-        if self._announce_change:
-            reason = f"{self._announce_change}; {reason}" if reason else self._announce_change
-            self._announce_change = ""
-        if self._anchor is None:
-            return r if reason == r.reason else dataclasses.replace(r, reason=reason)
-        T_w_a, cov_w_a, offset = self._anchor
-        T_a_c = r.T_w_c
-        T_c_a = invert_T(T_a_c)
-        cov = covm.compose(cov_w_a, T_w_a, r.covariance, T_c_a[:3, 3], T_c_a[:3, :3])
-        points = r.points_w @ T_w_a[:3, :3].T + T_w_a[:3, 3] if r.points_w.shape[0] else r.points_w
-        return dataclasses.replace(r, index=r.index + offset, T_w_c=T_w_a @ T_a_c, covariance=covm.floored(cov),
-                                   points_w=points, reason=reason)
+    def _frame_input(self, item: Ready) -> FrameInput:
+        return FrameInput(item.stamp_ns, item.image, isinstance(item.image, CompressedImage), item.info,
+                          no_camera_info="no camera_info received yet on camera/camera_info")
 
-    def _look_ahead(self) -> None:
-        """Bag playback (``process_every_frame``) with frames waiting: the next one is processed next, so
-        its image is decoded now and the pipeline tracks into it while this frame is processed
-        (``VoPipeline.announce_next``: the same results, sooner). Live, a waiting frame may still be
-        dropped for a newer one: nothing is done ahead."""
+    def _next_frame(self) -> FrameInput | None:
+        """Bag playback (``process_every_frame``) with frames waiting: the next one is processed next, so the
+        handler decodes it now and the pipeline tracks into it while this frame is processed (the same
+        results, sooner). Live, a waiting frame may still be dropped for a newer one: nothing is done ahead."""
         if not self.opts.process_every_frame:
-            return
+            return None
         with self._lock:
             nxt = self._frames.peek()
-        if nxt is None or nxt.info is None or msgconv.stamp_problem(nxt.image.header.stamp) is not None:
-            return
-        try:
-            camera = self._cameras.get(nxt.info)
-            gray = msgconv.decode_frame(nxt.image, isinstance(nxt.image, CompressedImage),
-                                        (camera.width, camera.height))
-        except EpiVoError:
-            return  # decoded again in its turn, and rejected there with the reason
-        self._ahead = (nxt, gray)
-        self._pipeline.announce_next(gray, camera)
+        return None if nxt is None or nxt.info is None else self._frame_input(nxt)
 
     def _process(self, item: Ready) -> None:
-        stamp = item.stamp_ns
-        problem = msgconv.stamp_problem(item.image.header.stamp)
-        gray = None
-        if problem is not None:
-            # As in replay: a header stamp that is no ROS time is a rejected frame, tracking untouched.
-            result = self._pipeline.skip(stamp, problem)
-        else:
-            if item.info is None:
-                raise CameraModelError("no camera_info received yet on camera/camera_info")
-            if item.first_mismatch:
-                self.get_logger().warning("camera_info stamps do not match image stamps; using the latest "
-                                          "camera_info")
-            ahead, self._ahead = self._ahead, None
-            camera = self._cameras.get(item.info)  # first: a compressed image of another size is not decoded
-            gray = ahead[1] if ahead is not None and ahead[0] is item else \
-                msgconv.decode_frame(item.image, isinstance(item.image, CompressedImage), (camera.width, camera.height))
-            self._look_ahead()
-            result = self._pipeline.process(gray, camera, stamp)
-        result = self._anchored(result)
+        frame = self._frame_input(item)
+        if item.first_mismatch:
+            self.get_logger().warning("camera_info stamps do not match image stamps; using the latest camera_info")
+        handled = self._handler.handle(frame, self._next_frame(), self._hardware_id())
+        result = handled.result
         self._n_processed += 1
         if result.skipped:
-            self.get_logger().warning(f"{result.reason} ({stamp * 1e-9:.6f} s)", throttle_duration_sec=5.0)
-            self._publish_status(self._frame_status(result), self._diagnostics_stamp())
-            return
-        if Decision.TIME_JUMPED_BACK in result.decisions:
+            self.get_logger().warning(f"{result.reason} ({frame.stamp_ns * 1e-9:.6f} s)", throttle_duration_sec=5.0)
+        elif result.rejected and handled.gray is None:
+            self.get_logger().warning(f"frame rejected: {handled.problem}", throttle_duration_sec=5.0)
+        elif Decision.TIME_JUMPED_BACK in result.decisions:
             self.get_logger().warning(result.reason)
-            self._converter.reset_twist()
-        self._publish(result, stamp_msg(result.stamp_ns), gray)
+        self._publish(handled)
 
     # -- output -------------------------------------------------------------------------------------------
     def _hardware_id(self) -> str:
         """The hardware_id parameter, else the camera's frame id (the image header.frame_id)."""
         return self.opts.hardware_id or self._camera_frame or "unknown camera"
 
-    def _frame_status(self, r: FrameResult) -> DiagnosticStatusRecord:
-        """The frame's status; its pose is the odometry's (odom -> base_link), named by position_frame."""
-        pose = status_pose(self._converter, r, self.opts.frame_id, self.opts.child_frame_id)
-        status = frame_status(r, self._status_name, self._hardware_id(), pose)
-        self._last_frame_status = status
-        return status
+    def _publish(self, handled: HandledFrame) -> None:
+        """The frame's outputs as messages: odometry, path, points, TF, its status, the debug image."""
+        out = handled.outputs
+        if out.odometry_vo_units is not None:
+            self._pub_odom_vo_units.publish(odometry_msg(out.odometry_vo_units))
+        if out.odometry is not None:
+            self._pub_odom.publish(odometry_msg(out.odometry))
+            if self._arrived_s is not None:
+                self._last_latency_ms = (time.monotonic() - self._arrived_s) * 1e3
+        if out.path is not None:
+            self._publish_path(out.path, out.result.is_keyframe)
+        if out.transforms and self._tf is not None:
+            stamp = stamp_msg(out.result.stamp_ns)
+            self._tf.sendTransform([transform_msg(stamp, t.parent, t.child, t.xyz, t.quat_xyzw)
+                                    for t in out.transforms])
+        if out.points is not None:
+            self._pub_points.publish(point_cloud_msg(header_msg(out.result.stamp_ns, out.points.frame_id),
+                                                     out.points.points_xyz))
+        self._publish_frame(out.status, out.result)
+        if self._pub_debug is not None and handled.gray is not None and not out.result.skipped:
+            self._pub_debug.publish(bgr_image_msg(header_msg(out.result.stamp_ns, self.opts.frame_id),
+                                                  draw_matches(out.result, handled.gray)))
 
-    def _publish(self, r: FrameResult, stamp_msg: Any, gray: np.ndarray | None) -> None:
-        s = self._converter.convert_result(r)
-        self._last_pose = (r.T_w_c, r.covariance, r.index)
-        odom = Odometry()
-        odom.header.stamp = stamp_msg
-        odom.header.frame_id = self.opts.frame_id
-        odom.child_frame_id = self.opts.child_frame_id
-        p, q = odom.pose.pose.position, odom.pose.pose.orientation
-        p.x, p.y, p.z = (float(v) for v in s.position)
-        q.x, q.y, q.z, q.w = (float(v) for v in s.quat_xyzw)
-        odom.pose.covariance = [float(v) for v in s.pose_covariance.ravel()]
-        lin, ang = odom.twist.twist.linear, odom.twist.twist.angular
-        lin.x, lin.y, lin.z = (float(v) for v in s.linear_velocity)
-        ang.x, ang.y, ang.z = (float(v) for v in s.angular_velocity)
-        odom.twist.covariance = [float(v) for v in s.twist_covariance.ravel()]
-        self._pub_odom.publish(odom)
-        if self._arrived_s is not None:
-            self._last_latency_ms = (time.monotonic() - self._arrived_s) * 1e3
-        if r.has_pose:
-            ps = PoseStamped()
-            ps.header = odom.header
-            ps.pose = odom.pose.pose
-            self._path.append(ps)
-            now = time.monotonic()
-            # The path grows to path_max_length poses: serialising it every frame would cost more than
-            # the VO itself, so it goes out at keyframes and at least once a second.
-            if r.is_keyframe or now - self._path_published >= 1.0:
-                self._path_published = now
-                path = Path()
-                path.header = odom.header
-                path.poses = list(self._path)
-                self._pub_path.publish(path)
-            if self._tf is not None:
-                transforms = [transform_msg(stamp_msg, self.opts.frame_id, self.opts.child_frame_id, s.position,
-                                            s.quat_xyzw)]
-                if (map_odom := s.map_odom_xyz_quat()) is not None:  # map_frame_id: the corrections (REP-105)
-                    transforms.append(transform_msg(stamp_msg, self.opts.map_frame_id, self.opts.frame_id, *map_odom))
-                self._tf.sendTransform(transforms)
-        if r.points_w.shape[0]:
-            self._pub_points.publish(point_cloud_msg(odom.header, self._converter.odom_points(r.points_w)))
-        self._publish_status(self._frame_status(r), self._diagnostics_stamp())
-        if self._pub_debug is not None and gray is not None:
-            self._pub_debug.publish(bgr_image_msg(odom.header, draw_matches(r, gray)))
+    def _publish_path(self, path: PathRecord, is_keyframe: bool) -> None:
+        """vo/path grows to path_max_length poses: serialising it every frame would cost more than the VO
+        itself, so it goes out at keyframes, at least once a second, and when its frame changes; its newest
+        pose is appended every frame."""
+        if path.frame_id != self._path_frame:  # a path in other units: a new one
+            self._path.clear()
+            self._path_frame = path.frame_id
+            self._path_published = 0.0
+        ps = PoseStamped()
+        ps.header = header_msg(int(path.stamps_ns[-1]), path.frame_id)
+        p, q = ps.pose.position, ps.pose.orientation
+        p.x, p.y, p.z = (float(v) for v in path.positions[-1])
+        q.x, q.y, q.z, q.w = (float(v) for v in path.quats_xyzw[-1])
+        self._path.append(ps)
+        now = time.monotonic()
+        if is_keyframe or now - self._path_published >= 1.0:
+            self._path_published = now
+            msg = Path()
+            msg.header = ps.header
+            msg.poses = list(self._path)
+            self._pub_path.publish(msg)
 
 
 class VoNode(VoNodeBase, Node):
@@ -543,7 +507,9 @@ class VoNode(VoNodeBase, Node):
 HELP_TEXT = """usage: vo_node [--ros-args --params-file FILE -p NAME:=VALUE -r FROM:=TO ...]
 
 Monocular visual odometry node (epi_vo). Subscribes camera/image_raw (+ /compressed) and
-camera/camera_info; publishes vo/odometry, vo/points, vo/path, /diagnostics; service vo/reset.
+camera/camera_info; publishes vo/odometry (metres, or the position held while the scale is unknown),
+vo/odometry/vo_units (the motion in VO units), vo/points, vo/path, vo/frame_status, /diagnostics; service
+vo/reset.
 Its parameters, with their defaults (the same file as `epi-vo params` and config/epi_vo.yaml):
 
 """

@@ -10,6 +10,7 @@ and applied by the node at its next frame.
 
 from __future__ import annotations
 
+import enum
 from typing import Any
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
@@ -18,7 +19,15 @@ from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.validate_full_topic_name import validate_full_topic_name
 from rclpy.validate_topic_name import validate_topic_name
 
-from epi_vo.core.config import VoConfig, allowed_range, config_fields, field_doc, from_dict, unknown_names_text
+from epi_vo.core.config import (
+    VoConfig,
+    allowed_range,
+    config_fields,
+    field_doc,
+    from_dict,
+    shown,
+    unknown_names_text,
+)
 from epi_vo.core.errors import ConfigError
 from epi_vo.io.node_options import (
     NODE_CHOICES,
@@ -109,6 +118,8 @@ def topic_problems(node: Any, values: dict[str, Any]) -> list[str]:
 
 
 def _declare(node: Any, name: str, default: Any, desc: ParameterDescriptor, problems: list[str]) -> Any:
+    if isinstance(default, enum.Enum):  # a mode: declared as its text, converted back in VoConfig / NodeOptions
+        default = default.value
     if node.has_parameter(name):  # the managed node's second configure: read the value it has now
         return node.get_parameter(name).value
     try:
@@ -133,8 +144,8 @@ def warn_undeclared_overrides(node: Any) -> None:
 
 def effective_parameters_text(cfg: VoConfig, opts: NodeOptions) -> str:
     """The line logged at start-up (and at each configure): every parameter's effective value."""
-    lines = [f"{f.name}={getattr(cfg, f.name)!r}" for f in config_fields()]
-    lines += [f"{k}={v!r}" for k, v in opts.__dict__.items()]
+    lines = [f"{f.name}={shown(getattr(cfg, f.name))}" for f in config_fields()]
+    lines += [f"{k}={shown(v)}" for k, v in opts.__dict__.items()]
     return "epi_vo parameters: " + ", ".join(lines)
 
 

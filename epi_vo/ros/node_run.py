@@ -16,15 +16,18 @@ import numpy as np
 import rclpy
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import TransformStamped
+from nav_msgs.msg import Odometry
 from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from sensor_msgs.msg import Image, PointCloud2, PointField
+from std_msgs.msg import Header
 
 from epi_vo.core.config import VoConfig
 from epi_vo.core.errors import ConfigError
 from epi_vo.io import msgconv
 from epi_vo.io.node_options import NodeOptions
+from epi_vo.runner.outputs import OdometryRecord
 
 RCLError, UnknownROSArgsError = rclpy_implementation.RCLError, rclpy_implementation.UnknownROSArgsError
 
@@ -33,6 +36,27 @@ def stamp_msg(stamp_ns: int) -> Time:
     """A frame result's stamp as a ROS time (results carry valid stamps only)."""
     sec, nanosec = msgconv.ns_to_ros_time(stamp_ns)
     return Time(sec=sec, nanosec=nanosec)
+
+
+def header_msg(stamp_ns: int, frame_id: str) -> Header:
+    return Header(stamp=stamp_msg(stamp_ns), frame_id=frame_id)
+
+
+def odometry_msg(odometry: OdometryRecord) -> Odometry:
+    """nav_msgs/Odometry of one odometry record (pose of the child in the frame, twist in the child)."""
+    s = odometry.sample
+    msg = Odometry()
+    msg.header = header_msg(s.stamp_ns, odometry.frame_id)
+    msg.child_frame_id = odometry.child_frame_id
+    p, q = msg.pose.pose.position, msg.pose.pose.orientation
+    p.x, p.y, p.z = (float(v) for v in s.position)
+    q.x, q.y, q.z, q.w = (float(v) for v in s.quat_xyzw)
+    msg.pose.covariance = [float(v) for v in s.pose_covariance.ravel()]
+    lin, ang = msg.twist.twist.linear, msg.twist.twist.angular
+    lin.x, lin.y, lin.z = (float(v) for v in s.linear_velocity)
+    ang.x, ang.y, ang.z = (float(v) for v in s.angular_velocity)
+    msg.twist.covariance = [float(v) for v in s.twist_covariance.ravel()]
+    return msg
 
 
 def transform_msg(stamp: Time, parent: str, child: str, xyz: Any, quat_xyzw: Any) -> TransformStamped:
@@ -139,6 +163,9 @@ def run_node(make_node: Callable[[], Node], program: str, help_text: str, args: 
         print(f"{program}: error: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
         sys.exit(2)
+    except (KeyboardInterrupt, ExternalShutdownException):  # stopped while starting (Ctrl-C, launch): as in spin
+        rclpy.try_shutdown()
+        return
     try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):

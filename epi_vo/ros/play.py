@@ -1,12 +1,24 @@
-"""``epi-vo play``: publish a bag's camera topics over ROS 2, in real time or scaled (a ros2 bag play stand-in).
+"""``epi-vo play``: publish a bag's topics that vo_node consumes over ROS 2, in real time or scaled (a ros2
+bag play stand-in).
 
 The ros2 command-line tools do not install from PyPI, so this publishes what the VO node subscribes to:
-the image topic (sensor_msgs/Image or CompressedImage) and its camera_info, optionally /clock.
+the image topic (sensor_msgs/Image or CompressedImage) and its camera_info, the wheel odometry
+(nav_msgs/Odometry) and ``/tf`` / ``/tf_static`` when the bag has them, optionally /clock.
 
-- Topics are chosen in the bag as ``epi-vo replay`` chooses them (``epi_vo.io.bagio``): the only image and
-  camera_info topics, or ``image_topic`` / ``camera_info_topic``.
+- Topics are chosen in the bag as ``epi-vo replay`` chooses them (``epi_vo.io.play_bag``): the only image and
+  camera_info topics, or ``image_topic`` / ``camera_info_topic``; the wheel odometry ``wheel_topic``, else the
+  only Odometry topic not named as ground truth.
+- Published names: the node's defaults, relative (the player's namespace applies): ``camera/image_raw`` (or
+  ``.../compressed``), ``camera/camera_info``, ``odom`` (vo_node's ``wheel_odometry_topic``); the ``remap_*``
+  options rename them. ``/tf`` and ``/tf_static`` keep their absolute names. /tf is reliable with depth 100,
+  as tf2_ros's TransformBroadcaster; /tf_static is transient-local, as robot_state_publisher's static
+  broadcaster, and keeps every static message of the bag, so a node started after playback still gets them.
 - Messages are published as recorded: the raw CDR bytes of the bag are deserialised straight into the
-  rclpy message types (``rclpy.serialization.deserialize_message``), no field-by-field copy.
+  rclpy message types (``rclpy.serialization.deserialize_message``), no field-by-field copy. TF messages
+  are published as the recorded bytes themselves, once rosbags has checked they decode: tf2_msgs has no
+  PyPI wheel, so its rclpy class may be missing (then /tf and /tf_static are not played, and the summary
+  says so); the publisher needs the class only for its type.
+- All topics are merged in the bag's order (log time), one schedule for all.
 - Timing follows the bag's log time relative to the first message, on a monotonic clock, divided by
   ``rate``; ``rate`` 0 publishes as fast as possible, still in bag order. With ``clock``,
   rosgraph_msgs/Clock carrying the message's log time is published on /clock before each message.
@@ -38,6 +50,7 @@ from typing import Any, Self
 
 import rclpy
 from builtin_interfaces.msg import Time
+from nav_msgs.msg import Odometry
 from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
@@ -50,19 +63,25 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from epi_vo.core.errors import BagError, ConfigError
 from epi_vo.io import checks
-from epi_vo.io.bagio import CAMERA_INFO_TYPE, COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, BagMessage, CameraTopicsBag
+from epi_vo.io.bag_topics import CAMERA_INFO_TYPE, COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, ODOMETRY_TYPE
+from epi_vo.io.play_bag import TF_STATIC_TOPIC, TF_TOPIC, BagMessage, PlayBag
 
 NODE_NAME = "epi_vo_player"
 IMAGE_OUT_TOPIC = "camera/image_raw"  # relative: the node namespace applies
 COMPRESSED_IMAGE_OUT_TOPIC = "camera/image_raw/compressed"
 CAMERA_INFO_OUT_TOPIC = "camera/camera_info"
+WHEEL_OUT_TOPIC = "odom"  # vo_node's default wheel_odometry_topic
 CLOCK_TOPIC = "/clock"
 
 _MSG_CLASSES: dict[str, type[Any]] = {
     IMAGE_TYPE: Image,
     COMPRESSED_IMAGE_TYPE: CompressedImage,
     CAMERA_INFO_TYPE: CameraInfo,
+    ODOMETRY_TYPE: Odometry,
 }
+# tf2_ros's TransformBroadcaster publishes /tf reliable with this depth; its static broadcaster /tf_static
+# reliable and transient-local.
+TF_DEPTH = 100
 _NS_PER_S = 1_000_000_000
 # The slowest playback: one second of bag then lasts over a quarter of an hour. Slower is a typing mistake
 # (1e-300 would make the first wait longer than the platform can wait), not a use.
@@ -76,8 +95,8 @@ _ACK_TIMEOUT_S = 5.0
 # that puts playback further behind than this is a pause, and the schedule shifts by it.
 _PAUSE_TOLERANCE_S = 0.1
 _SUBSCRIBER_POLL_S = 0.01
-# After the image topic is matched, how long to give the camera_info subscriber (usually the same node,
-# discovered a moment later) so that the pair starts together.
+# After the image topic is matched, how long to give the camera_info and wheel subscribers (usually the same
+# node, discovered a moment later) so that they start together.
 _CAMERA_INFO_GRACE_S = 0.5
 
 
@@ -101,6 +120,8 @@ class PlayOptions:
     camera_info_topic: str | None = None  # bag topic of the calibration (default: the only/sibling one)
     remap_image: str | None = None  # published name (default camera/image_raw, or .../compressed)
     remap_camera_info: str | None = None  # published name of camera_info (default camera/camera_info)
+    wheel_topic: str | None = None  # bag topic of the wheel odometry (default: the only Odometry not named as GT)
+    remap_wheel: str | None = None  # published name of the wheel odometry (default odom)
     clock: bool = False  # publish rosgraph_msgs/Clock (bag log time) on /clock before each message
     qos_reliability: Reliability = Reliability.RELIABLE
     qos_depth: int = 10  # KEEP_LAST history depth of the publishers
@@ -125,7 +146,7 @@ class PlayOptions:
             problems.append(f"subscriber_wait_s must be a finite number >= 0, got {self.subscriber_wait_s}")
         if not isinstance(self.qos_reliability, Reliability):
             problems.append(f"qos_reliability must be a Reliability, got {self.qos_reliability!r}")
-        for name in ("remap_image", "remap_camera_info"):
+        for name in ("remap_image", "remap_camera_info", "remap_wheel"):
             value = getattr(self, name)
             if value is not None:
                 try:
@@ -151,10 +172,15 @@ class PlaySummary:
     bag_s: float
     paused_s: float  # of wall_s, playback held for subscribers' acknowledgements (rate > 0)
     interrupted: bool
+    wheel_topic: str = ""  # published name of the wheel odometry ('' when the bag has none)
+    wheel_messages: int = 0
+    tf_messages: int = 0  # on /tf
+    tf_static_messages: int = 0  # on /tf_static
+    not_played: tuple[str, ...] = ()  # bag topics the player could not publish, with why
 
     @property
     def messages(self) -> int:
-        return self.images + self.camera_infos
+        return self.images + self.camera_infos + self.wheel_messages + self.tf_messages + self.tf_static_messages
 
     @property
     def effective_rate(self) -> float:
@@ -166,28 +192,46 @@ class PlaySummary:
 def format_summary(summary: PlaySummary) -> str:
     """One line for the terminal."""
     clock = f" + {summary.clocks} /clock" if summary.clocks else ""
+    others = [(n, t) for n, t in ((summary.wheel_messages, summary.wheel_topic), (summary.tf_messages, TF_TOPIC),
+                                  (summary.tf_static_messages, TF_STATIC_TOPIC)) if n]
+    also = "".join(f", {n} on {t}" for n, t in others)
+    skipped = f"; not played: {'; '.join(summary.not_played)}" if summary.not_played else ""
     passes = f", {summary.passes} passes" if summary.passes > 1 else ""
     paused = f" ({summary.paused_s:.2f} s paused for acknowledgements)" if summary.paused_s > 0 else ""
     stopped = " (interrupted)" if summary.interrupted else ""
     rate = "n/a" if math.isnan(summary.effective_rate) else f"{summary.effective_rate:.2f}x"
     return (f"published {summary.messages} messages ({summary.images} on {summary.image_topic}, "
-            f"{summary.camera_infos} on {summary.camera_info_topic}{clock}) in {summary.wall_s:.2f} s"
+            f"{summary.camera_infos} on {summary.camera_info_topic}{also}{clock}) in {summary.wall_s:.2f} s"
             f"{paused}{passes}: "
-            f"bag time {summary.bag_s:.2f} s, effective rate {rate}{stopped}")
+            f"bag time {summary.bag_s:.2f} s, effective rate {rate}{stopped}{skipped}")
+
+
+def tf_message_class() -> type[Any] | None:
+    """tf2_msgs/msg/TFMessage's rclpy class; None where tf2_msgs is not installed (a PyPI-only environment:
+    it has no wheel there; every ROS 2 install has it)."""
+    try:
+        from tf2_msgs.msg import TFMessage
+    except ImportError:
+        return None
+    return TFMessage
 
 
 class BagPlayer:
-    """Publishes a bag's image and camera_info topics (and /clock) from ``node`` (see module doc).
+    """Publishes a bag's topics that vo_node consumes (and /clock) from ``node`` (see module doc).
 
     Opens the bag and creates the publishers at construction; ``play()`` plays (from any thread),
     ``stop()`` ends a running ``play()`` between messages, ``close()`` closes the bag (the publishers
     belong to the node). Raises BagError for a bag that cannot be played, ConfigError for bad options.
+    ``tf_type``: the rclpy class the /tf and /tf_static publishers are made with (default
+    :func:`tf_message_class`); the recorded bytes are published whatever it is.
     """
 
-    def __init__(self, node: Node, bag_path: str | Path, options: PlayOptions | None = None) -> None:
+    def __init__(self, node: Node, bag_path: str | Path, options: PlayOptions | None = None, *,
+                 tf_type: type[Any] | None = None) -> None:
         self.options = options or PlayOptions()
         self._node = node
-        self.bag = CameraTopicsBag(bag_path, self.options.image_topic, self.options.camera_info_topic)
+        self.bag = PlayBag(bag_path, self.options.image_topic, self.options.camera_info_topic,
+                           self.options.wheel_topic)
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=self.options.qos_depth,
                          reliability=self.options.qos_reliability.policy, durability=DurabilityPolicy.VOLATILE)
         default_image_out = COMPRESSED_IMAGE_OUT_TOPIC if self.bag.image_is_compressed else IMAGE_OUT_TOPIC
@@ -197,9 +241,22 @@ class BagPlayer:
             self.bag.camera_info_topic: node.create_publisher(
                 CameraInfo, self.options.remap_camera_info or CAMERA_INFO_OUT_TOPIC, qos),
         }
+        if self.bag.wheel_topic is not None:
+            self._publishers[self.bag.wheel_topic] = node.create_publisher(
+                Odometry, self.options.remap_wheel or WHEEL_OUT_TOPIC, qos)
+        self.not_played: tuple[str, ...] = ()
+        self._raw_topics = frozenset(self.bag.tf_topics)  # published as the recorded bytes
+        tf_type = tf_type or tf_message_class()
+        if tf_type is None and self.bag.tf_topics:
+            self.not_played = tuple(f"{t} (tf2_msgs is not installed)" for t in self.bag.tf_topics)
+            node.get_logger().warning(f"{' and '.join(self.bag.tf_topics)} not played: tf2_msgs is not installed "
+                                      "(part of every ROS 2 install; it has no PyPI wheel)")
+        elif tf_type is not None:
+            for topic in self.bag.tf_topics:
+                self._publishers[topic] = node.create_publisher(tf_type, topic, self._tf_qos(topic))
         self.clock_publisher = node.create_publisher(Clock, CLOCK_TOPIC, qos) if self.options.clock else None
         self._stop = threading.Event()
-        self._counts = {self.bag.image_topic: 0, self.bag.camera_info_topic: 0}
+        self._counts = dict.fromkeys(self.bag.topics, 0)
         self._clocks = 0
         self._passes = 0
         self._bag_ns = 0
@@ -214,6 +271,23 @@ class BagPlayer:
     @property
     def camera_info_publisher(self) -> Publisher:
         return self._publishers[self.bag.camera_info_topic]
+
+    @property
+    def wheel_publisher(self) -> Publisher | None:
+        return self._publishers.get(self.bag.wheel_topic) if self.bag.wheel_topic is not None else None
+
+    def tf_publisher(self, topic: str) -> Publisher | None:
+        """The publisher of /tf or /tf_static; None when the bag has no such topic or it is not played."""
+        return self._publishers.get(topic) if topic in self._raw_topics else None
+
+    def _tf_qos(self, topic: str) -> QoSProfile:
+        """/tf as tf2_ros's TransformBroadcaster offers it; /tf_static transient-local as its static broadcaster,
+        deep enough to keep every static message of the bag for subscribers that join later."""
+        if topic == TF_STATIC_TOPIC:
+            return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=max(1, self.bag.counts[topic]),
+                              reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=TF_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
+                          durability=DurabilityPolicy.VOLATILE)
 
     def __enter__(self) -> Self:
         return self
@@ -230,7 +304,8 @@ class BagPlayer:
         self._stop.set()
 
     def wait_for_subscribers(self, timeout_s: float) -> bool:
-        """Wait up to ``timeout_s`` for a subscriber on the image topic (then briefly on camera_info).
+        """Wait up to ``timeout_s`` for a subscriber on the image topic (then briefly on camera_info and the
+        wheel odometry, which a VO node without a wheel scale source does not subscribe to).
 
         True when the image topic is matched. Discovery runs in DDS threads: no spinning needed.
         """
@@ -239,7 +314,8 @@ class BagPlayer:
             if time.monotonic() >= deadline or self._stop.wait(_SUBSCRIBER_POLL_S):
                 return False
         grace_end = min(deadline, time.monotonic() + _CAMERA_INFO_GRACE_S)
-        while (self._context_ok() and self.camera_info_publisher.get_subscription_count() == 0
+        others = [p for p in (self.camera_info_publisher, self.wheel_publisher) if p is not None]
+        while (self._context_ok() and any(p.get_subscription_count() == 0 for p in others)
                and time.monotonic() < grace_end):
             if self._stop.wait(_SUBSCRIBER_POLL_S):
                 break
@@ -278,12 +354,17 @@ class BagPlayer:
         wall_s = 0.0
         if self._first_publish is not None and self._last_publish is not None:
             wall_s = self._last_publish - self._first_publish
+        wheel = self.wheel_publisher
         return PlaySummary(
             bag=str(self.bag.path), image_topic=self.image_publisher.topic_name,
             camera_info_topic=self.camera_info_publisher.topic_name,
             images=self._counts[self.bag.image_topic], camera_infos=self._counts[self.bag.camera_info_topic],
             clocks=self._clocks, passes=self._passes, wall_s=wall_s, bag_s=self._bag_ns / _NS_PER_S,
-            paused_s=self._paused_s, interrupted=interrupted or self._stop.is_set())
+            paused_s=self._paused_s, interrupted=interrupted or self._stop.is_set(),
+            wheel_topic=wheel.topic_name if wheel is not None else "",
+            wheel_messages=self._counts[self.bag.wheel_topic] if self.bag.wheel_topic is not None else 0,
+            tf_messages=self._counts.get(TF_TOPIC, 0), tf_static_messages=self._counts.get(TF_STATIC_TOPIC, 0),
+            not_played=self.not_played)
 
     def _play_pass(self) -> None:
         """One pass over the bag: the schedule restarts at the first message."""
@@ -316,19 +397,15 @@ class BagPlayer:
     def _publish(self, message: BagMessage, since_ack: dict[str, int]) -> float:
         """Publish /clock (option) and the message; return the seconds spent waiting for acknowledgements."""
         waited_s = 0.0
-        msgtype = self.bag.msgtype(message.topic)
-        try:
-            msg = deserialize_message(message.rawdata, _MSG_CLASSES[msgtype])
-        except RuntimeError as err:  # rclpy's RMWError: the bytes are not a CDR message of this type
-            text = (f"cannot deserialise a {msgtype} on {message.topic} at log time {message.log_time_ns} ns "
-                    f"in bag {self.bag.path}: {err}")
-            raise BagError(text) from err
+        publisher = self._publishers.get(message.topic)
+        if publisher is None:  # a TF topic that cannot be played here (said once, and in the summary)
+            return waited_s
+        msg = self._message(message)
         if self.clock_publisher is not None:
             sec, nanosec = divmod(message.log_time_ns, _NS_PER_S)
             self.clock_publisher.publish(Clock(clock=Time(sec=sec, nanosec=nanosec)))
             self._clocks += 1
             waited_s += self._flow_control(self.clock_publisher, CLOCK_TOPIC, since_ack)
-        publisher = self._publishers[message.topic]
         publisher.publish(msg)
         now = time.monotonic()
         if self._first_publish is None:
@@ -336,6 +413,22 @@ class BagPlayer:
         self._last_publish = now
         self._counts[message.topic] += 1
         return waited_s + self._flow_control(publisher, message.topic, since_ack)
+
+    def _message(self, message: BagMessage) -> Any:
+        """What to publish for a recorded message: its rclpy message, or (TF) its checked CDR bytes."""
+        msgtype = self.bag.msgtype(message.topic)
+        if message.topic in self._raw_topics:
+            problem = self.bag.check_cdr(message)
+            if problem is None:
+                return message.rawdata
+        else:
+            try:
+                return deserialize_message(message.rawdata, _MSG_CLASSES[msgtype])
+            except RuntimeError as err:  # rclpy's RMWError: the bytes are not a CDR message of this type
+                problem = str(err)
+        text = (f"cannot deserialise a {msgtype} on {message.topic} at log time {message.log_time_ns} ns "
+                f"in bag {self.bag.path}: {problem}")
+        raise BagError(text)
 
     def _flow_control(self, publisher: Publisher, key: str, since_ack: dict[str, int]) -> float:
         """Every ``qos_depth`` messages on ``key``, wait (bounded) until reliable subscribers acknowledged all.

@@ -8,7 +8,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from epi_vo.core import features as fe
-from epi_vo.core.config import VoConfig
+from epi_vo.core.config import BaSolver, VoConfig
 from epi_vo.core.selection import ModelSelection, homography_scored, select_model
 from epi_vo.core.workers import Ahead, InlineSolver, WindowSolver
 from epi_vo.runner.bundle_worker import ProcessSolver
@@ -29,7 +29,7 @@ class Threaded:
         self._ahead = KltAhead(self._pool)
         self._next: U8 | None = None  # the image the next frame brings (``announce_next``)
         # Started now when the adjustment is on: its imports (about a second) overlap the first keyframes.
-        process = cfg.ba_window_keyframes > 0 and cfg.ba_solver == "process"
+        process = cfg.ba_window_keyframes > 0 and cfg.ba_solver is BaSolver.PROCESS
         self._solver: WindowSolver = ProcessSolver() if process else InlineSolver()
 
     @property

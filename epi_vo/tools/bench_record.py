@@ -123,12 +123,26 @@ def jsonable(x: Any) -> Any:
     return x
 
 
-def write_record(directory: Path, suite: str, markdown: str, data: dict[str, Any], date: str) -> tuple[Path, Path]:
-    """``<directory>/<date>-<suite>.md`` and ``.json`` (a second run the same day replaces them: git keeps
-    the earlier one). OutputError when they cannot be written."""
+def record_stem(directory: Path, suite: str, date: str, commit: str) -> str:
+    """``<date>-<suite>``, or ``<date>-<suite>-<commit 7>`` when a record of that day and suite was taken at
+    another commit: a record is replaced only by a run of the same commit, so a day's baseline and the run
+    of the change it judges stand side by side."""
+    stem = f"{date}-{suite}"
+    try:
+        earlier = json.loads((directory / f"{stem}.json").read_text(encoding="utf-8"))
+    except (OSError, UnicodeError, ValueError):
+        return stem
+    taken_at = earlier.get("header", {}).get("commit") if isinstance(earlier, dict) else None
+    return stem if taken_at in (None, commit) else f"{stem}-{commit[:7]}"
+
+
+def write_record(directory: Path, suite: str, markdown: str, data: dict[str, Any], date: str,
+                 commit: str = "unknown") -> tuple[Path, Path]:
+    """``<directory>/<stem>.md`` and ``.json`` (``record_stem``). OutputError when they cannot be written."""
     try:
         directory.mkdir(parents=True, exist_ok=True)
-        md, js = directory / f"{date}-{suite}.md", directory / f"{date}-{suite}.json"
+        stem = record_stem(directory, suite, date, commit)
+        md, js = directory / f"{stem}.md", directory / f"{stem}.json"
         md.write_text(markdown.rstrip() + "\n", encoding="utf-8")
         js.write_text(json.dumps(jsonable(data), indent=1, allow_nan=False) + "\n", encoding="utf-8")
     except OSError as exc:

@@ -42,11 +42,13 @@ import numpy as np
 from epi_vo.core.config import VoConfig
 from epi_vo.core.errors import EpiVoError, EvaluationError, OutputError
 from epi_vo.core.frame import FrameResult
+from epi_vo.core.scale import Units
 from epi_vo.core.transforms import quat_xyzw_from_rotation
 from epi_vo.io import bagio, tum
 from epi_vo.io.params import load_config
+from epi_vo.io.trajectory import StampedPoses
 from epi_vo.tools.bench_record import RecordHeader, load_now, write_record
-from epi_vo.tools.evaluation import StampedPoses, evaluate_trajectory, metric_poses, replay_dir_nees
+from epi_vo.tools.evaluation import evaluate_trajectory, metric_poses, replay_dir_nees
 from epi_vo.tools.gt_check import AGREE_EXCESS_PX, GroundTruthCheck, check_ground_truth
 from epi_vo.tools.reference import ReferencePipeline
 from epi_vo.tools.replay import run_replay
@@ -132,7 +134,7 @@ def _moving_frames(positions: np.ndarray) -> int:
 
 
 def _metrics_row(name: str, pipeline: str, frames: int, n_pose: int, ms: float, stamps: np.ndarray,
-                 positions: np.ndarray, quats: np.ndarray, gt: tuple[np.ndarray, np.ndarray, np.ndarray],
+                 positions: np.ndarray, quats: np.ndarray, gt: StampedPoses,
                  evaluated: StampedPoses | None = None) -> BenchRow:
     """One table row; the trajectory metrics over ``evaluated`` (default: every pose)."""
     gt_len = float(np.sum(np.linalg.norm(np.diff(gt[1], axis=0), axis=1)))
@@ -206,12 +208,12 @@ def bench_epi_vo(name: str, bag: Path, gt_path: Path, cfg: VoConfig, label: str 
                 from_nees = None
     row = _metrics_row(name, label, summary.frames, summary.frames_with_pose, summary.ms_per_frame,
                        stamps, positions, quats, gt, evaluated)
-    if summary.units != "m":  # VO units: the metric figures say nothing
+    if summary.units != Units.METRES:  # VO units: the metric figures say nothing
         row = dataclasses.replace(row, step_scale=math.nan, ate_se3_percent=math.nan)
     # end_to_end_fps: a newer ReplaySummary field; an older summary has none (n/a).
     row = dataclasses.replace(row, e2e_fps=float(getattr(summary, "end_to_end_fps", math.nan) or math.nan),
                               held_poses=held, ms_p95=_p95(totals), keyframes=summary.keyframes,
-                              metric_after_s=_metric_after_s(records, cfg.scale_source != "none"),
+                              metric_after_s=_metric_after_s(records, cfg.scale_source.metric),
                               moved_max=moved.largest, moved_depth_percent=moved.depth_percent())
     m = summary.metrics or {}
     if "nees_frames" in m:  # tools.consistency: the published pose and twist against the ground truth
@@ -387,6 +389,6 @@ def run_benchmark(bags_dir: str | None, kitti_dir: str | None, params: str | Non
             "```\n" + table + "\n```", LEGEND.replace("\n", "\n\n"), "```\n" + checked + "\n```"])
         md, js = write_record(record_dir, "bundled", markdown,
                               {"header": dataclasses.asdict(header), "benchmark_s": elapsed, "legend": LEGEND,
-                               "rows": [row_dict(r) for r in rows]}, header.date)
+                               "rows": [row_dict(r) for r in rows]}, header.date, header.commit)
         print(f"\nrecorded in {md} and {js}")
     return 0

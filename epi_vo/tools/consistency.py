@@ -17,6 +17,7 @@ import numpy as np
 
 from epi_vo.core.odometry import OdometrySample
 from epi_vo.io.odometry_bag import OdometryTrack
+from epi_vo.io.trajectory import StampedPoses
 
 # stats.json ``metrics`` keys this module adds (NaN, written as null, when there is nothing to judge)
 NEES_KEYS = ("nees_frames", "nees_pos", "nees_pos_inside_percent", "nees_rot", "nees_rot_inside_percent",
@@ -48,10 +49,12 @@ class OdometryLog:
                              stack([x.linear_velocity for x in s], (3,)), stack([x.angular_velocity for x in s], (3,)))
 
 
-def consistency_metrics(log: OdometryLog, gt: tuple[np.ndarray, np.ndarray, np.ndarray], frame_id: str,
-                        child_frame_id: str) -> dict[str, Any]:
+def consistency_metrics(log: OdometryLog, gt: StampedPoses, frame_id: str,
+                        child_frame_id: str, T_base_cam: np.ndarray | None = None) -> dict[str, Any]:
     """Mean NEES (3 dof each; consistent: 3) of the tracking frames' position, rotation, linear and angular
-    velocity against the published covariances, and the share inside the chi-square 99 % bound.
+    velocity against the published covariances, and the share inside the chi-square 99 % bound. The
+    ground-truth camera poses become base poses with the odometry's extrinsic ``T_base_cam`` (default: the
+    optical rotation).
 
     Raises:
         EvaluationError: no odometry sample, or none with ground truth.
@@ -60,8 +63,8 @@ def consistency_metrics(log: OdometryLog, gt: tuple[np.ndarray, np.ndarray, np.n
     from epi_vo.tools.twist_consistency import replay_twist_nees
 
     track = log.track(frame_id, child_frame_id)
-    pose = replay_nees(log.records, track, gt)
-    twist = replay_twist_nees(log.records, track, gt)
+    pose = replay_nees(log.records, track, gt, T_base_cam=T_base_cam)
+    twist = replay_twist_nees(log.records, track, gt, T_base_cam)
     values = (pose.evaluated, pose.mean_nees_pos, pose.inside_pos_percent, pose.mean_nees_rot,
               pose.inside_rot_percent, twist.mean_linear, twist.inside_linear_percent, twist.mean_angular,
               twist.inside_angular_percent)

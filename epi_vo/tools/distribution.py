@@ -30,14 +30,16 @@ from types import ModuleType
 from typing import Any
 
 import cv2
+import yaml
 
-from epi_vo.core.config import VoConfig
-from epi_vo.core.errors import EpiVoError
+from epi_vo.core.config import VoConfig, from_dict
+from epi_vo.core.errors import ConfigError, EpiVoError
 from epi_vo.io import tum
 from epi_vo.io.params import load_config
 from epi_vo.tools import distribution_table as dt
 from epi_vo.tools.bench_record import RecordHeader, jsonable, load_now, repo_root, write_record
 from epi_vo.tools.benchmark import METRIC_VARIANTS, BenchRow, bench_epi_vo, bench_reference, row_dict
+from epi_vo.tools.distribution_compare import compare, load_baseline
 from epi_vo.tools.gt_check import GroundTruthCheck, check_ground_truth
 
 REAL_CLIPS = ("kitti06_0-50", "tello_semicircle_206f")
@@ -103,6 +105,7 @@ class RealTask:
     bag: Path
     gt: Path
     cfg: VoConfig
+    reference: bool = True
 
 
 def bench_real(task: RealTask) -> list[BenchRow]:
@@ -115,7 +118,8 @@ def bench_real(task: RealTask) -> list[BenchRow]:
     for label, values in METRIC_VARIANTS.get(task.name, ()):
         rows.append(bench_epi_vo(task.name, task.bag, task.gt, dataclasses.replace(task.cfg, **values),
                                  f"epi_vo[{label}]", checked=check))
-    rows.append(bench_reference(task.name, task.bag, task.gt))
+    if task.reference:
+        rows.append(bench_reference(task.name, task.bag, task.gt))
     return rows
 
 
@@ -169,11 +173,14 @@ def run_tasks(tasks: Sequence[SequenceTask | RealTask], jobs: int, progress: Cal
 def run_distribution(suite: str, params: str | None, *, families: Sequence[str] | None = None,
                      seeds: Sequence[int] | None = None, jobs: int = 2, cache: str | None = None,
                      data_dir: str | None = None, real: bool = True, record_dir: Path | None = None,
-                     reference: bool = True) -> int:
-    """Render (if needed) and judge the distribution (or its subset), print the tables and record them."""
+                     reference: bool = True, overrides: Sequence[str] = (), baseline: str | None = None) -> int:
+    """Render (if needed) and judge the distribution (or its subset), print the tables and record them.
+    ``overrides`` (``NAME=VALUE``) change the parameters after ``params`` (an ablation switches one rule off
+    so); ``baseline`` is an earlier record's JSON to print the per-family before -> after against."""
     header = RecordHeader.now()
     started = time.perf_counter()
-    cfg = load_config(params)
+    cfg = with_overrides(load_config(params), overrides)
+    before = load_baseline(baseline) if baseline else None
     if jobs < 1:
         raise EpiVoError(f"benchmark: --jobs must be at least 1, got {jobs}")
     gen = load_generator()
@@ -190,7 +197,7 @@ def run_distribution(suite: str, params: str | None, *, families: Sequence[str] 
         fam = gen.FAMILIES[s.family]
         tasks.append(SequenceTask(s.family, s.seed, s.path, s.info, fam.scale_sources, cfg, reference))
     clips = real_clips(Path(data_dir) if data_dir else None) if real else []
-    tasks += [RealTask(name, bag, gt, cfg) for name, bag, gt in clips]
+    tasks += [RealTask(name, bag, gt, cfg, reference) for name, bag, gt in clips]
     bench_started = time.perf_counter()
     print(f"benchmarking {len(rendered.sequences)} sequences and {len(clips)} real clips in {jobs} processes ...",
           file=sys.stderr, flush=True)
@@ -212,6 +219,21 @@ def run_distribution(suite: str, params: str | None, *, families: Sequence[str] 
     if real_rows:
         body.append("### Real clips\n\n" + dt.real_table(real_rows))
     body.append("### The generalization issue's targets\n\n" + dt.targets_list(goals))
+    data = {
+        "header": dataclasses.asdict(header), "suite": suite, "timings": timings,
+        "overrides": list(overrides), "baseline": baseline,
+        "render_cpu_s": render_total_cpu, "benchmark_s": bench_s, "total_s": time.perf_counter() - started,
+        "families": {f: {p: {k: st.to_json() for k, st in by_key.items()} for p, by_key in by_pipe.items()}
+                     for f, by_pipe in stats.items()},
+        "targets": [dataclasses.asdict(t) for t in goals],
+        "sequences": [{"family": r.family, "seed": r.seed, "harshness": r.harshness, "size": r.size,
+                       "static": r.static, "scenario": _scenario_summary(s.info),
+                       "rows": [row_dict(row) for row in r.rows]}
+                      for r, s in zip(seq_results, rendered.sequences, strict=True)],
+        "real": [row_dict(r) for r in real_rows],
+    }
+    if before is not None:
+        body.append(f"### Against the baseline {baseline}\n\n" + compare(before, jsonable(data)))
     body.append(READING)
     printed = "\n\n".join(body)
     print(printed)
@@ -220,21 +242,24 @@ def run_distribution(suite: str, params: str | None, *, families: Sequence[str] 
         markdown = "\n\n".join([header.markdown(title, timings), printed,
                                 "### Every sequence\n\n<details>\n\n" + dt.sequence_table(seq_results)
                                 + "\n\n</details>"])
-        data = {
-            "header": dataclasses.asdict(header), "suite": suite, "timings": timings,
-            "render_cpu_s": render_total_cpu, "benchmark_s": bench_s, "total_s": time.perf_counter() - started,
-            "families": {f: {p: {k: st.to_json() for k, st in by_key.items()} for p, by_key in by_pipe.items()}
-                         for f, by_pipe in stats.items()},
-            "targets": [dataclasses.asdict(t) for t in goals],
-            "sequences": [{"family": r.family, "seed": r.seed, "harshness": r.harshness, "size": r.size,
-                           "static": r.static, "scenario": _scenario_summary(s.info),
-                           "rows": [row_dict(row) for row in r.rows]}
-                          for r, s in zip(seq_results, rendered.sequences, strict=True)],
-            "real": [row_dict(r) for r in real_rows],
-        }
-        md, js = write_record(record_dir, suite, markdown, jsonable(data), header.date)
+        md, js = write_record(record_dir, suite, markdown, jsonable(data), header.date, header.commit)
         print(f"\nrecorded in {md} and {js}")
     return 0
+
+
+def with_overrides(cfg: VoConfig, overrides: Sequence[str]) -> VoConfig:
+    """``cfg`` with ``NAME=VALUE`` changes (VALUE read as YAML, as a parameter file would give it); ConfigError
+    naming a malformed one or a bad value."""
+    values: dict[str, Any] = {}
+    for item in overrides:
+        name, sep, text = item.partition("=")
+        if not sep or not name.strip():
+            raise ConfigError(f"benchmark: --set {item!r}: expected NAME=VALUE")
+        try:
+            values[name.strip()] = yaml.safe_load(text) if text.strip() else ""
+        except yaml.YAMLError:
+            raise ConfigError(f"benchmark: --set {item!r}: the value is no YAML scalar") from None
+    return from_dict(values, base=cfg) if values else cfg
 
 
 def _scenario_summary(info: dict[str, Any]) -> dict[str, Any]:

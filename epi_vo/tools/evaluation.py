@@ -38,7 +38,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 from evo.core import geometry, sync
@@ -51,7 +51,9 @@ from epi_vo.core.errors import EpiVoError, EvaluationError
 from epi_vo.core.odometry import default_T_base_cam
 from epi_vo.core.transforms import invert_T
 from epi_vo.io import tum
-from epi_vo.io.odometry_bag import OdometryTrack, read_odometry
+from epi_vo.io.odometry_bag import OdometryTrack, read_estimate_odometry
+from epi_vo.io.trajectory import StampedPoses
+from epi_vo.tools.replay_outputs import read_recorded_extrinsic
 
 logger = logging.getLogger(__name__)
 
@@ -66,25 +68,15 @@ _MIN_GT_STEP = 1e-6
 _MIN_EST_STEP = 1e-9
 
 
-class StampedPoses(NamedTuple):
-    """Camera poses T_w_c with stamps; a plain ``(stamps_s, positions_xyz, quats_xyzw)`` tuple works too."""
-
-    stamps_s: NDArray[np.float64]  # (N,) seconds, strictly increasing
-    positions_xyz: NDArray[
-        np.float64
-    ]  # (N, 3) camera centre in world (translation of T_w_c)
-    quats_xyzw: NDArray[np.float64]  # (N, 4) R_w_c as a quaternion, x, y, z, w order
-
-
-def metric_poses(est: StampedPoses | tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]],
+def metric_poses(est: StampedPoses,
                  records: Sequence[dict[str, Any]]) -> tuple[StampedPoses, int]:
     """The poses of ``est`` that the trajectory metrics judge, and how many were left out.
 
-    A run whose scale source established metres (a record with ``metric_scale``) published, before
-    that, positions held where the map started, in VO units, with a covariance that says the scale
-    is unknown: no estimate of where the camera was, and no length in metres. Its metrics (Sim(3) and
-    SE(3) ATE, step scale, RPE) are over the poses it published in metres, as the covariance
-    consistency (``replay_nees``) is; the held poses are counted. A run in VO units keeps every pose.
+    A run whose scale source established metres (a record with ``metric_scale``) had, before that,
+    poses in VO units (vo/odometry held its position then, with a covariance that says it is unknown):
+    no length in metres. Its metrics (Sim(3) and SE(3) ATE, step scale, RPE) are over the poses it
+    published in metres, as the covariance consistency (``replay_nees``) is; the others are counted. A
+    run in VO units keeps every pose.
     Poses are matched to ``records`` (frames.jsonl) by ``stamp_ns``.
     """
     stamps = np.asarray(est[0], dtype=np.float64)
@@ -125,10 +117,8 @@ class TrajectoryMetrics:
 
 
 def evaluate_trajectory(
-    est: StampedPoses
-    | tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]],
-    gt: StampedPoses
-    | tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]],
+    est: StampedPoses,
+    gt: StampedPoses,
     max_time_diff: float = 0.01,
 ) -> TrajectoryMetrics:
     """Compare an estimated trajectory of camera poses T_w_c with ground truth.
@@ -285,8 +275,7 @@ def _steps_in_previous_camera(T_w_c: NDArray[np.float64]) -> NDArray[np.float64]
 
 
 def to_evo_trajectory(
-    poses: StampedPoses
-    | tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]],
+    poses: StampedPoses,
     name: str,
 ) -> PoseTrajectory3D:
     """Validate ``(stamps_s, positions_xyz, quats_xyzw)`` and build an evo trajectory (wxyz quaternions)."""
@@ -591,7 +580,7 @@ def poses_from_xyz_quat(positions: NDArray[np.float64], quats_xyzw: NDArray[np.f
 def replay_nees(
     records: Sequence[dict[str, Any]],
     odometry: OdometryTrack,
-    gt: StampedPoses | tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]],
+    gt: StampedPoses,
     *,
     T_base_cam: NDArray[np.float64] | None = None,
     anchor: AlignmentAnchor = AlignmentAnchor.ORIGIN,
@@ -681,20 +670,18 @@ def conditioned_on(T_o_b: NDArray[np.float64], cov_o: NDArray[np.float64], a: in
 def replay_dir_nees(directory: str | Path, anchor: AlignmentAnchor = AlignmentAnchor.ORIGIN,
                     from_ns: int | None = None) -> NeesResult | None:
     """:func:`replay_nees` of an ``epi-vo replay`` output directory (frames.jsonl, output.mcap,
-    groundtruth.tum); None when it has no ground truth.
-
-    Raises:
-        EvaluationError: the files cannot be read or evaluated (the message names the file).
-    """
+    groundtruth.tum, and the extrinsic stats.json records); None when it has no ground truth. Raises
+    EvaluationError when the files cannot be read or evaluated (the message names the file)."""
     d = Path(directory)
     if not (d / "groundtruth.tum").is_file():
         return None
     try:
         records = [json.loads(line) for line in (d / "frames.jsonl").read_text(encoding="utf-8").splitlines()
                    if line.strip()]
-        odometry = read_odometry(d / "output.mcap")
+        odometry = read_estimate_odometry(d / "output.mcap")  # the motion as estimated, in its units
         gt = tum.read_tum(d / "groundtruth.tum")
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, EpiVoError) as exc:
+        T_base_cam = read_recorded_extrinsic(d)  # the odometry's (None: the default extrinsic)
+    except (OSError, UnicodeDecodeError, ValueError, EpiVoError) as exc:  # ValueError: JSON, the extrinsic
         msg = f"{d}: cannot read the replay output for the covariance check: {exc}"
         raise EvaluationError(msg) from None
-    return replay_nees(records, odometry, gt, anchor=anchor, from_ns=from_ns)
+    return replay_nees(records, odometry, gt, T_base_cam=T_base_cam, anchor=anchor, from_ns=from_ns)

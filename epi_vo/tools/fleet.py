@@ -41,8 +41,11 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from epi_vo.core.config import VoConfig
 from epi_vo.core.errors import EpiVoError, Interrupted
+from epi_vo.io.node_options import CameraExtrinsic
 from epi_vo.tools.fleet_bags import output_names
 from epi_vo.tools.fleet_summary import (
     REPORT_HTML,
@@ -55,7 +58,7 @@ from epi_vo.tools.fleet_summary import (
     write_json_atomic,
     write_summary,
 )
-from epi_vo.tools.replay import ReplaySummary, StopRequest, gt_choice, run_replay, stop_on_signals
+from epi_vo.tools.replay import ReplaySummary, StopRequest, extrinsic_record, gt_choice, run_replay, stop_on_signals
 from epi_vo.tools.replay_outputs import STATUS_FILE, check_outputs_clear, ensure_output_dir, output_paths
 
 _log = logging.getLogger(__name__)
@@ -83,6 +86,7 @@ class FleetJob:
     map_frame_id: str = ""
     gt_topic: str | None = None  # the ground-truth topic of every bag (default: the one named as such)
     no_gt: bool = False  # no ground truth, whatever the bags hold
+    extrinsic: CameraExtrinsic | None = None  # the camera mounting of every bag (None: the default)
 
 
 _worker_events: Any = None  # the progress queue of this worker process (set by _init_worker)
@@ -124,7 +128,7 @@ def completed(job: FleetJob) -> ReplaySummary | None:
                                                           BagStatus.FAILED.value):
         return None
     if summary.bag != job.bag or summary.parameters != parameters_json(job.cfg) or \
-            summary.map_frame_id != job.map_frame_id:
+            summary.map_frame_id != job.map_frame_id or _extrinsic_json_of(summary) != _extrinsic_json(job.extrinsic):
         return None
     if job.image_topic not in (None, summary.image_topic) or \
             job.camera_info_topic not in (None, summary.camera_info_topic):
@@ -132,6 +136,20 @@ def completed(job: FleetJob) -> ReplaySummary | None:
     if summary.gt_choice != gt_choice(gt_topic=job.gt_topic, no_gt=job.no_gt):
         return None
     return summary
+
+
+def _extrinsic_json(extrinsic: CameraExtrinsic | None) -> dict[str, Any]:
+    """What stats.json says of the extrinsic of a job (its source and parameters), to compare a finished run's with."""
+    record = extrinsic_record(extrinsic, np.eye(4))
+    return {k: v for k, v in record.items() if k != "T_base_cam"}
+
+
+def _extrinsic_json_of(summary: ReplaySummary) -> dict[str, Any]:
+    """A finished run's extrinsic (source and parameters); an older stats.json without one was made with the
+    default (the replay took no extrinsic from the parameters then)."""
+    if summary.extrinsic is None:
+        return _extrinsic_json(None)
+    return {k: v for k, v in summary.extrinsic.items() if k != "T_base_cam"}
 
 
 def replay_one(job: FleetJob) -> BagRow:
@@ -163,7 +181,7 @@ def replay_one(job: FleetJob) -> BagRow:
         summary = run_replay(job.bag, out, job.cfg, image_topic=job.image_topic,
                              camera_info_topic=job.camera_info_topic, on_result=progress.frame,
                              on_open=progress.total, map_frame_id=job.map_frame_id, gt_topic=job.gt_topic,
-                             no_gt=job.no_gt)
+                             no_gt=job.no_gt, extrinsic=job.extrinsic)
     except Interrupted as exc:
         by = "the fleet was interrupted" if _worker_stop is not None and _worker_stop.is_set() else \
             _signal_name(exc.signum)
@@ -265,10 +283,11 @@ def run_fleet(bags: Sequence[Path], output_dir: str | Path, cfg: VoConfig, *, jo
               force: bool = False, report: bool = False, progress: bool = False, image_topic: str | None = None,
               camera_info_topic: str | None = None, on_row: Callable[[BagRow], None] | None = None,
               map_frame_id: str = "", gt_topic: str | None = None, no_gt: bool = False,
-              inputs: Sequence[str | Path] = ()) -> FleetResult:
+              inputs: Sequence[str | Path] = (), extrinsic: CameraExtrinsic | None = None) -> FleetResult:
     """Replay ``bags`` (see :func:`epi_vo.tools.fleet_bags.find_bags`) into ``output_dir/<name>/`` with ``jobs``
     processes (default: the number of cores) and write the summary. See the module doc for resume, signals and
-    failures. ``inputs``: other files the run reads (a parameter file).
+    failures. ``inputs``: other files the run reads (a parameter file); ``extrinsic``: the camera mounting
+    (``run_replay``'s).
 
     Raises:
         OutputError: an output of some bag (or the summary) would overwrite an input or write into a bag
@@ -281,7 +300,7 @@ def run_fleet(bags: Sequence[Path], output_dir: str | Path, cfg: VoConfig, *, jo
     out = ensure_output_dir(output_dir)
     # Absolute bag paths: stats.json then names the bag whatever the directory a later run starts from.
     todo = [FleetJob(i, name, str(bag.absolute()), str(out / name), cfg, image_topic, camera_info_topic, report,
-                     force, map_frame_id, gt_topic, no_gt)
+                     force, map_frame_id, gt_topic, no_gt, extrinsic)
             for i, (bag, name) in enumerate(zip(bags, names, strict=True))]
     rows: dict[int, BagRow] = {}
     attempts = dict.fromkeys(range(len(todo)), 0)

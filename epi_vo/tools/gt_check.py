@@ -43,6 +43,7 @@ from epi_vo.core.errors import EpiVoError
 from epi_vo.core.geometry import skew
 from epi_vo.core.transforms import rotation_angle_deg
 from epi_vo.io import bagio, tum
+from epi_vo.io.trajectory import StampedPoses
 from epi_vo.tools.evaluation import nearest_rows, poses_from_xyz_quat
 
 F64 = NDArray[np.float64]
@@ -197,7 +198,7 @@ def check_pair(x1: F64, x2: F64, T_w_c1: F64, T_w_c2: F64, f: float, translates:
     return first
 
 
-def check_ground_truth(bag_path: str | Path, gt: tuple[F64, F64, F64], gap: int = DEFAULT_GAP,
+def check_ground_truth(bag_path: str | Path, gt: StampedPoses, gap: int = DEFAULT_GAP,
                        max_features: int = 2000) -> GroundTruthCheck:
     """Check ``gt`` (TUM: stamps s, positions, x y z w quaternions of the camera's optical frame) against
     the images of the bag at ``bag_path`` (see module doc). Frames without a ground-truth pose within

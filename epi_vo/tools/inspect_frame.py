@@ -35,7 +35,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from epi_vo.core.camera import CameraModel, CameraModelCache, DistortionModel
+from epi_vo.core.camera import CameraModel, DistortionModel
 from epi_vo.core.config import VoConfig
 from epi_vo.core.debug_image import mover_mask
 from epi_vo.core.errors import BagError, OutputError
@@ -44,8 +44,8 @@ from epi_vo.core.geometry import CHI2_1DOF, CHI2_2DOF, epipolar_distances_sq, ho
 from epi_vo.core.pipeline import downscale
 from epi_vo.io import bagio, checks
 from epi_vo.io.params import load_config
-from epi_vo.runner import make_pipeline
-from epi_vo.tools.replay import process_frame
+from epi_vo.runner.frames import FrameHandler
+from epi_vo.tools.replay import frame_input
 
 F64 = NDArray[np.float64]
 Gray = NDArray[np.uint8]
@@ -249,7 +249,7 @@ def inspect_bag(bag_path: str | Path, frame: int | None = None, *, stamp_s: floa
     """Replay the bag from its first image up to ``frame`` (or the frame nearest ``stamp_s``).
 
     Frames before it that cannot be used are rejected as in ``epi-vo replay`` (the same per-frame rule,
-    :func:`epi_vo.tools.replay.process_frame`), so the picture shows what the replay did at that frame.
+    :class:`epi_vo.runner.frames.FrameHandler`), so the picture shows what the replay did at that frame.
 
     Raises:
         BagError: frame index out of range, unreadable bag, ambiguous topics, or the frame itself was
@@ -259,7 +259,7 @@ def inspect_bag(bag_path: str | Path, frame: int | None = None, *, stamp_s: floa
     if (frame is None) == (stamp_s is None):
         raise ValueError("give exactly one of frame and stamp_s")
     cfg = cfg or VoConfig()
-    pipeline = make_pipeline(cfg)
+    handler = FrameHandler(cfg)
     with bagio.open_camera_bag(bag_path, image_topic, camera_info_topic) as bag:
         count = bag.frame_count
         if stamp_s is not None:  # a first pass over the stamps: the pipeline must stop at the chosen frame
@@ -267,9 +267,8 @@ def inspect_bag(bag_path: str | Path, frame: int | None = None, *, stamp_s: floa
         if frame is None or not 0 <= frame < count:
             raise BagError(f"frame {frame} is out of range: bag {bag_path} has {count} frames (0..{count - 1})")
         ref: tuple[int, int, Gray, CameraModel] | None = None  # latest keyframe: index, stamp, image, camera
-        cameras = CameraModelCache()
         for f in bag.iter_frames():
-            processed = process_frame(pipeline, cameras, bag, f)
+            processed = handler.handle(frame_input(bag, f))
             result, gray, camera = processed.result, processed.gray, processed.camera
             if gray is None or camera is None:  # rejected before the pipeline saw it
                 if f.index == frame:

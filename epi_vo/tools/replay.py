@@ -4,7 +4,9 @@ Writes into the output directory:
 - ``trajectory.tum``: ``stamp tx ty tz qx qy qz qw`` per frame that has a pose, the camera optical
   frame relative to the first frame (the pipeline's ``T_w_c``), stamp = image header stamp in seconds;
 - ``frames.jsonl``: one JSON object per input frame (:meth:`FrameResult.to_record`), flushed per line;
-- ``output.mcap``: /vo/odometry, /vo/points, /vo/path, /diagnostics stamped with the image stamps;
+- ``output.mcap``: what vo_node publishes, stamped with the image stamps: /vo/odometry (what a robot may
+  fuse: metres, or the position held with the "unknown" variance), /vo/odometry/vo_units (the motion in VO
+  units, while it is in VO units), /vo/points, /vo/path, /tf, /vo/frame_status (``epi_vo.runner.outputs``);
 - ``stats.json``: run totals, per-stage median times and, with ground truth, evo metrics;
 - ``groundtruth.tum``: the ground truth used (when there is one), in the same TUM form.
 
@@ -33,18 +35,17 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from epi_vo.core.camera import CameraModel, CameraModelCache
-from epi_vo.core.config import VoConfig
+from epi_vo.core.config import ScaleSourceKind, VoConfig
 from epi_vo.core.errors import BagError, EpiVoError, Interrupted, OutputError
 from epi_vo.core.frame import FrameResult
-from epi_vo.core.odometry import OdometryConverter, OdometrySample, sample_status_pose, status_pose
-from epi_vo.core.pipeline import VoPipeline
-from epi_vo.core.status import frame_status
-from epi_vo.io import bagio, outbag, tum
-from epi_vo.io.msgconv import decode_frame
+from epi_vo.core.scale import Units
+from epi_vo.io import bag_topics, bagio, outbag, tum
+from epi_vo.io.node_options import CameraExtrinsic
 from epi_vo.io.paths import check_bag_path, refuse_special_file
+from epi_vo.io.trajectory import StampedPoses
 from epi_vo.io.wheel_feed import WheelFeed
-from epi_vo.runner import make_pipeline
+from epi_vo.runner.frames import FrameHandler, FrameInput
+from epi_vo.runner.outputs import FrameOutputs, OutputFrames
 from epi_vo.tools.consistency import OdometryLog, consistency_metrics, format_consistency
 from epi_vo.tools.json_check import fields_problem
 from epi_vo.tools.replay_outputs import (
@@ -52,7 +53,7 @@ from epi_vo.tools.replay_outputs import (
     OUTPUT_BAG,
     OUTPUT_FLUSH_FRAMES,
     TRAJECTORY_FILE,
-    PathWindow,
+    PathLength,
     check_outputs_clear,
     ensure_output_dir,
     open_output,
@@ -71,6 +72,7 @@ _log = logging.getLogger(__name__)
 ODOM_FRAME = "odom"
 BASE_FRAME = "base_link"
 PATH_MAX_POSES = 1000
+STATUS_NAME, HARDWARE_ID = "epi_vo", "replay"  # the frame statuses are "epi_vo: tracking", hardware "replay"
 
 
 GT_AUTO = "auto"
@@ -101,7 +103,7 @@ class ReplaySummary:
     models: dict[str, int]
     ms_per_frame: float
     stage_ms: dict[str, float]
-    path_length: float
+    path_length: float  # in ``units`` (``PathLength``)
     metrics: dict[str, Any] | None = None
     gt_source: str = ""
     output_dir: str = ""
@@ -126,6 +128,9 @@ class ReplaySummary:
     # it stays continuous and /tf carries them as map_frame_id -> odom
     # scale_source wheel_odometry: the messages of its topic and what became of them (WheelInputCounts)
     wheel_odometry: dict[str, int] | None = None
+    # The camera extrinsic of /vo/odometry (:func:`extrinsic_record`): declared by the parameters, or the default
+    # (camera level at base_link, no offset: the base frame is the camera's); None in an older stats.json
+    extrinsic: dict[str, Any] | None = None
 
     @property
     def has_problems(self) -> bool:
@@ -173,7 +178,7 @@ def _stats_types() -> dict[str, Any]:
             return float | None
         if typing.get_origin(tp) is dict:
             key, value = typing.get_args(tp)
-            return dict[key, nullable(value)]  # type: ignore[valid-type]
+            return dict[key, nullable(value)]  # type: ignore[valid-type,misc]
         return tp
 
     return {k: nullable(v) for k, v in typing.get_type_hints(ReplaySummary).items()}
@@ -225,7 +230,8 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                on_result: Callable[[FrameResult], None] | None = None,
                on_open: Callable[[int], None] | None = None, lookahead: bool = True,
                rate: float | None = None, map_frame_id: str = "", gt_topic: str | None = None,
-               no_gt: bool = False, inputs: Sequence[str | Path] = ()) -> ReplaySummary:
+               no_gt: bool = False, inputs: Sequence[str | Path] = (),
+               extrinsic: CameraExtrinsic | None = None) -> ReplaySummary:
     """Replay every image of a bag through the pipeline and write the outputs (see module doc).
 
     A frame that cannot be used (undecodable message or image, header stamp that is no ROS time,
@@ -248,8 +254,11 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     puts the corrections into the ``map_frame_id -> odom`` transform on /tf (beside ``odom -> base_link``,
     written at every frame with a pose either way), as the node broadcasts them.
     Ground truth: ``gt_tum`` (a TUM file) when given, else the bag's ``gt_topic``, else its one topic named
-    as ground truth (:func:`epi_vo.io.bagio.is_ground_truth_name`); none with ``no_gt``. ``inputs``: other
-    files the run reads (a parameter file), which no output may overwrite either.
+    as ground truth (:func:`epi_vo.io.bag_topics.is_ground_truth_name`); none with ``no_gt``. ``inputs``: other
+    files the run reads (a parameter file), which no output may overwrite either. ``extrinsic``: the camera
+    mounting the parameters declare (``camera_xyz`` / ``camera_rpy``), used as vo_node uses it without TF (for
+    /vo/odometry, /tf and the floor search); None: the default (camera level at base_link), as the node's
+    defaults give. ``stats.json`` records which (``extrinsic``).
 
     Raises:
         BagError: unreadable or empty bag, missing or ambiguous topics, a bag that is no regular file or
@@ -266,12 +275,11 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     check_outputs_clear([bag_path, gt_tum, *inputs], output_paths(Path(output_dir)))
     out = ensure_output_dir(output_dir)
     remove_stats(out)  # stats.json is written last: without it the directory holds no finished replay
-    pipeline = make_pipeline(cfg)
-    converter = OdometryConverter(continuous=bool(map_frame_id))
-    cameras = CameraModelCache()
+    handler = FrameHandler(cfg, OutputFrames(ODOM_FRAME, BASE_FRAME, map_frame_id),
+                           None if extrinsic is None else extrinsic.T_base_cam, path_max_length=PATH_MAX_POSES,
+                           status_name=STATUS_NAME)
     results_pose: list[tuple[float, np.ndarray, np.ndarray]] = []
     metric_stamps: list[dict[str, Any]] = []  # the poses published in metres (see evaluation.metric_poses)
-    path_poses = PathWindow(PATH_MAX_POSES)
     states: collections.Counter[str] = collections.Counter()
     models: collections.Counter[str] = collections.Counter()
     stage_times: dict[str, list[float]] = collections.defaultdict(list)
@@ -279,10 +287,9 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     first_rejected: dict[str, int] = {}
     n_frames = n_pose = n_kf = 0
     focal_ratios: list[float] = []  # frames that fit a pure rotation under another focal length
-    path_length = 0.0
-    last_pos: np.ndarray | None = None
+    path = PathLength()
     metric_from: int | None = None
-    units = "vo"
+    units = Units.VO
     odo_log: OdometryLog | None = None  # with ground truth
 
     try:
@@ -299,8 +306,7 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
             if gt is not None:  # kept beside the estimate so that reports can be made from DIR alone
                 tum.write_tum(out / "groundtruth.tum", *gt[1])
                 odo_log = OdometryLog()  # what /vo/odometry carried, for the covariance's consistency
-            wheel = WheelFeed(bag.read_wheel_odometry(), pipeline, cfg.wheel_odometry_timeout_s)
-            decoded = _Decoded()
+            wheel = WheelFeed(bag.read_wheel_odometry(), handler.pipeline, cfg.wheel_odometry_timeout_s)
             pace = Pace(rate) if rate is not None else None
             for frame, next_frame in with_next(bag.iter_frames()):
                 wheel.up_to(frame.stamp_ns)
@@ -308,9 +314,10 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                     pace.wait(frame.stamp_ns, lambda: stop.requested)
                 if stop.requested:  # a signal arrived during the previous frame: all its outputs are written
                     raise Interrupted(stop.signum)
-                ahead = next_frame if lookahead and pace is None else None
-                processed = process_frame(pipeline, cameras, bag, frame, ahead, decoded)
-                result, problem = processed.result, processed.problem
+                ahead = next_frame if lookahead and pace is None and next_frame is not None else None
+                handled = handler.handle(frame_input(bag, frame), None if ahead is None else frame_input(bag, ahead),
+                                         HARDWARE_ID)
+                result, problem, outputs = handled.result, handled.problem, handled.outputs
                 if problem is not None:
                     rejected[problem] += 1
                     first_rejected.setdefault(problem, frame.index)
@@ -325,28 +332,21 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                     focal_ratios.append(result.focal_ratio)
                 for k, v in result.timings_ms.items():
                     stage_times[k].append(v)
-                record = result.to_record()
+                record = outputs.record
                 frames_f.write(json.dumps(record) + "\n")
                 frames_f.flush()
                 if result.has_pose:
                     n_pose += 1
                     p, q = result.position, result.quat_xyzw
-                    stamp_s = result.stamp_ns * 1e-9
                     tum_f.write(f"{tum_stamp(result.stamp_ns)} " + " ".join(f"{v:.9f}" for v in (*p, *q)) + "\n")
                     tum_f.flush()  # as frames.jsonl: what a kill leaves holds every frame written
-                    results_pose.append((stamp_s, p.copy(), q.copy()))
+                    results_pose.append((result.stamp_ns * 1e-9, p.copy(), q.copy()))
                     if result.scale.metric:
                         metric_stamps.append({"stamp_ns": result.stamp_ns, "metric_scale": True})
-                    if last_pos is not None:
-                        path_length += float(np.linalg.norm(p - last_pos))
-                    last_pos = p.copy()
-                if not result.skipped:  # a skipped frame gets its record and status, but no pose
-                    sample = _write_outputs(obag, converter, result, path_poses, record, map_frame_id)
-                    if odo_log is not None:
-                        odo_log.add(sample, record)
-                else:
-                    obag.write_diagnostics(result.stamp_ns, [frame_status(
-                        result, "epi_vo", "replay", status_pose(converter, result, ODOM_FRAME, BASE_FRAME), record)])
+                    path.add(p, result.scale.units)
+                write_outputs(obag, outputs)  # a skipped frame gets its record and status, but no pose
+                if odo_log is not None and (estimate := outputs.estimate) is not None:
+                    odo_log.add(estimate.sample, record)  # the motion as estimated, in its own units
                 if n_frames % OUTPUT_FLUSH_FRAMES == 0:
                     obag.flush()  # a complete chunk on disk: what epi-vo recover can copy after a kill
                 bar.update()
@@ -382,7 +382,8 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
             notes.append(f"evaluation skipped: {exc}")
         if metrics is not None and odo_log is not None:
             try:
-                metrics.update(consistency_metrics(odo_log, gt[1], ODOM_FRAME, BASE_FRAME))
+                metrics.update(consistency_metrics(odo_log, gt[1], ODOM_FRAME, BASE_FRAME,
+                                                   handler.output.T_base_cam))
             except EpiVoError as exc:
                 notes.append(f"covariance consistency not evaluated: {exc}")
     totals = stage_times.get("total", [0.0])
@@ -391,13 +392,14 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
         bag=str(bag_path), image_topic=bag.image_topic, camera_info_topic=bag.camera_info_topic,
         frames=n_frames, frames_with_pose=n_pose, tracked_percent=100.0 * n_pose / n_frames, keyframes=n_kf,
         states=dict(states), models=dict(models), ms_per_frame=float(np.median(totals)),
-        stage_ms={k: float(np.median(v)) for k, v in stage_times.items()}, path_length=path_length,
+        stage_ms={k: float(np.median(v)) for k, v in stage_times.items()}, path_length=path.length(units),
         metrics=metrics, gt_source=gt_source, output_dir=str(out), notes=notes, parameters=asdict(cfg),
         rejected=[f"{n} frame(s) from frame {first_rejected[r]}: {r}" for r, n in rejected.items()],
         rejected_frames=sum(rejected.values()), skipped_messages=skipped, scale_source=cfg.scale_source,
         units=units, metric_from_frame=metric_from, poses_before_metric=held, wall_s=wall_s,
         end_to_end_fps=n_frames / max(wall_s, 1e-9), map_frame_id=map_frame_id,
         wheel_odometry=None if wheel_counts is None else wheel_counts.record(),
+        extrinsic=extrinsic_record(extrinsic, handler.output.T_base_cam),
         gt_choice=gt_choice(gt_tum, gt_topic, no_gt))
     write_stats(out, summary.to_json())
     return summary
@@ -406,8 +408,20 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
 CALIBRATION_NOTE = "check the camera calibration"  # how the note on rotation-only frames under another focal begins
 
 
+def extrinsic_record(extrinsic: CameraExtrinsic | None, T_base_cam: NDArray[np.float64]) -> dict[str, Any]:
+    """``stats.json``'s ``extrinsic``: ``source`` ('parameters' or 'default'), the parameters (zeros for the
+    default) and ``T_base_cam`` (4x4 rows, camera optical frame -> base_link, as /vo/odometry was made with)."""
+    return {"source": "default" if extrinsic is None else "parameters",
+            "camera_xyz": [0.0] * 3 if extrinsic is None else [float(v) for v in extrinsic.camera_xyz],
+            "camera_rpy": [0.0] * 3 if extrinsic is None else [float(v) for v in extrinsic.camera_rpy],
+            "T_base_cam": [[float(v) for v in row] for row in T_base_cam]}
+
+
 def _wheel_topic(cfg: VoConfig) -> str | None:
-    return cfg.wheel_odometry_topic if cfg.scale_source == "wheel_odometry" else None
+    """The bag topic of the wheel odometry: the node's parameter as a node in the root namespace resolves it."""
+    if cfg.scale_source is not ScaleSourceKind.WHEEL_ODOMETRY:
+        return None
+    return bag_topics.recorded_topic_name(cfg.wheel_odometry_topic)
 
 
 
@@ -441,78 +455,12 @@ class _Progress:
             self._bar = None
 
 
-@dataclass(frozen=True)
-class ProcessedFrame:
-    """What one bag frame gave: its record, why it was rejected (None when it was not), and the image and
-    camera the pipeline saw (None when the frame was rejected before)."""
-
-    result: FrameResult
-    problem: str | None
-    gray: NDArray[np.uint8] | None = None
-    camera: CameraModel | None = None
-
-
-def process_frame(pipeline: VoPipeline, cameras: CameraModelCache, bag: bagio.CameraBag, frame: bagio.BagFrame,
-                  next_frame: bagio.BagFrame | None = None, decoded: _Decoded | None = None) -> ProcessedFrame:
-    """Decode one bag frame and run it through ``pipeline``: the one per-frame rule of replay and inspect.
-
-    Bad input in the frame (undecodable message, stamp that is no ROS time, image or calibration that
-    cannot be used, no camera_info) gives a rejected record with the reason; never an exception.
-    With ``next_frame`` (and ``decoded``, which keeps that frame's image for its own turn) the next image
-    is decoded first and announced to the pipeline, which tracks into it while this frame is processed
-    (``VoPipeline.announce_next``: the same results, sooner).
-    """
-    if frame.problem is not None:
-        # Undecodable message or stamp that is no valid ROS time: nothing of the frame is used.
-        filed = "its log time" if frame.image_msg is None else "its header stamp clamped to a ROS time"
-        result = pipeline.skip(frame.stamp_ns, frame.problem, f"recorded at {frame.stamp_ns} ns, {filed}")
-        return ProcessedFrame(result, frame.problem)
-    gray = camera = None
-    try:
-        gray, camera = decoded.take(frame, bag, cameras) if decoded is not None else _decode(frame, bag, cameras)
-        if decoded is not None and next_frame is not None:
-            ahead = decoded.keep(next_frame, bag, cameras)
-            if ahead is not None:
-                pipeline.announce_next(*ahead)
-        result = pipeline.process(gray, camera, frame.stamp_ns)
-    except EpiVoError as exc:
-        # Bad input in one frame: the frame is recorded with the reason and replay goes on.
-        return ProcessedFrame(pipeline.reject(frame.stamp_ns, str(exc)), str(exc))
-    return ProcessedFrame(result, result.problem or None, gray, camera)
-
-
-def _decode(frame: bagio.BagFrame, bag: bagio.CameraBag, cameras: CameraModelCache
-            ) -> tuple[NDArray[np.uint8], CameraModel]:
-    """The frame's image and camera; EpiVoError naming what is wrong with them."""
-    if frame.camera_info_msg is None:
-        raise BagError(_no_camera_info(bag))
-    camera = cameras.get(frame.camera_info_msg)  # first: a compressed image of another size is not decoded
-    return decode_frame(frame.image_msg, bag.image_is_compressed, (camera.width, camera.height)), camera
-
-
-class _Decoded:
-    """The next frame's image and camera, decoded ahead of its turn (only when that worked: a frame
-    that cannot be decoded is decoded again in its turn and rejected there with the reason)."""
-
-    def __init__(self) -> None:
-        self._frame: bagio.BagFrame | None = None
-        self._value: tuple[NDArray[np.uint8], CameraModel] | None = None
-
-    def keep(self, frame: bagio.BagFrame, bag: bagio.CameraBag, cameras: CameraModelCache
-             ) -> tuple[NDArray[np.uint8], CameraModel] | None:
-        self._frame, self._value = frame, None
-        if frame.problem is None:
-            try:
-                self._value = _decode(frame, bag, cameras)
-            except EpiVoError:
-                pass
-        return self._value
-
-    def take(self, frame: bagio.BagFrame, bag: bagio.CameraBag, cameras: CameraModelCache
-             ) -> tuple[NDArray[np.uint8], CameraModel]:
-        value = self._value if self._frame is frame else None
-        self._frame = self._value = None
-        return value if value is not None else _decode(frame, bag, cameras)
+def frame_input(bag: bagio.CameraBag, frame: bagio.BagFrame) -> FrameInput:
+    """A bag frame as the frame handler takes it (the same rule as vo_node's frames)."""
+    filed = "its log time" if frame.image_msg is None else "its header stamp clamped to a ROS time"
+    return FrameInput(frame.stamp_ns, frame.image_msg, bag.image_is_compressed, frame.camera_info_msg, frame.problem,
+                      f"recorded at {frame.stamp_ns} ns, {filed}" if frame.problem is not None else "",
+                      no_camera_info=_no_camera_info(bag))
 
 
 def with_next(frames: Iterable[bagio.BagFrame]) -> Iterator[tuple[bagio.BagFrame, bagio.BagFrame | None]]:
@@ -562,7 +510,7 @@ def stop_on_signals() -> Iterator[StopRequest]:
 
     def request(signum: int, frame: object) -> None:
         if not stop.requested:
-            stop.signum = signum
+            stop.signum = signal.Signals(signum)
         stop.requested = True
 
     signals = [signal.SIGINT, signal.SIGTERM, *([signal.SIGHUP] if hasattr(signal, "SIGHUP") else [])]
@@ -574,36 +522,33 @@ def stop_on_signals() -> Iterator[StopRequest]:
             signal.signal(sig, handler)
 
 
-def _write_outputs(obag: outbag.OutputBag, converter: OdometryConverter, result: FrameResult,
-                   path_poses: PathWindow, record: dict[str, Any] | None = None,
-                   map_frame_id: str = "") -> OdometrySample:
-    sample = converter.convert_result(result)
-    obag.write_odometry(result.stamp_ns, ODOM_FRAME, BASE_FRAME, sample.position, sample.quat_xyzw,
-                        sample.pose_covariance, sample.linear_velocity, sample.angular_velocity,
-                        sample.twist_covariance)
-    if result.points_w.shape[0]:
-        # Points are in the pipeline frame w (first optical frame); publish them in odom.
-        obag.write_points(result.stamp_ns, ODOM_FRAME, converter.odom_points(result.points_w))
-    if result.has_pose:
-        path_poses.append(result.stamp_ns, sample.position, sample.quat_xyzw)
-        obag.write_path(result.stamp_ns, ODOM_FRAME, *path_poses.window())
-        transforms = [(ODOM_FRAME, BASE_FRAME, sample.position, sample.quat_xyzw)]
-        if (map_odom := sample.map_odom_xyz_quat()) is not None:  # as vo_node's TF with map_frame_id (REP-105)
-            transforms.append((map_frame_id, ODOM_FRAME, *map_odom))
-        obag.write_tf(result.stamp_ns, transforms)
-    obag.write_diagnostics(result.stamp_ns, [frame_status(
-        result, "epi_vo", "replay", sample_status_pose(sample, ODOM_FRAME, BASE_FRAME), record)])
-    return sample
+def write_outputs(obag: outbag.OutputBag, outputs: FrameOutputs) -> None:
+    """One frame's outputs into output.mcap, as vo_node publishes them (each message at the image stamp)."""
+    stamp = outputs.result.stamp_ns
+    for odom, topic in ((outputs.odometry, bagio.ODOMETRY_TOPIC),
+                        (outputs.odometry_vo_units, bagio.VO_UNITS_ODOMETRY_TOPIC)):
+        if odom is not None:
+            s = odom.sample
+            obag.write_odometry(stamp, odom.frame_id, odom.child_frame_id, s.position, s.quat_xyzw, s.pose_covariance,
+                                s.linear_velocity, s.angular_velocity, s.twist_covariance, topic)
+    if outputs.points is not None:
+        obag.write_points(stamp, outputs.points.frame_id, outputs.points.points_xyz)
+    if (path := outputs.path) is not None:
+        obag.write_path(stamp, path.frame_id, path.stamps_ns, path.positions, path.quats_xyzw)
+    if outputs.transforms:
+        obag.write_tf(stamp, [(t.parent, t.child, t.xyz, t.quat_xyzw) for t in outputs.transforms])
+    obag.write_diagnostics(stamp, [outputs.status])
 
 
 def _ground_truth(bag: bagio.CameraBag, gt_tum: str | Path | None
-                  ) -> tuple[str, tuple[np.ndarray, np.ndarray, np.ndarray]] | None:
+                  ) -> tuple[str, StampedPoses] | None:
     if gt_tum is not None:
         return str(gt_tum), tum.read_tum(gt_tum)
     gt = bag.read_ground_truth()
     if gt is None:
         return None
-    return gt_topic_source(gt.topic), (gt.stamps_ns * 1e-9, gt.positions, gt.quats_xyzw)
+    stamps_s = np.asarray(gt.stamps_ns * 1e-9, dtype=np.float64)
+    return gt_topic_source(gt.topic), StampedPoses(stamps_s, gt.positions, gt.quats_xyzw)
 
 
 def gt_topic_source(topic: str) -> str:
@@ -612,7 +557,7 @@ def gt_topic_source(topic: str) -> str:
 
 
 def _evaluate(poses: list[tuple[float, np.ndarray, np.ndarray]], metric_stamps: list[dict[str, Any]],
-              gt: tuple[np.ndarray, np.ndarray, np.ndarray]) -> tuple[TrajectoryMetrics, int]:
+              gt: StampedPoses) -> tuple[TrajectoryMetrics, int]:
     """The metrics of the run's poses (its metric ones once it established metres) and how many poses
     were left out (held before metric scale)."""
     from epi_vo.tools.evaluation import evaluate_trajectory, metric_poses  # evo: only with ground truth
@@ -620,7 +565,7 @@ def _evaluate(poses: list[tuple[float, np.ndarray, np.ndarray]], metric_stamps: 
     stamps = np.array([s for s, _, _ in poses])
     pos = np.array([p for _, p, _ in poses]).reshape(-1, 3)
     quat = np.array([q for _, _, q in poses]).reshape(-1, 4)
-    est, held = metric_poses((stamps, pos, quat), metric_stamps)
+    est, held = metric_poses(StampedPoses(stamps, pos, quat), metric_stamps)
     return evaluate_trajectory(est, gt), held
 
 
@@ -636,7 +581,7 @@ def format_summary(s: ReplaySummary) -> str:
         f"  time          {s.ms_per_frame:.2f} ms/frame median (" +
         ", ".join(f"{k} {v:.2f}" for k, v in s.stage_ms.items() if k != "total") + ")",
         f"  end to end    {s.end_to_end_fps:.1f} frames/s ({s.wall_s:.2f} s: reading, decoding, VO, writing)",
-        f"  path length   {s.path_length:.3f} {'m' if s.units == 'm' else '(VO units)'}",
+        f"  path length   {s.path_length:.3f} {'m' if s.units == Units.METRES else '(VO units)'}",
         f"  scale         {s.scale_source}: " + (f"metric from frame {s.metric_from_frame}"
                                                   if s.metric_from_frame is not None else "VO units"),
     ]
@@ -647,7 +592,7 @@ def format_summary(s: ReplaySummary) -> str:
                      f"{_f(m['trans_direction_err_deg'])} deg  ({m['matched_poses']} poses"
                      + (f"; {s.poses_before_metric} held before metric scale not evaluated" if s.poses_before_metric
                         else "") + ")")
-        if s.units == "m":
+        if s.units == Units.METRES:
             lines.append(f"  metric        step scale {_f(m['step_scale_median'])} (estimate / GT, median)  ATE "
                          f"{_f(m['ate_se3_percent_of_path'])} % of path with SE(3) alignment only")
         line = format_consistency(m)

@@ -27,6 +27,7 @@ from typing import IO, Any
 import numpy as np
 
 from epi_vo.core.errors import OutputError
+from epi_vo.core.scale import Units
 from epi_vo.io.msgconv import ns_to_ros_time
 from epi_vo.io.paths import find_overlap, special_file_kind
 
@@ -121,29 +122,59 @@ def tum_stamp(stamp_ns: int) -> str:
     return f"{sec}.{nanosec:09d}"
 
 
-class PathWindow:
-    """The last ``size`` poses of /vo/path (stamp, position, quat_xyzw) as contiguous arrays without a copy per
-    frame: rows are appended into a buffer twice the window, shifted back to the start when it is full."""
+class PathLength:
+    """The length of a replay's camera path in the units it ends in (``stats.json`` ``path_length``).
 
-    def __init__(self, size: int) -> None:
-        self._size = size
-        self._stamps = np.zeros(2 * size, dtype=np.int64)
-        self._poses = np.zeros((2 * size, 7))  # x y z, qx qy qz qw
-        self._end = 0
+    In VO units: the sum of the steps between consecutive poses. In metres: the path of the positions a robot
+    could take as metres, as vo/odometry publishes them (``epi_vo.runner.outputs``): a pose before metres were
+    established counts as held at the last metric position (or the start), so the first metric pose adds its
+    distance from there and the path in VO units before it adds nothing.
+    """
 
-    def append(self, stamp_ns: int, position: np.ndarray, quat_xyzw: np.ndarray) -> None:
-        if self._end == len(self._stamps):
-            keep = self._size - 1
-            self._stamps[:keep] = self._stamps[self._end - keep:self._end]
-            self._poses[:keep] = self._poses[self._end - keep:self._end]
-            self._end = keep
-        self._stamps[self._end] = stamp_ns
-        self._poses[self._end, :3] = position
-        self._poses[self._end, 3:] = quat_xyzw
-        self._end += 1
+    def __init__(self) -> None:
+        self._vo = self._metric = 0.0
+        self._last: np.ndarray | None = None
+        self._held = np.zeros(3)
+        self._last_published: np.ndarray | None = None
 
-    def window(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """stamps_ns (M,), positions (M, 3), quats_xyzw (M, 4) of the last M <= size poses (views)."""
-        start = max(self._end - self._size, 0)
-        poses = self._poses[start:self._end]
-        return self._stamps[start:self._end], poses[:, :3], poses[:, 3:]
+    def add(self, position: np.ndarray, units: Units) -> None:
+        """The camera position of the next frame with a pose, in ``units``."""
+        metric = units is Units.METRES
+        if self._last is not None:
+            self._vo += float(np.linalg.norm(position - self._last))
+        self._last = position.copy()
+        if metric:
+            self._held = position.copy()
+        published = self._held
+        if self._last_published is not None:
+            self._metric += float(np.linalg.norm(published - self._last_published))
+        self._last_published = published
+
+    def length(self, units: Units) -> float:
+        return self._metric if units is Units.METRES else self._vo
+
+
+def recorded_extrinsic(stats: Any) -> np.ndarray | None:
+    """``T_base_cam`` (4x4) a replay made its odometry with when the parameters declared the extrinsic
+    (``stats.json`` ``extrinsic``, source ``parameters``); None for the default (camera level at base_link)
+    or a ``stats.json`` older than the record. ValueError when the record is no rigid 4x4 transform."""
+    record = stats.get("extrinsic") if isinstance(stats, dict) else None
+    if not isinstance(record, dict) or record.get("source") in (None, "default"):
+        return None
+    try:
+        T = np.asarray(record["T_base_cam"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        T = np.zeros((0,))
+    R = T[:3, :3] if T.shape == (4, 4) else np.zeros((3, 3))
+    if not (T.shape == (4, 4) and np.all(np.isfinite(T)) and np.allclose(R @ R.T, np.eye(3), atol=1e-6)
+            and np.linalg.det(R) > 0 and np.allclose(T[3], [0.0, 0.0, 0.0, 1.0])):
+        msg = "extrinsic.T_base_cam is no rigid 4x4 transform"
+        raise ValueError(msg)
+    return T
+
+
+def read_recorded_extrinsic(directory: str | Path) -> np.ndarray | None:
+    """:func:`recorded_extrinsic` of ``directory``'s stats.json (None without one). OSError, ValueError (JSON,
+    the record) as reading it raises."""
+    path = Path(directory) / "stats.json"
+    return recorded_extrinsic(json.loads(path.read_text(encoding="utf-8"))) if path.is_file() else None

@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 
 from epi_vo.core.config import config_fields, field_doc
 from epi_vo.core.errors import EpiVoError, EvaluationError, ReportError
-from epi_vo.io.odometry_bag import read_odometry
+from epi_vo.io.odometry_bag import read_estimate_odometry
 from epi_vo.tools.evaluation import NeesResult, replay_nees
 from epi_vo.tools.report_data import (
     NO_SIM3,
@@ -51,7 +51,6 @@ from epi_vo.tools.report_data import (
     scale_series,
     spans,
     timeline,
-    trajectory_views,
     units_name,
 )
 from epi_vo.tools.report_movers import (
@@ -63,6 +62,7 @@ from epi_vo.tools.report_movers import (
     static_spans,
 )
 from epi_vo.tools.report_plots import draw_errors, draw_nees, draw_scale, draw_timeline, draw_trajectory
+from epi_vo.tools.report_views import run_extrinsic, trajectory_views
 from epi_vo.tools.twist_consistency import TwistNees, replay_twist_nees
 
 _log = logging.getLogger(__name__)
@@ -95,9 +95,9 @@ def _write_report(run: Run) -> Path:
     units = units_name(run_scale(run).units)
     mseries = mover_series(run)
     movers = mover_spans(run, mseries)
-    pngs = [(draw_trajectory(views, png_dir / "trajectory.png"), "Trajectory: top view (x right, z forward) and "
-             f"side view (z forward, -y up), estimate in {units} with its keyframes; ground truth in the same "
-             "frame."),
+    pngs = [(draw_trajectory(views, png_dir / "trajectory.png"), f"Trajectory in the {views.frame}: "
+             f"{views.top.title} and {views.side.title}, estimate in {units} with its keyframes; ground truth in the "
+             "same frame."),
             (draw_timeline(tl, span_list, png_dir / "timeline.png", movers, mseries), "Per-frame timeline. Shaded: "
              "frames not tracking, by state (static: the camera held still while something moved); magenta band "
              "at the bottom of each panel: movers in view (at least "
@@ -149,16 +149,17 @@ def run_nees(run: Run) -> tuple[NeesResult | None, str, TwistNees | None]:
     if not (run.directory / "output.mcap").is_file():
         return None, "no output.mcap (the published covariance)", None
     try:
-        odometry = read_odometry(run.directory / "output.mcap")
+        odometry = read_estimate_odometry(run.directory / "output.mcap")
     except EpiVoError as exc:
         return None, f"not computed: cannot read {run.directory / 'output.mcap'}: {exc}", None
     records = list(run.records)
+    T_base_cam = run_extrinsic(run)  # the extrinsic the odometry was made with (None: the default)
     try:
-        nees = replay_nees(records, odometry, run.gt)
+        nees = replay_nees(records, odometry, run.gt, T_base_cam=T_base_cam)
     except EvaluationError as exc:
         return None, f"not computed: {exc}", None
     try:
-        twist = replay_twist_nees(records, odometry, run.gt)
+        twist = replay_twist_nees(records, odometry, run.gt, T_base_cam)
     except (EvaluationError, ValueError, np.linalg.LinAlgError):
         twist = None
     return nees, "", twist

@@ -1,7 +1,7 @@
 """The data of a replay report: pure functions of the files in an ``epi-vo replay`` output directory.
 
 - :func:`load_run` reads ``frames.jsonl``, ``trajectory.tum``, ``stats.json`` and ``groundtruth.tum``;
-- :func:`trajectory_views` gives the estimate and the aligned ground truth in a top and a side view;
+- :func:`gt_alignment` aligns the ground truth onto the estimate (``epi_vo.tools.report_views`` draws both);
 - :func:`timeline` gives the per-frame series of the frame records;
 - :func:`spans` finds the runs of frames that are not ``tracking``, with their reasons;
 - :func:`error_series` gives ATE over time and RPE per frame, computed with evo;
@@ -10,9 +10,8 @@
 Frames. The estimate holds camera poses T_w_c, w = the first camera's optical frame (x right,
 y down, z forward), in the run's units: metres when a metric scale source (``scale_source``
 ground_plane or wheel_odometry) was established, VO units otherwise (``stats.json`` ``units``; an
-output directory older than the scale sources has no such key and is in VO units). The top view is
-the x-z plane (x right, z forward, seen from above), the side view the z-y plane with -y drawn
-upwards. The ground truth is drawn in the estimate's frame: evo's Umeyama fit p_gt ~= s R p_est + t
+output directory older than the scale sources has no such key and is in VO units). The ground truth
+is brought into the estimate's frame: evo's Umeyama fit p_gt ~= s R p_est + t
 (the one :mod:`epi_vo.tools.evaluation` uses for ATE) is inverted, p = R^T (p_gt - t) / s. When that
 fit is degenerate (an estimate that never moves, as under pure rotation, or moves along one line) the
 ground truth is only origin-aligned: its first matched pose is put on the estimate's, in its own
@@ -42,10 +41,11 @@ from numpy.typing import NDArray
 from epi_vo.core.config import config_fields
 from epi_vo.core.errors import EpiVoError, ReportError
 from epi_vo.core.frame import Model, TrackingState
+from epi_vo.core.scale import Units
 from epi_vo.io import tum
+from epi_vo.io.trajectory import StampedPoses
 from epi_vo.tools.evaluation import (
     MIN_MATCHED_POSES,
-    StampedPoses,
     TrajectoryMetrics,
     evaluate_trajectory,
     metric_poses,
@@ -53,6 +53,7 @@ from epi_vo.tools.evaluation import (
 )
 from epi_vo.tools.json_check import fields_problem
 from epi_vo.tools.replay import stats_problem
+from epi_vo.tools.replay_outputs import PathLength
 
 _log = logging.getLogger(__name__)
 
@@ -137,9 +138,9 @@ def load_run(directory: str | Path) -> Run:
     if not (d / "trajectory.tum").is_file():
         msg = f"{d} is not an 'epi-vo replay' output directory: trajectory.tum is missing"
         raise ReportError(msg)
-    est = StampedPoses(*_read_tum(d / "trajectory.tum"))
+    est = _read_tum(d / "trajectory.tum")
     est_frame_index = _frame_index_of_stamps(records, est.stamps_s, d / "trajectory.tum")
-    gt = StampedPoses(*_read_tum(d / "groundtruth.tum")) if (d / "groundtruth.tum").is_file() else None
+    gt = _read_tum(d / "groundtruth.tum") if (d / "groundtruth.tum").is_file() else None
     stats = None
     if (d / "stats.json").is_file():
         try:
@@ -188,7 +189,7 @@ def _read_records(path: Path) -> tuple[dict[str, Any], ...]:
     return tuple(records)
 
 
-def _read_tum(path: Path) -> tuple[F64, F64, F64]:
+def _read_tum(path: Path) -> StampedPoses:
     try:
         return tum.read_tum(path)
     except EpiVoError as exc:  # bagio says BagError; here it is a report input
@@ -299,65 +300,6 @@ def gt_in_estimate_frame(run: Run, alignment: GtAlignment) -> F64:
         return np.zeros((0, 3))
     T_est_gt = np.linalg.inv(alignment.T_gt_est)
     return run.gt.positions_xyz @ T_est_gt[:3, :3].T + T_est_gt[:3, 3]
-
-
-# --- trajectory views -----------------------------------------------------------------------------
-
-
-def top_view(p: F64) -> F64:
-    """(N, 3) optical-frame points -> (N, 2) top view: (x right, z forward)."""
-    return np.column_stack([p[:, 0], p[:, 2]]) if p.size else np.zeros((0, 2))
-
-
-def side_view(p: F64) -> F64:
-    """(N, 3) optical-frame points -> (N, 2) side view: (z forward, -y up); the optical y axis points down."""
-    return np.column_stack([p[:, 2], -p[:, 1]]) if p.size else np.zeros((0, 2))
-
-
-class View(NamedTuple):
-    """One 2-D projection of the trajectories (all arrays in the same plot coordinates)."""
-
-    title: str
-    xlabel: str
-    ylabel: str
-    est: F64  # (N, 2) estimated camera centres
-    gt: F64  # (M, 2) ground truth in the estimate's frame (empty without a usable ground truth)
-    keyframes: F64  # (K, 2) estimated camera centres of the keyframes
-    heading: F64  # (N, 2) projection of each estimated camera's forward (optical z) axis, unit 3-D vector
-
-
-@dataclass(frozen=True)
-class TrajectoryViews:
-    top: View
-    side: View
-    est_frame_index: NDArray[np.int64]  # (N,) record index of each estimated pose
-    keyframe_index: NDArray[np.int64]  # (K,) record index of each keyframe with a pose
-    alignment: GtAlignment | None  # None: no ground truth
-
-
-def trajectory_views(run: Run) -> TrajectoryViews:
-    """The estimate, its keyframes and the aligned ground truth in the top (x-z) and side (z, -y) views."""
-    p = run.est.positions_xyz
-    kf_records = {int(r["index"]) for r in run.records if r["is_keyframe"]}
-    kf_mask = np.array([i in kf_records for i in run.est_frame_index], dtype=bool)
-    forward = _forward_axes(run.est.quats_xyzw)
-    alignment = gt_alignment(run)
-    gt = gt_in_estimate_frame(run, alignment) if alignment is not None else np.zeros((0, 3))
-    u = f"[{units_name(run_scale(run).units)}]"
-    top = View("top view (x-z)", f"x (right) {u}", f"z (forward) {u}",
-               top_view(p), top_view(gt), top_view(p[kf_mask]), top_view(forward))
-    side = View("side view (z-y)", f"z (forward) {u}", f"-y (up) {u}",
-                side_view(p), side_view(gt), side_view(p[kf_mask]), side_view(forward))
-    return TrajectoryViews(top, side, run.est_frame_index, run.est_frame_index[kf_mask], alignment)
-
-
-def _forward_axes(quats_xyzw: F64) -> F64:
-    """(N, 4) quaternions of R_w_c -> (N, 3) third column of R_w_c: the camera's optical axis in w."""
-    if quats_xyzw.size == 0:
-        return np.zeros((0, 3))
-    q = quats_xyzw / np.linalg.norm(quats_xyzw, axis=1, keepdims=True)
-    x, y, z, w = q.T
-    return np.column_stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)])
 
 
 # --- scale ------------------------------------------------------------------------------------------
@@ -629,14 +571,19 @@ def run_figures(run: Run) -> RunFigures:
                 note = f"{held} pose(s) held before metric scale was established are not in the metrics"
         except EpiVoError as exc:
             note = f"metrics not computed: {exc}"
-    steps = np.diff(run.est.positions_xyz, axis=0)
+    path = PathLength()  # the replay's rule (stats.json path_length), from the records
+    for r in run.records:
+        if r.get("has_pose") and isinstance(r.get("position"), list):
+            path.add(np.asarray(r["position"], dtype=np.float64),
+                     Units.METRES if r.get("units") == Units.METRES else Units.VO)
+    scale = run_scale(run)
     return RunFigures(
         frames=len(run.records), frames_with_pose=sum(bool(r["has_pose"]) for r in run.records),
         keyframes=int(tl.is_keyframe.sum()), states=dict(collections.Counter(tl.state)),
         models=dict(collections.Counter(tl.model)), ms_per_frame=_nanmedian(tl.total_ms),
         stage_ms={k: _nanmedian(v) for k, v in tl.stage_ms.items()},
-        path_length=float(np.linalg.norm(steps, axis=1).sum()) if steps.size else 0.0,
-        metrics=metrics, metrics_note=note, scale=run_scale(run))
+        path_length=path.length(Units.METRES if scale.units == Units.METRES else Units.VO), metrics=metrics,
+        metrics_note=note, scale=scale)
 
 
 def _nanmedian(a: F64) -> float:

@@ -30,10 +30,10 @@ from epi_vo.tools.report_data import (
     ScaleSeries,
     Span,
     Timeline,
-    TrajectoryViews,
     fmt_num,
 )
 from epi_vo.tools.report_movers import MoverSeries, MoverSpan
+from epi_vo.tools.report_views import TrajectoryViews
 from epi_vo.tools.twist_consistency import TwistNees
 
 _log = logging.getLogger(__name__)
@@ -56,13 +56,13 @@ def draw_trajectory(views: TrajectoryViews, path: Path) -> Path:
         extent = float(np.ptp(pts, axis=0).max()) if pts.size else 0.0
         if view.est.size:
             ax.plot(view.est[:, 0], view.est[:, 1], "-", color=EST_COLOUR, lw=2.2, label="estimate")
-            # Camera heading (optical axis) at ~20 poses: the only visible motion under pure rotation.
+            # Heading at ~20 poses: the only visible motion under pure rotation.
             step = max(1, math.ceil(view.est.shape[0] / 20))
             h = view.heading[::step]
             norm = np.linalg.norm(h, axis=1, keepdims=True)
             h = np.divide(h, norm, out=np.zeros_like(h), where=norm > 1e-9) * (0.08 * extent if extent > 1e-9 else 0.6)
             ax.quiver(view.est[::step, 0], view.est[::step, 1], h[:, 0], h[:, 1], angles="xy", scale_units="xy",
-                      scale=1, color="#555555", width=0.003, alpha=0.7, label="heading (optical axis)")
+                      scale=1, color="#555555", width=0.003, alpha=0.7, label=views.heading_label)
             ax.plot(view.keyframes[:, 0], view.keyframes[:, 1], "^", ms=7, mfc=EST_COLOUR, mec="black", mew=0.6,
                     ls="none", label=f"keyframes ({view.keyframes.shape[0]})")
             ax.plot(*view.est[0], "o", ms=9, mfc="#2ca02c", mec="black", label="start")
@@ -85,7 +85,7 @@ def draw_trajectory(views: TrajectoryViews, path: Path) -> Path:
     handles, labels = axes[0].get_legend_handles_labels()
     if labels:  # nothing drawn (every frame rejected, no ground truth): no legend (ncol must be > 0)
         fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=9, frameon=False)
-    title = "Trajectory (camera optical frame of the first image)"
+    title = f"Trajectory ({views.frame})"
     if views.alignment is not None:
         title += f"\n{views.alignment.note}"
     fig.suptitle(title, fontsize=11)

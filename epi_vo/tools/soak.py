@@ -29,11 +29,10 @@ from numpy.typing import NDArray
 from epi_vo.core.camera import CameraModel
 from epi_vo.core.config import VoConfig
 from epi_vo.core.errors import BagError
-from epi_vo.core.odometry import OdometryConverter, status_pose
-from epi_vo.core.status import frame_status
 from epi_vo.io import bagio, checks
 from epi_vo.io.msgconv import decode_frame
 from epi_vo.runner import make_pipeline
+from epi_vo.runner.outputs import OutputMaker
 
 DEFAULT_BAG = Path(__file__).resolve().parents[2] / "bags" / "general_motion" / "bag"
 
@@ -124,7 +123,7 @@ def run_soak(n_frames: int, frames: SoakFrames | None = None, cfg: VoConfig | No
         raise ValueError(msg)
     frames = frames or load_frames()
     pipeline = make_pipeline(cfg or VoConfig())
-    converter = OdometryConverter()
+    outputs = OutputMaker()
     states: Counter[str] = Counter()
     n_pose = 0
     samples: list[SoakSample] = []
@@ -146,9 +145,7 @@ def run_soak(n_frames: int, frames: SoakFrames | None = None, cfg: VoConfig | No
         gray = frames.grays[ping_pong(n_src, i)]
         result = pipeline.process(gray, frames.camera, (i + 1) * frames.period_ns)
         # What the front doors do with each result (their per-frame state soaks too).
-        converter.convert_result(result)
-        frame_status(result, "epi_vo", "soak", status_pose(converter, result, "odom", "base_link"))
-        json.dumps(result.to_record())
+        json.dumps(outputs.outputs(result, "epi_vo", "soak").record)
         times.append(result.timings_ms.get("total", math.nan))
         states[result.state.value] += 1
         n_pose += int(result.has_pose)

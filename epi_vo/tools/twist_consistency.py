@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 from epi_vo.core.odometry import default_T_base_cam
 from epi_vo.core.transforms import invert_T
 from epi_vo.io.odometry_bag import OdometryTrack
+from epi_vo.io.trajectory import StampedPoses
 from epi_vo.tools.evaluation import CHI2_3DOF_99, nearest_rows, poses_from_xyz_quat, rotation_vectors
 
 UNKNOWN_VARIANCE = 1.0e6  # a twist variance at or above this says "unknown": not evaluated
@@ -111,16 +112,20 @@ def poses_at(gt_stamps_s: NDArray[np.float64], gt_pos: NDArray[np.float64], gt_q
 
 
 def replay_twist_nees(records: list[dict], odometry: OdometryTrack,
-                      gt: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]) -> TwistNees:
+                      gt: StampedPoses,
+                      T_base_cam: NDArray[np.float64] | None = None) -> TwistNees:
     """:func:`twist_consistency` of a replay: its frame records, its /vo/odometry and the ground-truth
-    camera poses (TUM). Tracking frames are judged; metres when the run established them."""
+    camera poses (TUM), turned into base poses with the extrinsic the odometry was made with
+    (``T_base_cam``; default: the optical rotation). Tracking frames are judged; metres when the run
+    established them."""
     by_stamp = {int(r.get("stamp_ns", -1)): r for r in records}
     evaluate = np.array([by_stamp.get(int(t), {}).get("state") == "tracking" for t in odometry.stamps_ns], bool)
     metric = any(bool(r.get("metric_scale")) for r in records if r.get("state") == "tracking")
     if metric:  # frames before metric scale was established are in VO units
         evaluate &= np.array([bool(by_stamp.get(int(t), {}).get("metric_scale")) for t in odometry.stamps_ns], bool)
     gt_s, gt_p, gt_q = (np.asarray(a, dtype=np.float64) for a in gt)
-    T_gt = poses_at(gt_s, gt_p, gt_q, odometry.stamps_ns, invert_T(default_T_base_cam()))
+    T_bc = default_T_base_cam() if T_base_cam is None else np.asarray(T_base_cam, dtype=np.float64)
+    T_gt = poses_at(gt_s, gt_p, gt_q, odometry.stamps_ns, invert_T(T_bc))
     r = twist_consistency(odometry, T_gt, evaluate, metric=metric)
     index = np.array([int(by_stamp.get(int(odometry.stamps_ns[k]), {}).get("index", -1)) for k in r.rows],
                      np.int64)

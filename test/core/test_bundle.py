@@ -489,7 +489,7 @@ def test_the_input_window_is_not_modified(scene: Scene) -> None:
 def _reference_floor_solution(window: ba.Window, sigma_n: float, kept: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The floor prior as a plane variable (``OrientedPlane3``) with one Huber-robust 1-D factor per floor
     point (its signed distance) and one per keyframe (its camera centre's distance minus the height),
-    keyframe 0 held by a tight prior: what ``bundle`` solved until 2026-11-27 (with Python factors), solved
+    keyframe 0 held by a tight prior (the floor prior's other formulation, with Python factors), solved
     here to convergence on the ``kept`` observations. Returns the poses and the plane (n, d)."""
     import gtsam
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import re
 from pathlib import Path
@@ -13,6 +14,10 @@ from epi_vo.core.config import (
     FRONTENDS,
     NODE_PARAMETER_NAMES,
     ROBUST_METHODS,
+    BaSolver,
+    Frontend,
+    RobustMethod,
+    ScaleSourceKind,
     VoConfig,
     config_fields,
     field_doc,
@@ -47,12 +52,28 @@ def test_defaults_validate() -> None:
 def test_every_field_has_a_doc_line_and_a_typed_default() -> None:
     for f in config_fields():
         assert field_doc(f).strip(), f"{f.name} has no doc line"
-        assert type(f.default) in (int, float, str, bool), f"{f.name} default {f.default!r}"
-        choices = f.metadata["choices"]
-        if choices is not None:
-            assert f.default in choices
+        mode = f.metadata["mode"]
+        if mode is not None:  # a mode: a member of its enum, whose texts are the choices
+            assert isinstance(f.default, mode) and f.metadata["choices"] == tuple(m.value for m in mode)
+        else:
+            assert type(f.default) in (int, float, str, bool), f"{f.name} default {f.default!r}"
     assert {"essential_method", "homography_method"} <= {f.name for f in config_fields()}
     assert "magsac" in ROBUST_METHODS and "klt" in FRONTENDS
+
+
+def test_a_mode_given_as_text_is_its_member_and_a_text_no_member_has_is_named() -> None:
+    """Modes are converted once, where the config is made (a constructor, ``from_dict``, the node's
+    parameters): code compares members, and a member still writes as its text."""
+    cfg = from_dict({"frontend": "orb", "scale_source": "ground_plane", "camera_height_m": 1.0,
+                     "essential_method": "ransac", "ba_solver": "inline"})
+    assert cfg.frontend is Frontend.ORB and cfg.scale_source is ScaleSourceKind.GROUND_PLANE
+    assert cfg.essential_method is RobustMethod.RANSAC and cfg.ba_solver is BaSolver.INLINE
+    assert VoConfig(frontend="orb").frontend is Frontend.ORB  # type: ignore[arg-type]
+    assert json.dumps({"frontend": cfg.frontend}) == '{"frontend": "orb"}'
+    assert cfg.scale_source.metric and not ScaleSourceKind.NONE.metric
+    with pytest.raises(ConfigError, match=r"frontend='sift' \(choose one of klt, orb\).*ba_solver=2 \(choose one of "
+                       r"process, inline\)"):
+        from_dict({"frontend": "sift", "ba_solver": 2})
 
 
 def test_config_is_frozen() -> None:

@@ -97,9 +97,9 @@ def test_low_parallax_with_strong_tracking_makes_no_keyframe(general_scene) -> N
                                                   (2 * CFG.min_scale_points, False)])
 def test_a_thinning_map_makes_a_keyframe_before_it_cannot_carry_the_scale(general_scene, n_map: int,
                                                                           keyframe: bool) -> None:
-    """Strong tracking at low parallax, but only a few of the tracked features have depth (moving_mover
-    replayed from frame 3, 2026-11-23: a first map of 55 points thinned to 7 and tracking was lost for
-    3 frames; 0.89 -> 0.48 % ATE with the keyframe). Below twice min_scale_points a keyframe is made."""
+    """Strong tracking at low parallax, but only a few of the tracked features have depth (a first map of 55
+    points thinned to 7 loses tracking for a few frames where a keyframe keeps it). Below twice
+    min_scale_points a keyframe is made."""
     s = general_scene
     cfg = dataclasses.replace(CFG, kf_min_parallax_deg=5.0)  # the scene's ~3.3 deg are "low"
     X_kf = np.full((s.n, 3), np.nan)

@@ -615,10 +615,10 @@ def test_e_agreeing_with_the_map_needs_no_pose_of_its_own(general_scene, monkeyp
 def test_a_map_fit_holding_fewer_points_than_e_does_not_overrule_e(general_scene,
                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
     """The map overrules E when E's consensus was taken by a mover; not when the map's own fit is what
-    failed. KITTI with max_features 280 (2026-11-23): right after a new keyframe the map's pose (LM from
-    the previous pose) fell into a wrong minimum holding 15 of 126 map points, where E's pose held 100
-    within 2 px; the map overruled E, 95 features were called movers and the rotation error grew to
-    1.5 deg. Here the map's fit returns such a minimum: E's pose is kept and nothing is a mover."""
+    failed. KITTI with max_features 280 shows it: right after a new keyframe the map's pose (LM from the
+    previous pose) can fall into a wrong minimum holding 15 of 126 map points, where E's pose holds 100
+    within 2 px; overruling E calls 95 features movers and grows the rotation error to 1.5 deg. Here the
+    map's fit returns such a minimum: E's pose is kept and nothing is a mover."""
     import cv2
 
     s = general_scene
@@ -648,8 +648,8 @@ def test_a_map_fit_holding_fewer_points_than_e_does_not_overrule_e(general_scene
 def test_the_map_overrules_e_only_when_its_fit_holds_clearly_more_points(
         general_scene, monkeypatch: pytest.MonkeyPatch, map_holds_over_e: float, overruled: bool) -> None:
     """The map's own fit is made to hold its points, so it holds a few more than E's pose whenever the
-    tracks are degraded (motion blur on moving_mover, 2026-11-23: 11-34 against the fit's 15-39; the fit
-    0.77 deg off, E right; overruling ended that run at 7.7 % ATE, 0.95 % now). E stands unless it holds
+    tracks are degraded (motion blur: 11-34 points against the fit's 15-39, the fit 0.77 deg off and E
+    right; overruling there ends a run at 7.7 % ATE instead of 0.95 %). E stands unless it holds
     less than E_MAP_HELD_SHARE (0.7) of what the fit holds, or the fit explains the points more than
     E_MAP_RESIDUAL_RATIO (2) times better, as when a mover took E's consensus."""
     import cv2
@@ -736,9 +736,9 @@ def _floor_views(n_floor: int, n_off: int, seed: int, moves: list[tuple[float, f
 def test_points_off_the_floor_pick_the_decomposition_that_explains_them() -> None:
     """Three points on a box above a floor: of H's two physically valid decompositions only the true motion
     puts them on their epipolar lines (within the noise); the other leaves them pixels off. Points on the
-    plane tell nothing (every decomposition explains them): no pick. ground_robot with klt_window_px 31
-    (2026-11-25) took the rotation of E fitted to its floor and 3 such points, which was the wrong solution
-    (4.3 deg off): 21 % ATE, every later frame's floor called a moving object."""
+    plane tell nothing (every decomposition explains them): no pick. Taking the rotation of E fitted to the
+    floor and 3 such points instead picks the wrong solution on ground_robot with klt_window_px 31 (4.3 deg
+    off): 21 % ATE, every later frame's floor called a moving object."""
     s = _floor_scene(110, 3, seed=2, step=0.05, far=6.0)
     K = s.K
     xn_ref = np.linalg.solve(K, np.c_[s.uv_ref_obs, np.ones(len(s.uv_ref_obs))].T).T[:, :2]
@@ -776,7 +776,7 @@ def test_a_motion_the_floor_does_not_allow_is_told_from_the_ones_it_does() -> No
     assert all(geo.agrees_with_plane(x.R, x.t, sols) for x in sols)  # the other solution is the plane's too
     tilt = Rotation.from_rotvec(np.radians([0.0, 0.2, 0.0])).as_matrix()
     assert geo.agrees_with_plane(tilt @ R, t, sols)
-    # moving_mover from frame 45: 1.0 deg and 110 deg from the nearest; from frame 75 0.9 deg, 48 deg.
+    # A mover's motion: about a degree of rotation and 50-110 deg of direction from the nearest plane motion.
     turn = Rotation.from_rotvec(np.radians([0.0, 1.0, 0.0])).as_matrix()
     assert not geo.agrees_with_plane(turn @ R, t, sols)
     side = np.cross(t, [0.0, 1.0, 0.0])
@@ -789,10 +789,10 @@ def test_floor_initialisation_lets_few_points_off_the_floor_pick_among_h_solutio
     """A floor seen from a camera moving forward: H has two physically valid decompositions and the
     wrong one (here 6.5 deg about x) passes more points through the triangulation gates, so it wins
     without help. The points off H's plane (3 of E's inliers) pick the true one
-    (``geometry.solution_off_plane``; until 2026-11-25 E's own rotation did). ground_robot with
-    max_features 80-140 (2026-11-23) had 3 such points at its first pair where 5 were required: the
-    map started 4.3 deg off and the run ended at 6-21 % ATE (0.17-0.25 % now). With 0 or 1 off-plane
-    inliers E itself was 6-13 deg off in 3 of 4 such synthetic pairs."""
+    (``geometry.solution_off_plane``), not E's own rotation. ground_robot with max_features 80-140 has 3
+    such points at its first pair: requiring 5 starts the map 4.3 deg off and ends the run at 6-21 % ATE
+    (0.17-0.25 % with 3). With 0 or 1 off-plane inliers E itself is 6-13 deg off in 3 of 4 such synthetic
+    pairs."""
     s = _floor_scene(110, 3, seed=2, step=0.05, far=6.0)
     m, st, _ = _estimate(s, _no_map(s))
     assert m is not None and m.state is TrackingState.TRACKING and m.new_map is not None
@@ -803,9 +803,8 @@ def test_floor_initialisation_lets_few_points_off_the_floor_pick_among_h_solutio
 
 def test_a_scene_with_many_points_off_h_plane_initialises_from_e() -> None:
     """RH favours H at low parallax whatever the scene. When at least 10 (and 10 %) of E's inliers lie off
-    H's plane the scene is no plane, and the map starts from E: moving_mover replayed from its frame 20
-    (2026-11-23) had 23 of 162, H's decomposition put the map 1.6 deg off and the run ended at 6.5 %
-    ATE (0.85 % now)."""
+    H's plane the scene is no plane, and the map starts from E: on a scene with 23 of 162 off the plane, H's
+    decomposition puts the map 1.6 deg off and a run ends at 6.5 % ATE (0.85 % from E)."""
     s = _floor_scene(110, 20, seed=1, step=0.05, far=6.0, box_m=0.3)  # H still wins RH here
     m, st, _ = _estimate(s, _no_map(s))
     assert m is not None and m.state is TrackingState.TRACKING and m.new_map is not None
@@ -832,7 +831,7 @@ def test_planar_initialisation_waits_when_e_disagrees_with_h_and_no_solution_nea
 def test_a_pure_floor_waits_for_a_view_that_keeps_the_plane_normal() -> None:
     """A floor with no point off it, seen from a camera moving along it: H's two decompositions both put
     every point in front of both cameras and E cannot tell them apart. The one most points pass the gates
-    is 6.4 deg off here (ground_robot replayed from frame 31, 2026-11-23: 4.4 deg, 1.2 % ATE; 0.23 % now).
+    is 6.4 deg off here (4.4 deg on a real floor drive: 1.2 % ATE where waiting gives 0.23 %).
     The first view waits, holding the pose with a rotation variance that covers both solutions; the next
     view against the same keyframe picks the solution whose plane kept its normal."""
     first, second = _floor_views(110, 0, seed=0, moves=[(0.05, 0.0, 0.0), (0.10, 0.02, 3.0)], far=6.0)
@@ -919,8 +918,8 @@ def test_a_first_pose_e_does_not_determine_is_not_used_for_the_map(seed: int) ->
     """A small sideways baseline seen over a corner of the image: E's rotation trades against its direction
     of travel (bas-relief), its covariance says so (rotation sigma 0.4-1.2 deg, direction 16-19 deg) and
     the map waits, holding the position with that rotation uncertainty. The same motion over the whole
-    image initialises. moving_mover replayed from frame 31 (a cart on 40 % of the view) started its map
-    1 deg off (5.5 % ATE); now 2.5 %."""
+    image initialises. A map started on such a pose (a cart on 40 % of the view, the rest far) starts 1 deg
+    off: 5.5 % ATE against 2.5 % when it waits."""
     corner = _patch_scene(seed, (420.0, 300.0, 620.0, 460.0), side_m=0.15)
     m, st, _ = _estimate(corner, _no_map(corner))
     assert m is not None and st.model is Model.ESSENTIAL

@@ -3,39 +3,26 @@
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import numpy as np
 import pytest
+from bag_frames import decoded_frames, run_frames
 
 from epi_vo.core.camera import CameraModel
 from epi_vo.core.config import VoConfig
 from epi_vo.core.decisions import Decision, note
 from epi_vo.core.errors import CameraModelError
-from epi_vo.core.frame import FrameResult, Model, TrackingState
+from epi_vo.core.frame import Model, TrackingState
 from epi_vo.core.pipeline import VoPipeline
-from epi_vo.io import bagio
-from epi_vo.io.msgconv import decode_frame
-
-BAG = Path(__file__).resolve().parents[2] / "bags" / "general_motion" / "bag"
 
 
 @pytest.fixture(scope="module")
 def frames() -> list[tuple[int, np.ndarray, CameraModel]]:
-    out = []
-    with bagio.open_camera_bag(BAG) as bag:
-        for f in bag.iter_frames():
-            out.append((f.stamp_ns, decode_frame(f.image_msg, bag.image_is_compressed),
-                        CameraModel.from_camera_info(f.camera_info_msg)))
-    return out
-
-
-def _run(pipe: VoPipeline, frames: list[tuple[int, np.ndarray, CameraModel]]) -> list[FrameResult]:
-    return [pipe.process(g, c, s) for s, g, c in frames]
+    return decoded_frames()
 
 
 def test_every_frame_gives_one_complete_record(frames: list[tuple[int, np.ndarray, CameraModel]]) -> None:
-    results = _run(VoPipeline(), frames)
+    results = run_frames(VoPipeline(), frames)
     assert [r.index for r in results] == list(range(len(frames)))
     assert results[0].state is TrackingState.INITIALIZING and results[0].is_keyframe
     tracking = [r for r in results if r.state is TrackingState.TRACKING]
@@ -61,7 +48,7 @@ def test_every_frame_gives_one_complete_record(frames: list[tuple[int, np.ndarra
 
 def test_lost_tracking_reinitialises_from_the_last_pose(frames: list[tuple[int, np.ndarray, CameraModel]]) -> None:
     pipe = VoPipeline()
-    first = _run(pipe, frames[:30])
+    first = run_frames(pipe, frames[:30])
     last_pose = first[-1].T_w_c.copy()
     assert first[-1].state is TrackingState.TRACKING
     black = np.zeros_like(frames[0][1])
@@ -81,7 +68,7 @@ def test_lost_tracking_reinitialises_from_the_last_pose(frames: list[tuple[int, 
 
 def test_reset_restarts_from_current_pose(frames: list[tuple[int, np.ndarray, CameraModel]]) -> None:
     pipe = VoPipeline()
-    before = _run(pipe, frames[:25])
+    before = run_frames(pipe, frames[:25])
     pipe.reset("operator reset")
     r = pipe.process(frames[25][1], frames[25][2], frames[25][0])
     assert r.state is TrackingState.INITIALIZING and r.is_keyframe and "operator reset" in r.reason
@@ -99,14 +86,14 @@ def test_image_size_must_match_camera(frames: list[tuple[int, np.ndarray, Camera
 
 
 def test_orb_frontend_tracks_the_same_bag(frames: list[tuple[int, np.ndarray, CameraModel]]) -> None:
-    results = _run(VoPipeline(dataclasses.replace(VoConfig(), frontend="orb")), frames)
+    results = run_frames(VoPipeline(dataclasses.replace(VoConfig(), frontend="orb")), frames)
     tracking = [r for r in results if r.state is TrackingState.TRACKING]
     assert len(tracking) >= 0.6 * len(results)
 
 
 def test_camera_change_restarts_tracking(frames: list[tuple[int, np.ndarray, CameraModel]]) -> None:
     pipe = VoPipeline()
-    _run(pipe, frames[:20])
+    run_frames(pipe, frames[:20])
     s, g, c = frames[20]
     K = c.K.copy()
     K[0, 0] *= 1.01
@@ -120,12 +107,12 @@ def test_covariance_recovers_after_each_reset(frames: list[tuple[int, np.ndarray
     the covariance is the new map's plus the hand-over's, however many restarts came before."""
     lost_var = VoConfig().lost_position_variance
     pipe = VoPipeline()
-    done = _run(pipe, frames[:20])
+    done = run_frames(pipe, frames[:20])
     base = float(np.max(np.diag(done[-1].covariance)[:3]))
     recovered = []
     for start in (20, 30, 40):
         pipe.reset("operator reset")
-        rs = _run(pipe, frames[start:start + 10])
+        rs = run_frames(pipe, frames[start:start + 10])
         assert rs[0].state is TrackingState.INITIALIZING
         assert np.min(np.diag(rs[0].covariance)[:3]) >= lost_var  # held, position unknown until a new map
         back = [r for r in rs if r.state is TrackingState.TRACKING]
@@ -143,8 +130,8 @@ def test_pixel_noise_scales_the_covariance_and_nothing_else(frames: list[tuple[i
     by four (the rotation's entirely; the position keeps its scale-drift part). With
     ``twist_noise_fb_factor`` 0 every tracked frame counts a whole ``pixel_noise_px`` (by default the
     tracks' measured noise, which ``pixel_noise_px`` only caps)."""
-    a = _run(VoPipeline(dataclasses.replace(VoConfig(), pixel_noise_px=0.8, twist_noise_fb_factor=0.0)), frames)
-    b = _run(VoPipeline(dataclasses.replace(VoConfig(), pixel_noise_px=0.4, twist_noise_fb_factor=0.0)), frames)
+    a = run_frames(VoPipeline(dataclasses.replace(VoConfig(), pixel_noise_px=0.8, twist_noise_fb_factor=0.0)), frames)
+    b = run_frames(VoPipeline(dataclasses.replace(VoConfig(), pixel_noise_px=0.4, twist_noise_fb_factor=0.0)), frames)
     assert [(r.state, r.model, r.is_keyframe) for r in a] == [(r.state, r.model, r.is_keyframe) for r in b]
     for ra, rb in zip(a, b, strict=True):
         np.testing.assert_array_equal(ra.T_w_c, rb.T_w_c)

@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
 import cv2
 import numpy as np
 import pytest
+from bag_frames import decoded_frames
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -26,21 +26,14 @@ from epi_vo.core.frame import MAX_STAMP_NS, FrameResult, TrackingState
 from epi_vo.core.odometry import OdometryConverter
 from epi_vo.core.pipeline import VoPipeline
 from epi_vo.core.status import frame_status
-from epi_vo.io import bagio
-from epi_vo.io.msgconv import decode_frame
 
-BAG = Path(__file__).resolve().parents[2] / "bags" / "general_motion" / "bag"
 Frames = list[tuple[int, np.ndarray, Any]]
 
 
 @pytest.fixture(scope="module")
 def frames() -> Frames:
     """(stamp, gray image, camera_info message) of the bundled general-motion bag."""
-    out = []
-    with bagio.open_camera_bag(BAG) as bag:
-        for f in bag.iter_frames():
-            out.append((f.stamp_ns, decode_frame(f.image_msg, bag.image_is_compressed), f.camera_info_msg))
-    return out
+    return decoded_frames(camera_info_messages=True)
 
 
 def _info(width: int = 640, height: int = 480, k: list[float] | None = None, d: list[float] | None = None,

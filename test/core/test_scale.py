@@ -134,8 +134,8 @@ def test_scale_filter_trusts_no_early_pair_that_agrees_by_chance() -> None:
 def test_floor_scale_claims_the_spread_its_fits_have() -> None:
     """Monte Carlo: floor fits that scatter by 0.4 % (ground_robot's window MAD: 0.37 %) on a map whose
     scale drifts by 0.1 % per keyframe. The filter's claimed relative sigma must match the scale's actual
-    error over the runs (1.33x here). With the 2 % least noise of a fit used until 2026-11-27 it claimed 5.5x the
-    actual error (1.25 % on ground_robot, position NEES 0.27)."""
+    error over the runs (1.33x here). A fixed 2 % least noise per fit would claim 5.5x the actual error
+    (1.25 % on ground_robot, position NEES 0.27)."""
     rng = np.random.default_rng(7)
     errors, claimed = [], []
     for _ in range(60):

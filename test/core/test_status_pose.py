@@ -1,4 +1,4 @@
-"""core/status.py: the frame status's pose convention (position_frame) and the summary status."""
+"""core/status.py: the frame status's pose convention (position_frame)."""
 
 from __future__ import annotations
 
@@ -6,14 +6,11 @@ import dataclasses
 
 import cv2
 import numpy as np
-import pytest
 
-from epi_vo.core.diagnostics import DiagnosticLevel
-from epi_vo.core.errors import EpiVoError
 from epi_vo.core.frame import FrameResult
 from epi_vo.core.odometry import OdometryConverter, sample_status_pose, status_pose
 from epi_vo.core.pipeline import VoPipeline
-from epi_vo.core.status import CAMERA_POSITION_FRAME, StatusPose, frame_status, summary_status
+from epi_vo.core.status import CAMERA_POSITION_FRAME, StatusPose, frame_status
 from epi_vo.core.transforms import make_T
 
 
@@ -54,15 +51,6 @@ def test_with_the_odometry_pose_every_pose_key_is_in_odom_base_link() -> None:
     record = r.to_record()
     assert frame_status(r, "/robot1/vo_node", "camera_optical_frame", pose, record) == status
     assert record == r.to_record()
-
-
-def test_summary_status() -> None:
-    st = summary_status("/robot1/vo_node", "cam", DiagnosticLevel.WARN, "waiting for TF",
-                        (("image_transport", "compressed"),))
-    assert (st.name, st.level, st.message, st.hardware_id, st.values) == (
-        "/robot1/vo_node: summary", DiagnosticLevel.WARN, "waiting for TF", "cam", (("image_transport", "compressed"),))
-    with pytest.raises(EpiVoError, match="diagnostic values must be"):
-        summary_status("/vo_node", "cam", DiagnosticLevel.OK, "ok", (("n", 3),))  # type: ignore[arg-type]
 
 
 def test_the_status_pose_of_a_converted_sample_is_the_frames_status_pose() -> None:

@@ -4,10 +4,10 @@ the step returns the next one and leaves the one it was given as it was."""
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import numpy as np
 import pytest
+from bag_frames import decoded_frames
 
 from epi_vo.core import step as sp
 from epi_vo.core.camera import CameraModel
@@ -17,21 +17,13 @@ from epi_vo.core.frame import FrameResult, TrackingState
 from epi_vo.core.pipeline import VoPipeline
 from epi_vo.core.state import TrackState, initial_state
 from epi_vo.core.workers import InLine
-from epi_vo.io import bagio
-from epi_vo.io.msgconv import decode_frame
 
-BAG = Path(__file__).resolve().parents[2] / "bags" / "general_motion" / "bag"
 Frames = list[tuple[int, np.ndarray, CameraModel]]
 
 
 @pytest.fixture(scope="module")
 def frames() -> Frames:
-    out = []
-    with bagio.open_camera_bag(BAG) as bag:
-        for f in bag.iter_frames():
-            out.append((f.stamp_ns, decode_frame(f.image_msg, bag.image_is_compressed),
-                        CameraModel.from_camera_info(f.camera_info_msg)))
-    return out
+    return decoded_frames()
 
 
 def _record(r: FrameResult) -> dict[str, object]:

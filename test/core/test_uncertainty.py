@@ -264,7 +264,7 @@ def test_a_keyframe_chain_of_klt_tracks_spreads_as_the_noise_of_each_steps_own_f
     already in a keyframe's positions is in both images of the next step and nearly cancels. Each step at
     the noise its tracks have accumulated since the first keyframe counts it again in every step: > 2x too
     wide. ground_robot, a keyframe every 2.3 frames, claimed 3.5x its rotation error in variance with one
-    ``pixel_noise_px`` per step (2026-11-25)."""
+    ``pixel_noise_px`` per step."""
     from conftest import make_two_view_scene
 
     from epi_vo.core import covariance as covm
@@ -330,7 +330,7 @@ def test_e_pose_tracked_from_the_keyframe_spreads_as_its_noise_in_one_image() ->
     at that noise in one image says (``tracked_since_keyframe(..., one_image=True)``, ``ONE_IMAGE_SHARE``),
     within 0.7-1.3x in standard deviation per axis; taken in both images (as ``essential_pose_covariance``
     computes it) it is 1.3-1.7x too wide. The bags showed the same: ground_robot's frames posed by E had a
-    rotation NEES relative to their keyframe of 0.23, the held-out loop's 0.10 (2026-11-27)."""
+    rotation NEES relative to their keyframe of 0.23, the held-out loop's 0.10, with both images."""
     from conftest import make_two_view_scene
 
     from epi_vo.core import covariance as covm

@@ -93,8 +93,8 @@ def test_the_window_publishes_a_positive_definite_covariance(tmp_path) -> None:
     """moving_mover with a window of 8: the window's marginal replaced the keyframe chain while the map's
     scale kept its correlation with the old chain, and 5 poses were published with a negative eigenvalue
     (-2e-4 beside 1.6; position NEES -58 over the bag). ``covariance.floored`` now keeps every published
-    covariance positive definite: NEES 2.5; 0.92 since the first map takes the epipolar pose of H's inliers
-    (``geometry.refine_planar_pose``, 2026-11-27: its start is no longer 0.03 deg off). A negative
+    covariance positive definite (NEES about 0.9, with the first map on the epipolar pose of H's inliers,
+    ``geometry.refine_planar_pose``). A negative
     direction would still show, as a negative or enormous NEES."""
     from pathlib import Path
 

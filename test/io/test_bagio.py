@@ -18,9 +18,11 @@ from rosbags.typesys import Stores, get_typestore
 
 from epi_vo.core.diagnostics import DiagnosticLevel, DiagnosticStatusRecord
 from epi_vo.core.errors import BagError
-from epi_vo.io.bagio import BagFrame, is_ground_truth_name, open_camera_bag
+from epi_vo.io.bag_topics import is_ground_truth_name, recorded_topic_name
+from epi_vo.io.bagio import BagFrame, open_camera_bag
 from epi_vo.io.msgconv import image_to_gray, point_cloud2_fields, read_points_xyz
 from epi_vo.io.outbag import OutputBag
+from epi_vo.io.trajectory import StampedPoses
 from epi_vo.io.tum import read_tum, write_tum
 
 TS = get_typestore(Stores.ROS2_JAZZY)
@@ -434,6 +436,13 @@ def test_ground_truth_names(topic: str, named: bool) -> None:
     assert is_ground_truth_name(topic) is named
 
 
+@pytest.mark.parametrize(("name", "recorded"), [
+    ("odom", "/odom"), ("wheel/odom", "/wheel/odom"), ("/robot1/odom", "/robot1/odom"), ("~/odom", "/vo_node/odom"),
+    ("~", "/vo_node")])
+def test_a_node_topic_parameter_is_found_in_a_bag_as_the_root_namespace_resolves_it(name: str, recorded: str) -> None:
+    assert recorded_topic_name(name) == recorded
+
+
 def test_no_ground_truth(tmp_path: Path) -> None:
     with open_camera_bag(write_bag(tmp_path / "bag", _camera_records())) as bag:
         assert bag.gt_topic is None
@@ -469,10 +478,11 @@ def test_tum_round_trip(tmp_path: Path) -> None:
 def test_read_tum_skips_comments_and_blank_lines(tmp_path: Path) -> None:
     path = tmp_path / "traj.txt"
     path.write_text("# comment\n\n1.5 1 2 3 0 0 0 1\n  # indented comment\n2.5 4 5 6 0 0 1 0\n")
-    stamps_s, positions, quats_xyzw = read_tum(path)
-    np.testing.assert_array_equal(stamps_s, [1.5, 2.5])
-    np.testing.assert_array_equal(positions, [[1, 2, 3], [4, 5, 6]])
-    np.testing.assert_array_equal(quats_xyzw, [[0, 0, 0, 1], [0, 0, 1, 0]])
+    poses = read_tum(path)
+    assert isinstance(poses, StampedPoses)  # named fields, and unpacks as (stamps, positions, quaternions)
+    np.testing.assert_array_equal(poses.stamps_s, [1.5, 2.5])
+    np.testing.assert_array_equal(poses.positions_xyz, [[1, 2, 3], [4, 5, 6]])
+    np.testing.assert_array_equal(poses.quats_xyzw, [[0, 0, 0, 1], [0, 0, 1, 0]])
 
 
 def test_read_tum_empty_file(tmp_path: Path) -> None:
@@ -577,7 +587,7 @@ def test_output_bag_round_trip(tmp_path: Path) -> None:
         written = {stamp: _write_everything(out, stamp) for stamp in (1_000_000_000, 1_500_000_000)}
 
     messages = _read_back(path)
-    assert sorted(messages) == ["/diagnostics", "/tf", "/vo/odometry", "/vo/path", "/vo/points"]
+    assert sorted(messages) == ["/tf", "/vo/frame_status", "/vo/odometry", "/vo/path", "/vo/points"]
     assert all(len(v) == 2 for v in messages.values())
 
     for log_time_ns, tf in messages["/tf"]:  # tf2_msgs/TFMessage: one TransformStamped per transform
@@ -622,7 +632,7 @@ def test_output_bag_round_trip(tmp_path: Path) -> None:
         assert last.header.stamp.nanosec == log_time_ns % 10**9
         assert last.pose.position.x == written[log_time_ns]["position"][0]
 
-    _, diagnostics = messages["/diagnostics"][0]
+    _, diagnostics = messages["/vo/frame_status"][0]
     warn, ok = diagnostics.status
     assert (warn.level, warn.name, warn.message, warn.hardware_id) == (
         1,
@@ -800,7 +810,7 @@ def test_output_bag_refuses_times_that_are_no_ros_time(tmp_path: Path, stamp: in
                                np.zeros(3), np.eye(6))
         with pytest.raises(BagError, match=r"/vo/points: " + pattern):
             out.write_points(stamp, "odom", np.zeros((1, 3)))
-        with pytest.raises(BagError, match=r"/diagnostics: " + pattern):
+        with pytest.raises(BagError, match=r"/vo/frame_status: " + pattern):
             out.write_diagnostics(stamp, [])
         with pytest.raises(BagError, match=r"/vo/path: " + pattern):  # one pose of the path
             out.write_path(5, "odom", [4, stamp], np.zeros((2, 3)), np.tile([0.0, 0, 0, 1], (2, 1)))

@@ -16,7 +16,9 @@ from epi_vo.core.errors import ConfigError
 from epi_vo.io.node_options import (
     NODE_DOCS,
     NODE_OPTION_NAMES,
+    ImageTransport,
     NodeOptions,
+    QosReliability,
     apply_changes,
     changed_names,
     is_read_only,
@@ -52,6 +54,9 @@ def test_make_node_options_known_answer_and_array_values() -> None:
     assert opts == dataclasses.replace(NodeOptions(), camera_xyz=(0.1, 0.0, 0.5), camera_rpy=(0.0, 0.0, 1.0),
                                        qos_depth=7, watchdog_timeout_s=2.0, image_transport="raw")
     assert isinstance(opts.watchdog_timeout_s, float)
+    # the modes are converted once, here: the node compares members
+    assert opts.image_transport is ImageTransport.RAW and opts.qos_reliability is QosReliability.BEST_EFFORT
+    assert make_node_options({"qos_reliability": "reliable"}).qos_reliability is QosReliability.RELIABLE
 
 
 def test_make_node_options_names_every_bad_value() -> None:

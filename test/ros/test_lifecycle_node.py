@@ -93,14 +93,15 @@ class Probe(ProbeBase):
         return [s for a in self.diag for s in a.status if s.name.endswith(suffix)]
 
     def frame_statuses(self) -> list[Any]:
-        return [s for s in self.statuses(": tracking") if not s.message.startswith("stalled")]
+        return [s for a in self.frame_status for s in a.status if s.name.endswith(": tracking")]
 
     def summaries(self) -> list[dict[str, Any]]:
+        """The lifecycle statuses of /diagnostics (once a second, in every state)."""
         return [{"message": s.message, "level": _level(s), **{kv.key: kv.value for kv in s.values}}
-                for s in self.statuses(": summary")]
+                for s in self.statuses(": lifecycle")]
 
     def ignored(self) -> int:
-        """The latest count of images the node ignored while inactive (its summary), -1 before any."""
+        """The latest count of images the node ignored while inactive (its lifecycle status), -1 before any."""
         counts = [int(s["frames_ignored_inactive"]) for s in self.summaries() if "frames_ignored_inactive" in s]
         return counts[-1] if counts else -1
 
@@ -142,24 +143,31 @@ def _play(env: dict[str, str], *args: str) -> None:
 
 
 @pytest.fixture(scope="module")
-def offline(tmp_path_factory: pytest.TempPathFactory) -> dict[int, np.ndarray]:
-    """Odometry of the offline replay of the same bag, by stamp."""
-    return replay_odometry(BAG, tmp_path_factory.mktemp("offline"))
+def offline(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[int, np.ndarray]]:
+    """Odometry of the offline replay of the same bag, by topic and stamp: vo/odometry (VO units: the position
+    held) and vo/odometry/vo_units (the motion)."""
+    out = tmp_path_factory.mktemp("offline")
+    return {"vo/odometry": replay_odometry(BAG, out),
+            "vo/odometry/vo_units": replay_odometry(BAG, out, "/vo/odometry/vo_units", run=False)}
 
 
 
-def _assert_equals_offline(odom: list[Any], offline: dict[int, np.ndarray], n: int) -> None:
-    """The live odometry of one play of the bag is the offline replay's, frame by frame, from its origin."""
-    assert len(odom) == n
-    assert [stamp_to_ns(m.header.stamp) for m in odom] == sorted(offline)
-    for m in odom:
-        pose = odom_pose(m)
-        assert np.all(np.isfinite(pose))
-        np.testing.assert_allclose(pose, offline[stamp_to_ns(m.header.stamp)], atol=1e-6)
-    assert np.linalg.norm(odom_pose(odom[-1])[:3] - odom_pose(odom[0])[:3]) > 1.0  # it moved
+def _assert_equals_offline(odom: list[Any], vo_units: list[Any], offline: dict[str, dict[int, np.ndarray]],
+                           n: int) -> None:
+    """The live odometry of one play of the bag is the offline replay's, frame by frame, from its origin, on
+    both topics; the motion (in VO units) is on vo/odometry/vo_units."""
+    for msgs, by_stamp in ((odom, offline["vo/odometry"]), (vo_units, offline["vo/odometry/vo_units"])):
+        assert len(msgs) == n
+        assert [stamp_to_ns(m.header.stamp) for m in msgs] == sorted(by_stamp)
+        for m in msgs:
+            pose = odom_pose(m)
+            assert np.all(np.isfinite(pose))
+            np.testing.assert_allclose(pose, by_stamp[stamp_to_ns(m.header.stamp)], atol=1e-6)
+    assert np.linalg.norm(odom_pose(vo_units[-1])[:3] - odom_pose(vo_units[0])[:3]) > 1.0  # it moved
 
 
-def test_configure_activate_deactivate_cleanup_shutdown(ros: RosSession, offline: dict[int, np.ndarray]) -> None:
+def test_configure_activate_deactivate_cleanup_shutdown(ros: RosSession,
+                                                        offline: dict[str, dict[int, np.ndarray]]) -> None:
     from lifecycle_msgs.msg import Transition
 
     n = bag_frame_count(BAG)
@@ -168,7 +176,7 @@ def test_configure_activate_deactivate_cleanup_shutdown(ros: RosSession, offline
     later = bag_frames_rclpy(BAG, 20, shift_s=100)  # after a deactivate / activate: the same scene 100 s later
     try:
         with NodeProcess(ros.env, *PLAYBACK_ARGS, module=LIFECYCLE) as node:
-            # Unconfigured: the lifecycle services and a summary, no VO endpoints.
+            # Unconfigured: the lifecycle services and the lifecycle status, no VO endpoints.
             assert probe.state() == "unconfigured", node.proc.stderr
             assert probe.spin_until(lambda: any(s["lifecycle_state"] == "unconfigured" for s in probe.summaries()))
             assert probe.node.count_publishers("/vo/odometry") == 0
@@ -189,9 +197,9 @@ def test_configure_activate_deactivate_cleanup_shutdown(ros: RosSession, offline
             assert probe.change(Transition.TRANSITION_ACTIVATE)
             assert probe.state() == "active"
             _play(ros.env)
-            assert probe.spin_until(lambda: len(probe.odom) >= n and len(probe.frame_statuses()) >= n), \
-                len(probe.odom)
-            _assert_equals_offline(probe.odom, offline, n)
+            assert probe.spin_until(lambda: len(probe.odom) >= n and len(probe.odom_vo_units) >= n
+                                    and len(probe.frame_statuses()) >= n), len(probe.odom)
+            _assert_equals_offline(probe.odom, probe.odom_vo_units, offline, n)
             assert [int(dict((kv.key, kv.value) for kv in s.values)["index"]) for s in probe.frame_statuses()] == \
                 list(range(n))
 
@@ -202,15 +210,17 @@ def test_configure_activate_deactivate_cleanup_shutdown(ros: RosSession, offline
             _play(ros.env)
             assert probe.spin_until(lambda: probe.ignored() >= ignored + n), (probe.ignored(), ignored)
             probe.wait_further_summaries()
-            assert len(probe.odom) == n and len(probe.frame_statuses()) == n
+            assert len(probe.odom) == len(probe.odom_vo_units) == n and len(probe.frame_statuses()) == n
 
             # Activate again (no cleanup): tracking restarts from the last pose, odometry continuous.
             assert probe.change(Transition.TRANSITION_ACTIVATE)
-            last = odom_pose(probe.odom[-1])
+            last = odom_pose(probe.odom_vo_units[-1])  # VO units: the motion is on vo/odometry/vo_units
             probe.send(later)  # each once (the subscription matched long ago, reliable): one odometry each
-            assert probe.spin_until(lambda: len(probe.odom) >= n + len(later)), len(probe.odom)
+            assert probe.spin_until(lambda: len(probe.odom) >= n + len(later)
+                                    and len(probe.odom_vo_units) >= n + len(later)), len(probe.odom)
             assert probe.spin_until(lambda: len(probe.frame_statuses()) >= n + len(later))
-            resumed = probe.odom[n:]
+            assert len(probe.odom[n:]) == len(later)
+            resumed = probe.odom_vo_units[n:]
             assert len(resumed) == len(later)
             first_status = probe.frame_statuses()[n]
             assert "reactivated: tracking restarted from the last pose" in first_status.message
@@ -228,11 +238,12 @@ def test_configure_activate_deactivate_cleanup_shutdown(ros: RosSession, offline
             assert probe.change(Transition.TRANSITION_CONFIGURE)
             assert probe.change(Transition.TRANSITION_ACTIVATE)
             before, statuses_before = len(probe.odom), len(probe.frame_statuses())
+            assert len(probe.odom_vo_units) == before
             assert probe.spin_until(lambda: probe.node.count_publishers("/vo/odometry") == 1)
             _play(ros.env)
-            assert probe.spin_until(lambda: len(probe.odom) >= before + n
+            assert probe.spin_until(lambda: len(probe.odom) >= before + n and len(probe.odom_vo_units) >= before + n
                                     and len(probe.frame_statuses()) >= statuses_before + n), len(probe.odom)
-            _assert_equals_offline(probe.odom[before:], offline, n)
+            _assert_equals_offline(probe.odom[before:], probe.odom_vo_units[before:], offline, n)
             first = probe.frame_statuses()[statuses_before]
             assert NEW_MAP in first.message
             assert dict((kv.key, kv.value) for kv in first.values)["index"] == "0"
@@ -264,9 +275,9 @@ def test_bad_parameter_fails_configure_with_the_reason_and_can_be_fixed(ros: Ros
         with NodeProcess(ros.env, "-p", "frontend:=sift", "-p", "hardware_id:=front_cam", module=LIFECYCLE) as node:
             assert not probe.change(Transition.TRANSITION_CONFIGURE), node.proc.stderr
             assert probe.state() == "unconfigured"
-            assert probe.spin_until(lambda: any(reason in s["message"] for s in probe.summaries()))
-            failed = next(s for s in probe.summaries() if reason in s["message"])
-            assert failed["level"] == 2 and failed["message"].startswith("unconfigured: configure failed:")
+            assert probe.spin_until(lambda: any(reason in s["configure_error"] for s in probe.summaries()))
+            failed = next(s for s in probe.summaries() if reason in s["configure_error"])
+            assert failed["level"] == 2 and failed["message"] == "unconfigured: configure failed"
             assert failed["lifecycle_state"] == "unconfigured" and failed["configurations"] == "0"
             assert probe.node.count_publishers("/vo/odometry") == 0
 

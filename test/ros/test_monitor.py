@@ -31,8 +31,8 @@ from epi_vo.ros.monitor import (
 
 REPO = Path(__file__).resolve().parents[2]
 BAG = REPO / "bags" / "general_motion" / "bag"
-NAME = "vo_node: tracking"
-NODE_STATUS = "/vo_node: tracking"  # what a running vo_node (root namespace) names its status
+NAME = "vo_node: tracking"  # a per-frame status (vo/frame_status) of a node named by its bare name (the root's)
+NODE = "/vo_node"  # what a running vo_node (root namespace) is, the snapshot's first line
 WAIT_S = 120.0  # bound on waiting for another process: generous, a loaded machine is slow, not broken
 
 
@@ -51,22 +51,24 @@ def _record(**over: str) -> dict[str, str]:
 
 
 def _tracking_session() -> MonitorState:
-    """Three initialising frames (WARN, numbers differing), then a tracking one, odometry in 3-4-5 steps."""
+    """Three initialising frames (WARN, numbers differing), then a tracking one, odometry in 3-4-5 steps (on
+    vo/odometry and on vo/odometry/vo_units alike)."""
     s = MonitorState()
     for i, parallax in enumerate(("0.21", "0.35", "0.48")):
-        s = s.update_from_status(NAME, b"\x01", f"initializing: low parallax ({parallax} deg < 0.5)",
+        s = s.update_from_frame(NAME, b"\x01", f"initializing: low parallax ({parallax} deg < 0.5)",
                                  _record(state="initializing", index=str(i), model="none", rh="None"), 100.0 + i)
-    s = s.update_from_status(NAME, b"\x00", "tracking", _record(), 103.0, "monocular_camera")
+    s = s.update_from_frame(NAME, b"\x00", "tracking", _record(), 103.0, "monocular_camera")
     for t, p in enumerate([(0.0, 0.0, 0.0), (3.0, 4.0, 0.0), (6.0, 8.0, 0.0), (6.0, 8.0, 0.0), (6.0, 4.0, -3.0)]):
-        s = s.update_from_odometry(p, 100.0 + t)
+        s = s.update_from_odometry(p, 100.0 + t).update_from_odometry(p, 100.0 + t, vo_units=True)
     return s
 
 
 def test_snapshot_shows_level_state_reason_and_numbers() -> None:
     text = _tracking_session().render_text(103.5)
-    assert text.startswith("vo_node: tracking  (hardware monocular_camera)")
+    assert text.startswith("/vo_node  (hardware monocular_camera)")
     assert re.search(r"level\s+OK\b", text)
     assert re.search(r"reason\s+tracking\b", text)
+    assert re.search(r"^  why\s+tracking$", text, re.MULTILINE)  # the latest frame's own words
     assert re.search(r"state\s+tracking\s+frame 41\b", text)
     for part in ("inliers 170", "inlier ratio 0.850", "tracked 200", "features 300", "RH 0.183",
                  "parallax 2.91 deg", "model       E", "keyframes 4", "15.0 Hz", "dropped 1", "received 42",
@@ -80,6 +82,20 @@ def test_distance_is_the_sum_of_odometry_steps() -> None:
     assert "distance 15.000 (VO units)" in s.render_text()
     assert "position 6.000 4.000 -3.000" in s.render_text()
     assert s.update_from_odometry((math.nan, 0.0, 0.0), 110.0) is s  # a broken message is ignored
+    assert s.update_from_odometry((math.nan, 0.0, 0.0), 110.0, vo_units=True) is s
+
+
+def test_the_distance_is_of_the_topic_that_carries_the_motion_in_the_status_units() -> None:
+    """In VO units vo/odometry holds its position (the node publishes no VO units where a robot could fuse
+    them): the distance and position shown are vo/odometry/vo_units'; in metres, vo/odometry's."""
+    s = MonitorState().update_from_frame(NAME, 0, "tracking", _record(**VO_UNITS), 100.0)
+    for t, p in enumerate([(0.0, 0.0, 0.0), (3.0, 4.0, 0.0), (6.0, 8.0, 0.0)]):
+        s = s.update_from_odometry((0.0, 0.0, 0.0), 100.0 + t).update_from_odometry(p, 100.0 + t, vo_units=True)
+    assert (s.distance, s.vo_distance, s.n_odometry) == (0.0, 10.0, 3)
+    assert "distance 10.000 (VO units)  position 6.000 8.000 0.000  messages 3" in s.render_text()
+    s = s.update_from_frame(NAME, 0, "tracking", _record(**METRIC), 104.0)
+    s = s.update_from_odometry((0.0, 0.0, 0.0), 104.0).update_from_odometry((0.0, 1.5, 2.0), 105.0)
+    assert "distance 2.500 m  position 0.000 1.500 2.000  messages 5" in s.render_text()
 
 
 METRIC = {"units": "m", "scale_source": "ground_plane", "metric_scale": "True", "scale": "0.997",
@@ -95,28 +111,29 @@ def _line(text: str, label: str) -> str:
 
 
 def test_metric_status_shows_metres_scale_and_floor() -> None:
-    s = _tracking_session().update_from_status(NAME, 0, "tracking", _record(**METRIC), 104.0)
+    s = _tracking_session().update_from_frame(NAME, 0, "tracking", _record(**METRIC), 104.0)
     assert s.units == "m"
     text = s.render_text(104.0)
     assert _line(text, "scale") == "  scale       ground_plane: metric, 0.997 m/unit ±1.2 %"
     assert _line(text, "floor") == "  floor       pitch 15.74 deg  roll -0.39 deg"
     assert "distance 15.000 m  position 6.000 4.000 -3.000" in text
     assert "VO units" not in text and "scale note" not in text
-    # A watchdog status carries no record: the units and scale of the last frame stay.
-    s = s.update_from_status(NAME, 1, "stalled: no image for 1.1 s", {"time_since_last_image_s": "1.1"}, 105.0)
+    # An input status carries no record: the units and scale of the last frame stay.
+    s = s.update_from_health("vo_node: input", 1, "stalled: no recent image", {"time_since_last_image_s": "1.1"},
+                             105.0)
     assert s.units == "m" and "distance 15.000 m " in s.render_text(105.0)
     assert "ground_plane: metric, 0.997 m/unit" in s.render_text(105.0)
 
 
 def test_vo_units_status_and_a_source_not_yet_established() -> None:
-    s = _tracking_session().update_from_status(NAME, 0, "tracking", _record(**VO_UNITS), 104.0)
+    s = _tracking_session().update_from_frame(NAME, 0, "tracking", _record(**VO_UNITS), 104.0)
     text = s.render_text(104.0)
     assert s.units == "vo"
     assert _line(text, "scale") == "  scale       none: VO units"
     assert "distance 15.000 (VO units)" in text and "floor" not in text and "m/unit" not in text
     # A metric source that has not measured yet: VO units, the position held, and why.
     why = "ground plane not seen yet: scale unknown (VO units)"
-    s = s.update_from_status(NAME, 0, "tracking", _record(**dict(METRIC, units="vo", metric_scale="False", scale="1",
+    s = s.update_from_frame(NAME, 0, "tracking", _record(**dict(METRIC, units="vo", metric_scale="False", scale="1",
                                                                  scale_rel_std="None", floor_pitch_deg="None",
                                                                  floor_roll_deg="None", scale_reason=why)), 105.0)
     text = s.render_text(105.0)
@@ -141,8 +158,8 @@ def test_warning_history_groups_reasons_with_counts() -> None:
 def test_history_keeps_the_most_recent_distinct_reasons() -> None:
     s = MonitorState()
     for i in range(HISTORY_LENGTH + 3):
-        s = s.update_from_status(NAME, 2, f"lost: problem kind {chr(ord('a') + i)}", _record(state="lost"), float(i))
-    s = s.update_from_status(NAME, 2, "lost: problem kind k", _record(state="lost"), 50.0)
+        s = s.update_from_frame(NAME, 2, f"lost: problem kind {chr(ord('a') + i)}", _record(state="lost"), float(i))
+    s = s.update_from_frame(NAME, 2, "lost: problem kind k", _record(state="lost"), 50.0)
     assert len(s.history) == HISTORY_LENGTH
     assert [h.message[-1] for h in s.history[:3]] == ["k", "j", "i"]  # most recent first
     assert s.history[0].count == 2
@@ -154,34 +171,55 @@ def test_watchdog_status_is_stale_and_keeps_the_last_frame() -> None:
     s = _tracking_session()
     for t, gap in ((104.0, "1.1"), (105.0, "2.1"), (106.0, "3.1")):
         level = 3 if float(gap) >= 3.0 else 1
-        s = s.update_from_status(NAME, bytes([level]), f"stalled: no image for {gap} s",
+        s = s.update_from_health("vo_node: input", bytes([level]), "stalled: no recent image",
                                  {"input_rate_hz": "0.00", "time_since_last_image_s": gap, "frames_received": "42",
                                   "dropped_frames": "1", "queue_depth": "0", "latency_ms": "12.34"}, t)
+        s = s.update_from_health("vo_node: tracking", 0, "tracking", {"frames_processed": "42"}, t)
     text = s.render_text(106.0)
     assert re.search(r"level\s+STALE\b", text)
-    assert re.search(r"reason\s+stalled: no image for 3\.1 s", text)
+    assert re.search(r"reason\s+input: stalled: no recent image", text)  # the worst concern, named
+    assert "health      input STALE (stalled: no recent image)  tracking OK (tracking)" in text
     assert "(last frame 3.0 s ago)" in text and "inliers 170" in text  # the last frame's numbers stay
     assert "last image 3.10 s ago" in text and "0.0 Hz" in text  # the input figures are the latest
-    assert re.search(r"STALE\s+x3\s+stalled: no image for 3\.1 s", text)  # one reason, whatever the seconds
+    assert re.search(r"STALE\s+x3\s+input: stalled: no recent image", text)  # one reason, its latest level
     assert "no status for" not in text
     assert "!! no status for 4.0 s" in s.render_text(110.0)  # the node itself went silent
 
 
+def test_a_stalled_node_shows_the_scale_source_it_was_given() -> None:
+    """A ground_plane node whose camera never delivered: no frame record, but its scale status says the source
+    (not 'none'), not established, and why the frames are missing."""
+    from epi_vo.core import health
+
+    scale = health.scale_status("/vo_node", "cam", "ground_plane", None)
+    stall = health.input_status("/vo_node", "cam", health.InputState(stall=health.DiagnosticLevel.STALE))
+    tracking = health.TrackingHealth().status("/vo_node", "cam")
+    s = MonitorState()
+    for st in (tracking, stall, scale):
+        s = s.update_from_health(st.name, int(st.level), st.message, st.values, 10.0, st.hardware_id)
+    assert s.snapshot_complete  # --once prints it: the node has processed no frame to wait for
+    text = s.render_text(10.0)
+    assert _line(text, "scale") == "  scale       ground_plane: not established yet: VO units (position held)"
+    assert re.search(r"level\s+STALE\b", text) and "input: no image received yet" in text
+    assert "scale WARN (not established: no frame processed yet)" in text
+    assert s.units == "vo" and "distance 0.000 (VO units)" in text
+
+
 def test_other_nodes_and_other_statuses() -> None:
-    s = MonitorState().update_from_status("camera_driver", 2, "fault", {}, 1.0)
+    s = MonitorState().update_from_health("camera_driver", 2, "fault", {}, 1.0)
     assert not s.has_status and "waiting for a VO status" in s.render_text()
-    s = s.update_from_status(NAME, 0, "tracking", _record(), 2.0)
-    s = s.update_from_status("vo_other: tracking", 2, "lost", _record(state="lost"), 3.0)
-    assert s.source == NAME and s.level == 0 and s.n_statuses == 1
-    assert "also seen   vo_other: tracking" in s.render_text()
-    chosen = MonitorState(node_name="/robot1/vo_other").update_from_status(NAME, 0, "tracking", _record(), 1.0)
-    chosen = chosen.update_from_status("/robot2/vo_other: tracking", 0, "tracking", _record(), 1.5)
+    s = s.update_from_frame(NAME, 0, "tracking", _record(), 2.0)
+    s = s.update_from_frame("vo_other: tracking", 2, "lost", _record(state="lost"), 3.0)
+    assert s.source == NODE and s.level == 0 and s.n_statuses == 1
+    assert "also seen   /vo_other" in s.render_text()
+    chosen = MonitorState(node_name="/robot1/vo_other").update_from_frame(NAME, 0, "tracking", _record(), 1.0)
+    chosen = chosen.update_from_frame("/robot2/vo_other: tracking", 0, "tracking", _record(), 1.5)
     assert not chosen.has_status
-    chosen = chosen.update_from_status("/robot1/vo_other: tracking", 2, "lost", _record(state="lost"), 2.0)
-    assert chosen.source == "/robot1/vo_other: tracking" and re.search(r"level\s+ERROR", chosen.render_text())
+    chosen = chosen.update_from_frame("/robot1/vo_other: tracking", 2, "lost", _record(state="lost"), 2.0)
+    assert chosen.source == "/robot1/vo_other" and re.search(r"level\s+ERROR", chosen.render_text())
     assert is_vo_status(NAME) and is_vo_status(NAME, "vo_node") and not is_vo_status(NAME, "vo")
     assert not is_vo_status("vo_node: tracking extra") and not is_vo_status(": tracking")
-    assert not is_vo_status("/vo_node: summary")
+    assert not is_vo_status("/vo_node: summary") and is_vo_status("/vo_node: scale")
 
 
 def test_statuses_are_picked_by_namespace() -> None:
@@ -195,18 +233,18 @@ def test_statuses_are_picked_by_namespace() -> None:
     assert is_vo_status("/robot1/vo_node: tracking", "/robot1/vo_node", "/robot1")
     assert not is_vo_status("/robot2/vo_node: tracking", "vo_node", "/robot1")
     s = MonitorState(namespace="/robot2")
-    assert "'/robot2/<node>: tracking'" in s.render_text()
-    s = s.update_from_status("/robot1/vo_node: tracking", 2, "lost", _record(state="lost"), 1.0)
+    assert "'/robot2/<node>: tracking|input|extrinsic|scale|...'" in s.render_text()
+    s = s.update_from_frame("/robot1/vo_node: tracking", 2, "lost", _record(state="lost"), 1.0)
     assert not s.has_status
-    s = s.update_from_status("/robot2/vo_node: tracking", 0, "tracking", _record(n_inliers="77"), 2.0)
-    s = s.update_from_status("/robot1/vo_node: tracking", 2, "lost", _record(state="lost"), 3.0)
-    assert s.source == "/robot2/vo_node: tracking" and s.level == 0 and "inliers 77" in s.render_text()
+    s = s.update_from_frame("/robot2/vo_node: tracking", 0, "tracking", _record(n_inliers="77"), 2.0)
+    s = s.update_from_frame("/robot1/vo_node: tracking", 2, "lost", _record(state="lost"), 3.0)
+    assert s.source == "/robot2/vo_node" and s.level == 0 and "inliers 77" in s.render_text()
     assert not s.other_sources  # the other namespace's node is not even a candidate
 
 
 def test_state_is_immutable_and_odd_values_are_shown_not_refused() -> None:
     s0 = MonitorState()
-    s1 = s0.update_from_status(NAME, 7, "odd level", {"state": "tracking", "n_inliers": "nan", "rh": "x"}, 1.0)
+    s1 = s0.update_from_frame(NAME, 7, "odd level", {"state": "tracking", "n_inliers": "nan", "rh": "x"}, 1.0)
     assert s0.n_statuses == 0 and s1.n_statuses == 1
     text = s1.render_text()
     assert "level       LEVEL 7" in text and "inliers n/a" in text and "RH n/a" in text
@@ -232,7 +270,7 @@ def test_real_frame_records_render_their_numbers() -> None:
             r = pipe.process(decode_frame(f.image_msg, bag.image_is_compressed),
                              CameraModel.from_camera_info(f.camera_info_msg), f.stamp_ns)
             st = frame_status(r, "vo_node", "cam")
-            s = s.update_from_status(st.name, int(st.level), st.message, st.values, float(f.index))
+            s = s.update_from_frame(st.name, int(st.level), st.message, st.values, float(f.index))
     assert r.n_inliers > 0 and math.isfinite(r.inlier_ratio)
     text = s.render_text()
     assert f"state       {r.state.value}  frame {r.index}" in text
@@ -261,7 +299,7 @@ def test_real_metric_frame_records_render_their_scale() -> None:
             r = pipe.process(decode_frame(f.image_msg, bag.image_is_compressed),
                              CameraModel.from_camera_info(f.camera_info_msg), f.stamp_ns)
             st = frame_status(r, "vo_node", "cam")
-            s = s.update_from_status(st.name, int(st.level), st.message, st.values, float(f.index))
+            s = s.update_from_frame(st.name, int(st.level), st.message, st.values, float(f.index))
             if not r.scale.metric:
                 assert "ground_plane: not established yet" in s.render_text() and s.units == "vo"
                 seen_vo = True
@@ -327,15 +365,14 @@ def test_monitor_against_a_running_node(ros: RosSession) -> None:
     executor = SingleThreadedExecutor(context=ros.context)
     executor.add_node(probe)
     statuses: list[Any] = []
-    probe.create_subscription(DiagnosticArray, "/diagnostics", lambda m: statuses.extend(m.status),
+    probe.create_subscription(DiagnosticArray, "vo/frame_status", lambda m: statuses.extend(m.status),
                               QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
 
     def frame_records() -> list[dict[str, str]]:
-        return [{kv.key: kv.value for kv in s.values} for s in statuses if s.name == NODE_STATUS
-                and any(kv.key == "state" for kv in s.values)]
+        return [{kv.key: kv.value for kv in s.values} for s in statuses if s.name == f"{NODE}: tracking"]
 
-    # A long watchdog timeout: the gap between loops of the player must not produce 'stalled' statuses,
-    # so the first status --once sees is a frame's. --loop keeps frames coming however slow start-up is.
+    # A long watchdog timeout: the gap between loops of the player must not turn the input status 'stalled'.
+    # --loop keeps frames coming however slow start-up is.
     node = subprocess.Popen([sys.executable, "-m", "epi_vo.ros.node", "--ros-args", "-p", "image_transport:=compressed",
                              "-p", "process_every_frame:=true", "-p", "qos_reliability:=reliable",
                              "-p", "watchdog_timeout_s:=60.0"],
@@ -350,9 +387,12 @@ def test_monitor_against_a_running_node(ros: RosSession) -> None:
         assert once.returncode == 0, once.stderr
         assert "Traceback" not in once.stderr
         out = once.stdout
-        assert out.startswith(NODE_STATUS) and re.search(r"level\s+(OK|WARN)\b", out), out
+        assert out.startswith(NODE) and re.search(r"level\s+(OK|WARN)\b", out), out
+        assert re.search(r"health\s+tracking (OK|WARN) \(.*\)  input OK \(receiving images\)  extrinsic ", out), out
         assert re.search(r"state\s+(tracking|initializing|rotation_only)\s+frame \d+", out), out
-        (index,), (features,) = _ints(out, "frame"), _ints(out, "features")
+        state_line = re.search(r"^  state\s+\S+\s+frame (\d+)", out, re.MULTILINE)
+        assert state_line is not None, out
+        index, (features,) = int(state_line.group(1)), _ints(out, "features")
         assert 50 <= features <= 2000
         assert 0.0 < _floats(out, "input")[0]  # Hz: the player's rate as the node measured it
         # The numbers are those the node published for that frame (once the probe has its status too).
@@ -394,7 +434,7 @@ LIVE_SNAPSHOTS = 3
 
 def _snapshots(stdout: str) -> list[str]:
     """The complete snapshots of the live monitor's plain output (each ends with an empty line)."""
-    return [s for s in stdout.split("\n\n")[:-1] if s.startswith(NODE_STATUS)]
+    return [s for s in stdout.split("\n\n")[:-1] if s.startswith(NODE)]
 
 
 def _live_view_complete(snapshots: list[str]) -> bool:
@@ -436,8 +476,9 @@ class _Reader:
 
 
 def test_monitor_follows_the_namespace_of_its_odometry_topic(ros: RosSession) -> None:
-    """Statuses of two nodes named vo_node in /robot1 and /robot2: `--odometry-topic /robot2/vo/odometry`
-    shows robot2's, and the other one is not mistaken for it (nor listed)."""
+    """Two nodes named vo_node in /robot1 and /robot2: `--odometry-topic /robot2/vo/odometry` shows robot2's
+    health (/diagnostics) and frames (/robot2/vo/frame_status), and the other one is not mistaken for it (nor
+    listed)."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
     from rclpy.executors import SingleThreadedExecutor
@@ -446,17 +487,26 @@ def test_monitor_follows_the_namespace_of_its_odometry_topic(ros: RosSession) ->
     probe = rclpy.create_node("probe_monitor_ns", context=ros.context)
     executor = SingleThreadedExecutor(context=ros.context)
     executor.add_node(probe)
-    pub = probe.create_publisher(DiagnosticArray, "/diagnostics",
-                                 QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+    qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    pub = probe.create_publisher(DiagnosticArray, "/diagnostics", qos)
+    frame_pubs = {ns: probe.create_publisher(DiagnosticArray, f"{ns}/vo/frame_status", qos)
+                  for ns in ("/robot1", "/robot2")}
+
+    def status(name: str, level: int, hardware_id: str, values: dict[str, str]) -> Any:
+        st = DiagnosticStatus(level=bytes([level]), name=name, message="tracking", hardware_id=hardware_id)
+        st.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        return st
 
     def publish() -> None:
-        arr = DiagnosticArray()
+        health = DiagnosticArray()
         for ns, level, inliers in (("/robot1", 2, "11"), ("/robot2", 0, "222")):
-            st = DiagnosticStatus(level=bytes([level]), name=f"{ns}/vo_node: tracking", message="tracking",
-                                  hardware_id=f"{ns[1:]}_camera")
-            st.values = [KeyValue(key=k, value=v) for k, v in _record(n_inliers=inliers).items()]
-            arr.status.append(st)
-        pub.publish(arr)
+            health.status.append(status(f"{ns}/vo_node: tracking", level, f"{ns[1:]}_camera",
+                                        {"frames_processed": "5"}))
+            frame = DiagnosticArray()
+            frame.status.append(status(f"{ns}/vo_node: tracking", level, f"{ns[1:]}_camera",
+                                       _record(n_inliers=inliers)))
+            frame_pubs[ns].publish(frame)
+        pub.publish(health)
 
     probe.create_timer(0.1, publish)
     monitor = subprocess.Popen([sys.executable, "-m", "epi_vo.cli", "monitor", "--once", "--timeout", str(WAIT_S),
@@ -466,9 +516,24 @@ def test_monitor_follows_the_namespace_of_its_odometry_topic(ros: RosSession) ->
         assert spin_until(executor, lambda: monitor.poll() is not None, 2 * WAIT_S)
         out, err = monitor.communicate()
         assert monitor.returncode == 0, err
-        assert out.startswith("/robot2/vo_node: tracking  (hardware robot2_camera)"), out
+        assert out.startswith("/robot2/vo_node  (hardware robot2_camera)"), out
         assert "inliers 222" in out and "robot1" not in out
     finally:
         _stop(monitor)
         executor.shutdown()
         probe.destroy_node()
+
+
+def test_monitor_once_on_a_stalled_ground_plane_node_prints_its_scale_source(ros: RosSession) -> None:
+    """A vo_node with scale_source ground_plane whose camera never delivers: `epi-vo monitor --once` says the
+    source it was given and that it is not established, and that no image came (not 'scale none')."""
+    from ros_fixtures import NodeProcess
+
+    with NodeProcess(ros.env, "-p", "scale_source:=ground_plane", "-p", "camera_height_m:=0.45",
+                     "-p", "watchdog_timeout_s:=0.3") as node:
+        once = _monitor(ros.env, "--once", "--timeout", str(WAIT_S), timeout=2 * WAIT_S)
+    assert once.returncode == 0, (once.stderr, node.stderr)
+    out = once.stdout
+    assert "  scale       ground_plane: not established yet: VO units (position held)" in out.splitlines(), out
+    assert re.search(r"input (WARN|STALE) \(no image received yet\)", out), out
+    assert re.search(r"state\s+n/a", out) and "Traceback" not in once.stderr

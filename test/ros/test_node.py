@@ -58,9 +58,12 @@ class Probe(ProbeBase):
         return self.spin_until(lambda: self.node.count_publishers("vo/odometry") > 0, timeout_s)
 
     def frame_statuses(self) -> list[Any]:
-        """Per-frame tracking statuses (the watchdog's 'stalled' ones excluded)."""
-        return [s for a in self.diag for s in a.status
-                if s.name.endswith(": tracking") and not s.message.startswith("stalled")]
+        """Per-frame tracking statuses (vo/frame_status)."""
+        return [s for a in self.frame_status for s in a.status if s.name.endswith(": tracking")]
+
+    def health(self, concern: str) -> list[Any]:
+        """The node's statuses of one concern on /diagnostics ('input', 'tracking', ...)."""
+        return [s for a in self.diag for s in a.status if s.name.endswith(f": {concern}")]
 
 
 def _play(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]:
@@ -69,14 +72,18 @@ def _play(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]:
 
 
 @pytest.fixture(scope="module")
-def offline(tmp_path_factory: pytest.TempPathFactory) -> dict[int, np.ndarray]:
-    """Odometry of the offline replay of the same bag, by stamp."""
-    return replay_odometry(BAG, tmp_path_factory.mktemp("offline"))
+def offline(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[int, np.ndarray]]:
+    """Odometry of the offline replay of the same bag, by topic and stamp: vo/odometry (VO units: the position
+    held) and vo/odometry/vo_units (the motion)."""
+    out = tmp_path_factory.mktemp("offline")
+    return {"vo/odometry": replay_odometry(BAG, out),
+            "vo/odometry/vo_units": replay_odometry(BAG, out, "/vo/odometry/vo_units", run=False)}
 
 
 
 @pytest.mark.parametrize("rate", ["1.0", "0"])
-def test_live_playback_equals_offline_replay(ros: RosSession, offline: dict[int, np.ndarray], rate: str) -> None:
+def test_live_playback_equals_offline_replay(ros: RosSession, offline: dict[str, dict[int, np.ndarray]],
+                                            rate: str) -> None:
     """At the bag's rate, and at rate 0 (as fast as the node's subscription acknowledges: frames wait in
     its queue, and with ``process_every_frame`` the next one is decoded and tracked into while the current
     one is processed, ``klt_ahead`` in the frame's timings). Either way the odometry is the offline replay's."""
@@ -87,27 +94,32 @@ def test_live_playback_equals_offline_replay(ros: RosSession, offline: dict[int,
             assert probe.wait_for_node(), node.proc.stderr
             played = _play(ros.env, "--rate", rate)
             assert played.returncode == 0, played.stderr
-            assert probe.spin_until(lambda: len(probe.odom) >= n and len(probe.frame_statuses()) >= n), \
-                (len(probe.odom), len(probe.frame_statuses()))
+            assert probe.spin_until(lambda: len(probe.odom) >= n and len(probe.frame_statuses()) >= n
+                                    and len(probe.odom_vo_units) >= n), \
+                (len(probe.odom), len(probe.frame_statuses()), len(probe.odom_vo_units))
             probe.spin_until(lambda: False, 0.5)  # nothing extra may arrive
-        assert len(probe.odom) == n
+        assert len(probe.odom) == len(probe.odom_vo_units) == n
         assert len(probe.frame_statuses()) == n
         if rate == "0":
             timings = [next(kv.value for kv in st.values if kv.key == "timings_ms") for st in probe.frame_statuses()]
             assert sum("klt_ahead=" in t for t in timings) >= 1, timings[:5]
-        for msg in probe.odom:
-            stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
-            np.testing.assert_allclose(odom_pose(msg), offline[stamp], atol=1e-6)
-            assert msg.header.frame_id == "odom" and msg.child_frame_id == "base_link"
-            cov = np.asarray(msg.pose.covariance).reshape(6, 6)
-            assert np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0)
+        vo_frames = ("odom_vo_units", "base_link_vo_units")
+        for topic, msgs, frames in (("vo/odometry", probe.odom, ("odom", "base_link")),
+                                    ("vo/odometry/vo_units", probe.odom_vo_units, vo_frames)):
+            for msg in msgs:
+                stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+                np.testing.assert_allclose(odom_pose(msg), offline[topic][stamp], atol=1e-6)
+                assert (msg.header.frame_id, msg.child_frame_id) == frames
+                cov = np.asarray(msg.pose.covariance).reshape(6, 6)
+                assert np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0)
         levels = [s.level[0] if isinstance(s.level, bytes) else s.level for s in probe.frame_statuses()]
         assert levels.count(0) >= 0.8 * n  # OK while tracking
         assert probe.points, "no point cloud published"
         _assert_points_in_front(probe)
-        # The path (published at keyframes and at least once a second) holds the odometry poses so far.
+        # The path (published at keyframes and at least once a second) holds the poses so far, in VO units.
         assert probe.paths and len(probe.paths[-1].poses) >= 10
-        by_stamp = {(m.header.stamp.sec, m.header.stamp.nanosec): odom_pose(m) for m in probe.odom}
+        assert probe.paths[-1].header.frame_id == "odom_vo_units"
+        by_stamp = {(m.header.stamp.sec, m.header.stamp.nanosec): odom_pose(m) for m in probe.odom_vo_units}
         for ps in probe.paths[-1].poses:
             p, q = ps.pose.position, ps.pose.orientation
             np.testing.assert_allclose([p.x, p.y, p.z, q.x, q.y, q.z, q.w],
@@ -116,15 +128,67 @@ def test_live_playback_equals_offline_replay(ros: RosSession, offline: dict[int,
         probe.close()
 
 
+MOUNT_XYZ, MOUNT_RPY = (0.2, -0.05, 0.4), (0.03, 0.26, -0.1)  # a camera pitched 15 deg down, off centre
+
+
+def test_live_playback_equals_offline_replay_with_a_mounted_camera(ros: RosSession, tmp_path: Path) -> None:
+    """A camera mounted off base_link, pitched down (``camera_xyz`` / ``camera_rpy``, as the node takes them
+    without TF): the replay given the same parameter file publishes the node's odometry, pose and twist,
+    and it is not the default mounting's; on both topics (vo/odometry: the position held, the orientation and
+    angular velocity as the mounting makes them; vo/odometry/vo_units: the motion)."""
+    from epi_vo.cli import main
+    from epi_vo.io.odometry_bag import read_odometry
+
+    params = tmp_path / "mounted.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    tf_timeout_s: 0.0\n"
+                      f"    camera_xyz: {list(MOUNT_XYZ)}\n    camera_rpy: {list(MOUNT_RPY)}\n")
+    assert main(["replay", str(BAG), "--output", str(tmp_path / "mounted"), "--params", str(params),
+                 "--no-progress"]) == 0
+    assert main(["replay", str(BAG), "--output", str(tmp_path / "level"), "--no-progress"]) == 0
+    def rows(run: str, topic: str) -> dict[int, tuple[np.ndarray, ...]]:
+        odo = read_odometry(tmp_path / run / "output.mcap", "/" + topic)
+        return {int(t): (p, q, v, w) for t, p, q, v, w in zip(*_odometry_rows(odo), strict=True)}
+
+    topics = ("vo/odometry", "vo/odometry/vo_units")
+    n = bag_frame_count(BAG)
+    probe = Probe(ros, "probe_mounted")
+    try:
+        with NodeProcess(ros.env, *PLAYBACK_ARGS, "--params-file", str(params)) as node:
+            assert probe.wait_for_node(), node.proc.stderr
+            played = _play(ros.env, "--rate", "0")
+            assert played.returncode == 0, played.stderr
+            assert probe.spin_until(lambda: len(probe.odom) >= n and len(probe.odom_vo_units) >= n), len(probe.odom)
+    finally:
+        probe.close()
+    for topic, msgs in zip(topics, (probe.odom, probe.odom_vo_units), strict=True):
+        offline, level = rows("mounted", topic), rows("level", topic)
+        assert len(msgs) == n == len(offline)
+        differs = 0
+        for msg in msgs:
+            stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+            p, q, v, w = offline[stamp]
+            np.testing.assert_allclose(odom_pose(msg), np.concatenate([p, q]), atol=1e-6)
+            lin, ang = msg.twist.twist.linear, msg.twist.twist.angular
+            np.testing.assert_allclose([lin.x, lin.y, lin.z, ang.x, ang.y, ang.z], np.concatenate([v, w]),
+                                       atol=1e-6)
+            differs += not np.allclose(np.concatenate([p, q, v, w]), np.concatenate(level[stamp]), atol=1e-3)
+        assert differs >= n - 2, topic  # the mounting moves every pose (bar the first, at the origin) and twist
+
+
+def _odometry_rows(odo: Any) -> tuple[Any, ...]:
+    return odo.stamps_ns, odo.positions, odo.quats_xyzw, odo.linear_velocity, odo.angular_velocity
+
+
 def _assert_points_in_front(probe: Probe) -> None:
     """Point clouds are finite and in front of the camera that triangulated them (camera z > 0)."""
     from epi_vo.core.odometry import default_T_base_cam
     from epi_vo.core.transforms import invert_T, make_T, rotation_from_quat_xyzw
     from epi_vo.io.msgconv import read_points_xyz
 
-    odom_by_stamp = {(m.header.stamp.sec, m.header.stamp.nanosec): m for m in probe.odom}
+    odom_by_stamp = {(m.header.stamp.sec, m.header.stamp.nanosec): m for m in probe.odom_vo_units}
     T_cam_base = invert_T(default_T_base_cam())
     for cloud in probe.points:
+        assert cloud.header.frame_id == "odom_vo_units"  # VO units: the points are in the vo_units frame
         pts = read_points_xyz(cloud).astype(np.float64)
         assert pts.shape[0] > 0 and np.all(np.isfinite(pts))
         pose = odom_pose(odom_by_stamp[(cloud.header.stamp.sec, cloud.header.stamp.nanosec)])
@@ -170,8 +234,9 @@ def test_reset_service_mid_stream_continues_from_last_pose(ros: RosSession) -> N
         assert len(reset_statuses) == 1
         i = reset_index()
         assert i is not None and i >= n // 2
-        before = odom_pose(probe.odom[i - 1])[:3]  # the frame processed just before the reset
-        after = odom_pose(probe.odom[i])[:3]
+        # in VO units the motion is on vo/odometry/vo_units (vo/odometry holds the position)
+        before = odom_pose(probe.odom_vo_units[i - 1])[:3]  # the frame processed just before the reset
+        after = odom_pose(probe.odom_vo_units[i])[:3]
         assert np.linalg.norm(after - before) < 0.5  # held at the last pose, not back at the origin
         assert np.linalg.norm(before) > 1.0
     finally:
@@ -269,8 +334,11 @@ def test_equal_and_backward_stamps_are_reported_and_odometry_stays_continuous(ro
         assert sum("duplicate image stamp" in m for m in messages) == 1
         assert sum("time jumped backwards by 4.9" in m for m in messages) == 1
         assert len(probe.odom) == len(sequence) - 1  # the duplicate is reported, not processed
-        jump = np.linalg.norm(odom_pose(probe.odom[20])[:3] - odom_pose(probe.odom[19])[:3])
-        assert np.linalg.norm(odom_pose(probe.odom[19])[:3]) > 0.3
+        # VO units: the motion is on vo/odometry/vo_units (vo/odometry holds its position)
+        assert probe.spin_until(lambda: len(probe.odom_vo_units) >= len(sequence) - 1)
+        moved = probe.odom_vo_units
+        jump = np.linalg.norm(odom_pose(moved[20])[:3] - odom_pose(moved[19])[:3])
+        assert np.linalg.norm(odom_pose(moved[19])[:3]) > 0.3
         assert jump < 0.05  # tracking restarted at the held pose: odometry continuous
     finally:
         probe.close()
@@ -313,6 +381,7 @@ def test_namespace_and_remapping(ros: RosSession) -> None:
             for check in (lambda: probe.node.count_publishers("/robot1/odom_vo") > 0,
                           lambda: probe.node.count_subscribers("/robot1/camera/image_raw") > 0,
                           lambda: probe.node.count_publishers("/robot1/vo/points") > 0,
+                          lambda: probe.node.count_publishers("/robot1/vo/frame_status") > 0,
                           lambda: probe.node.count_publishers("/diagnostics") > 0):
                 assert probe.spin_until(check), node.proc.stderr
     finally:
@@ -340,10 +409,10 @@ def test_watchdog_reports_a_stalled_camera(ros: RosSession) -> None:
     try:
         with NodeProcess(ros.env, "-p", "watchdog_timeout_s:=0.3") as node:
             assert probe.wait_for_node(), node.proc.stderr
-            assert probe.spin_until(lambda: any(s.level in (b"\x03", 3) for a in probe.diag for s in a.status)), \
+            assert probe.spin_until(lambda: any(s.level in (b"\x03", 3) for s in probe.health("input"))), \
                 node.proc.stderr
-        stale = [s for a in probe.diag for s in a.status if s.message.startswith("stalled")]
-        assert stale and "no image" in stale[-1].message
+        stale = [s for s in probe.health("input") if s.level in (b"\x03", 3)]
+        assert stale[-1].message == "no image received yet" and stale[-1].name == "/vo_node: input"
     finally:
         probe.close()
 
@@ -402,7 +471,7 @@ def test_bad_frames_and_a_stalled_camera_keep_the_node_up(ros: RosSession) -> No
             # The stall: every frame so far processed, then STALE for lack of images (not the STALE "no image
             # received yet" of the start-up).
             assert probe.spin_until(lambda: len(probe.odom) >= len(good) + len(bad) and any(
-                s.level in (b"\x03", 3) and "no image for" in s.message for a in probe.diag for s in a.status))
+                s.level in (b"\x03", 3) and s.message == "stalled: no recent image" for s in probe.health("input")))
             n_before = len(probe.odom)
             for img, info in after:
                 pub_info.publish(info)

@@ -2,7 +2,8 @@
 parameter override is warned about with the closest name, and published stamps are valid ROS times.
 
 The node runs in this process on a loopback-only domain of its own (test/ros_fixtures.py); its input
-callbacks are called directly and its ``_publish`` is observed, so nothing depends on DDS timing.
+callbacks are called directly and its ``_publish`` (of each frame's handled outputs) is observed, so nothing
+depends on DDS timing.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from ros_fixtures import RosSession, rclpy_session
 
 from epi_vo.core.decisions import Decision
 from epi_vo.core.frame import FrameResult
+from epi_vo.runner.frames import HandledFrame
 
 
 @pytest.fixture(scope="module")
@@ -106,10 +108,10 @@ def test_internal_error_is_reported_as_such_and_tracking_restarts(ros: RosSessio
     lock = threading.Lock()
     real_publish = node._publish
 
-    def record(r: FrameResult, stamp_msg: Any, gray: Any) -> None:
+    def record(handled: HandledFrame) -> None:
         with lock:
-            published.append((r, stamp_msg))
-        real_publish(r, stamp_msg, gray)
+            published.append((handled.result, handled.outputs.odometry))
+        real_publish(handled)
 
     node._publish = record
     from epi_vo.core import step as step_module
@@ -138,20 +140,19 @@ def test_internal_error_is_reported_as_such_and_tracking_restarts(ros: RosSessio
     assert all("duplicate" not in x for x in reasons)
     assert not published[1][0].has_pose
     assert "internal error in the previous frame" in reasons[2]
-    for r, stamp in published:
-        assert stamp.sec * 1_000_000_000 + stamp.nanosec == r.stamp_ns
+    for r, odometry in published:
+        assert odometry is not None and odometry.sample.stamp_ns == r.stamp_ns
 
 
 def test_header_stamp_that_is_no_ros_time_is_a_rejected_frame(ros: RosSession) -> None:
     """As in replay: nanosec >= 1e9 is no valid ROS time; the frame gets a status with the reason and no
     odometry, and the frames after it track on (the bad stamp was not booked)."""
     node = _make_node(ros)
-    statuses: list[Any] = []
+    statuses: list[Any] = []  # the DiagnosticArrays of vo/frame_status
     published: list[FrameResult] = []
-    real_status, real_publish = node._publish_status, node._publish
-    node._publish_status = lambda status, stamp_msg: (statuses.append((status, stamp_msg)),
-                                                      real_status(status, stamp_msg))
-    node._publish = lambda r, stamp_msg, gray: (published.append(r), real_publish(r, stamp_msg, gray))
+    real_status, real_publish = node._pub_frame_status.publish, node._publish
+    node._pub_frame_status.publish = lambda arr: (statuses.append(arr), real_status(arr))
+    node._publish = lambda h: (published.append(h.result) if not h.result.skipped else None, real_publish(h))
     try:
         img, info = _image(0)
         img.header.stamp.sec, img.header.stamp.nanosec = 5, 1_500_000_000
@@ -165,7 +166,7 @@ def test_header_stamp_that_is_no_ros_time_is_a_rejected_frame(ros: RosSession) -
         assert _wait(lambda: len(published) >= 1)
     finally:
         node.destroy_node()
-    status, stamp_msg = statuses[0]
+    (status,) = statuses[0].status
     assert "header stamp sec 5 nanosec 1500000000 is not a valid ROS time" in status.message
-    assert 0 <= stamp_msg.nanosec < 1_000_000_000
+    assert 0 <= statuses[0].header.stamp.nanosec < 1_000_000_000
     assert published[0].stamp_ns == 5_100_000_000 and Decision.TIME_JUMPED_BACK not in published[0].decisions

@@ -69,6 +69,41 @@ def test_ros_arguments_rcl_cannot_parse_exit_2_with_one_line(ros: RosSession, mo
     _one_line_exit_2(ros, module, args, line)
 
 
+def test_the_wheel_topic_is_relative_by_default_so_a_namespaced_node_reads_its_own(ros: RosSession) -> None:
+    """Two robots in one graph: vo_node in /robot7 with wheel odometry and the default topic subscribes to
+    /robot7/odom, not to a /odom every robot would share."""
+    from rclpy.node import NodeNameNonExistentError
+
+    probe = ProbeBase(ros, "probe_wheel_name")
+    subscribed: dict[str, list[str]] = {}
+
+    def has_wheel_subscription() -> bool:
+        try:
+            subscribed.update(probe.node.get_subscriber_names_and_types_by_node("vo_node", "/robot7"))
+        except NodeNameNonExistentError:  # not discovered yet
+            return False
+        return "/robot7/camera/camera_info" in subscribed and any(t.endswith("odom") for t in subscribed)
+
+    try:
+        with NodeProcess(ros.env, "-r", "__ns:=/robot7", "-p", "scale_source:=wheel_odometry") as node:
+            assert probe.spin_until(has_wheel_subscription, WAIT_S), (subscribed, node.proc.stderr)
+        assert "Traceback" not in node.stderr
+    finally:
+        probe.close()
+    assert subscribed["/robot7/odom"] == ["nav_msgs/msg/Odometry"]
+    assert "/odom" not in subscribed
+
+
+def test_a_node_stopped_while_it_starts_exits_quietly(ros: RosSession) -> None:
+    """SIGINT (Ctrl-C, launch stopping a stack) can come while the node is still being made: an exit like one
+    during spin, no traceback."""
+    code = ("from epi_vo.ros.node_run import run_node\n"
+            "def make():\n    raise KeyboardInterrupt\n"
+            "run_node(make, 'vo_node', '', ['--ros-args'])\n")
+    proc = subprocess.run([sys.executable, "-c", code], env=ros.env, capture_output=True, text=True, timeout=WAIT_S)
+    assert (proc.returncode, proc.stderr) == (0, "")
+
+
 class Probe(ProbeBase):
     def __init__(self, ros: RosSession, name: str) -> None:
         from lifecycle_msgs.srv import ChangeState
@@ -85,7 +120,7 @@ class Probe(ProbeBase):
         return bool(call_service(self.executor, self.change_client, request, WAIT_S).success)
 
     def summaries(self) -> list[Any]:
-        return [s for a in self.diag for s in a.status if s.name.endswith(": summary")]
+        return [s for a in self.diag for s in a.status if s.name.endswith(": lifecycle")]
 
 
 def test_a_bad_topic_fails_every_configure_with_the_reason_and_makes_nothing(ros: RosSession) -> None:
@@ -100,8 +135,9 @@ def test_a_bad_topic_fails_every_configure_with_the_reason_and_makes_nothing(ros
             assert probe.spin_until(lambda: len(probe.summaries()) >= n + 2)
             last = probe.summaries()[-1]
             level = last.level[0] if isinstance(last.level, bytes) else int(last.level)
-            assert level == 2 and last.message == f"unconfigured: configure failed: invalid vo_node parameters: " \
-                                                  f"{BAD_TOPIC_LINE}"
+            assert level == 2 and last.message == "unconfigured: configure failed"
+            assert {kv.key: kv.value for kv in last.values}["configure_error"] == \
+                f"invalid vo_node parameters: {BAD_TOPIC_LINE}"
             for topic in ("/camera/camera_info", "/camera/image_raw", "/camera/image_raw/compressed"):
                 assert probe.node.count_subscribers(topic) == 0, topic
             assert probe.node.count_publishers("/vo/odometry") == 0
@@ -132,8 +168,6 @@ def test_a_configure_that_fails_half_way_undoes_what_it_made_and_a_later_one_wor
         raise RuntimeError("injected: the TF broadcaster cannot be made")
 
     node = VoLifecycleNode(context=ros.context, parameter_overrides=[Parameter("image_transport", value="compressed")])
-    published: list[Any] = []
-    node._publish_status = lambda status, stamp: published.append(status)  # type: ignore[method-assign]
     try:
         before = _entities(node)
         monkeypatch.setattr(node_module, "make_tf_broadcaster", no_broadcaster)
@@ -141,11 +175,10 @@ def test_a_configure_that_fails_half_way_undoes_what_it_made_and_a_later_one_wor
             assert node.trigger_configure() == TransitionCallbackReturn.FAILURE
             assert node._state_machine.current_state[0] == State.PRIMARY_STATE_UNCONFIGURED
             assert _entities(node) == before
-        node._publish_state_summary()
-        summary = published[-1]
-        assert summary.level == DiagnosticLevel.ERROR
-        assert summary.message == ("unconfigured: configure failed: the session could not be started: RuntimeError: "
-                                   "injected: the TF broadcaster cannot be made")
+        summary = node._lifecycle_status()
+        assert summary.level == DiagnosticLevel.ERROR and summary.message == "unconfigured: configure failed"
+        assert dict(summary.values)["configure_error"] == ("the session could not be started: RuntimeError: "
+                                                           "injected: the TF broadcaster cannot be made")
         monkeypatch.undo()
         assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
         assert node._state_machine.current_state[0] == State.PRIMARY_STATE_INACTIVE

@@ -49,12 +49,12 @@ class Probe(ProbeBase):
 
     def frame_statuses(self) -> list[dict[str, str]]:
         return [{"message": s.message, "level": _level(s), **{kv.key: kv.value for kv in s.values}}
-                for a in self.diag for s in a.status
-                if s.name.endswith(": tracking") and not s.message.startswith("stalled")]
+                for a in self.frame_status for s in a.status if s.name.endswith(": tracking")]
 
     def summaries(self) -> list[dict[str, Any]]:
+        """The input statuses of /diagnostics (once a second)."""
         return [{"message": s.message, "level": _level(s), **{kv.key: kv.value for kv in s.values}}
-                for a in self.diag for s in a.status if s.name.endswith(": summary")]
+                for a in self.diag for s in a.status if s.name.endswith(": input")]
 
 
 def _level(status: Any) -> int:
@@ -159,10 +159,11 @@ def test_a_publisher_faster_than_the_vo_is_bounded_by_queue_max_mb_and_the_drops
             in_flight = int(node._busy) + q.pending  # held by the worker, or waiting for its camera_info
         assert held_bytes <= cap_mb * 1e6 and 1 <= queued <= 4
         assert dropped == overflow == N_FRAMES - queued - in_flight >= N_FRAMES - 6
-        # The summary says so at WARN while it happens, with the counts.
+        # The input status says so at WARN while it happens, with the counts.
         assert probe.spin_until(lambda: any(s["message"].startswith("dropping frames: ") for s in probe.summaries()))
         warn = next(s for s in probe.summaries() if s["message"].startswith("dropping frames: "))
-        assert warn["level"] == 1 and f"queue_max_mb={cap_mb:g}" in warn["message"]
+        assert warn["level"] == 1 and warn["message"] == "dropping frames: queue_max_mb reached"
+        assert f"queue_max_mb={cap_mb:g}" in warn["dropping"]
         assert int(warn["dropped_frames_over_limit"]) >= 1 and float(warn["queue_mb"]) <= cap_mb
         gate.set()
         # Every image is accounted for: a status for each one processed, the others counted as dropped.

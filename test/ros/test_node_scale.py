@@ -2,7 +2,8 @@
 pipeline on its worker thread, and publishes metres (the same poses as replay of the same bag).
 
 The node runs in this process on a loopback-only domain of its own (test/ros_fixtures.py); its input
-callbacks are called directly and its ``_publish`` is observed, so nothing depends on DDS timing.
+callbacks are called directly and its ``_publish`` (of each frame's handled outputs) is observed, so nothing
+depends on DDS timing.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from ros_fixtures import RosSession, rclpy_session, wait_until
 from epi_vo.core.config import VoConfig
 from epi_vo.core.frame import FrameResult
 from epi_vo.io import bagio
+from epi_vo.runner.frames import HandledFrame
 from epi_vo.tools.replay import run_replay
 
 REPO = Path(__file__).resolve().parents[2]
@@ -72,10 +74,10 @@ def test_node_takes_metres_from_the_wheel_topic(ros: RosSession, tmp_path: Path)
     lock = threading.Lock()
     real_publish = node._publish
 
-    def record(r: FrameResult, stamp_msg: Any, gray: Any) -> None:
+    def record(handled: HandledFrame) -> None:
         with lock:
-            published.append(r)
-        real_publish(r, stamp_msg, gray)
+            published.append(handled.result)
+        real_publish(handled)
 
     node._publish = record
     frames, wheels = _ros_messages()
@@ -139,10 +141,10 @@ def test_node_seeks_the_floor_along_the_mounting_it_declares(ros: RosSession, de
     lock = threading.Lock()
     real_publish = node._publish
 
-    def record(r: FrameResult, stamp_msg: Any, gray: Any) -> None:
+    def record(handled: HandledFrame) -> None:
         with lock:
-            published.append(r)
-        real_publish(r, stamp_msg, gray)
+            published.append(handled.result)
+        real_publish(handled)
 
     node._publish = record
     frames = _upside_down(_ros_messages()[0][:40])
@@ -185,7 +187,8 @@ def _wheel_messages(bag: Path) -> list[Any]:
 
 
 def _summary_values(probe: Any) -> dict[str, str]:
-    summaries = [s for a in probe.diag for s in a.status if s.name.endswith(": summary")]
+    """The key/values of the node's latest scale status (/diagnostics, once a second)."""
+    summaries = [s for a in probe.diag for s in a.status if s.name.endswith(": scale")]
     return {kv.key: kv.value for kv in summaries[-1].values} if summaries else {}
 
 
@@ -236,8 +239,8 @@ def test_node_and_replay_take_the_same_wheel_messages_from_a_disordered_stream(r
             assert played.returncode == 0, played.stderr
 
             def statuses() -> list[dict[str, str]]:
-                return [{kv.key: kv.value for kv in s.values} for a in probe.diag for s in a.status
-                        if s.name.endswith(": tracking") and not s.message.startswith("stalled")]
+                return [{kv.key: kv.value for kv in s.values} for a in probe.frame_status for s in a.status
+                        if s.name.endswith(": tracking")]
 
             assert probe.spin_until(lambda: len(probe.odom) >= LIVE_FRAMES and len(statuses()) >= LIVE_FRAMES,
                                     WAIT_S), len(probe.odom)

@@ -24,6 +24,7 @@ WAIT_S = 120.0  # bound on a wait for another process or DDS; it matters only wh
 CAMERA_FRAME = "camera_optical_frame"  # the bag's image header.frame_id
 # A camera 0.1 m forward, 0.05 m right and 0.3 m up of base_link, looking forward (optical -> base rotation).
 TF_XYZ = (0.1, -0.05, 0.3)
+SEND_BATCH = 50  # frames published before waiting for their odometry: under the node's qos_depth (100)
 
 
 @pytest.fixture(scope="module")
@@ -140,11 +141,20 @@ class Probe(ProbeBase):
         return [s for a in self.diag for s in a.status if s.name.endswith(suffix)]
 
     def frame_statuses(self) -> list[Any]:
-        return [s for s in self.statuses(": tracking") if not s.message.startswith("stalled")]
+        return [s for a in self.frame_status for s in a.status if s.name.endswith(": tracking")]
 
     def summaries(self) -> list[dict[str, str]]:
-        return [{"message": s.message, "hardware_id": s.hardware_id, **{kv.key: kv.value for kv in s.values}}
-                for s in self.statuses(": summary")]
+        """Each /diagnostics array of the node as one dict: every concern's key/values, its message as
+        '<concern>_message', the hardware id."""
+        merged = []
+        for a in self.diag:
+            d: dict[str, str] = {}
+            for st in a.status:
+                concern = st.name.rpartition(": ")[2]
+                d.update({kv.key: kv.value for kv in st.values}, hardware_id=st.hardware_id)
+                d[f"{concern}_message"] = st.message
+            merged.append(d)
+        return merged
 
     def send(self, frames: list[tuple[Any, Any]]) -> None:
         """Publish (image, camera_info) pairs once both publishers are matched."""
@@ -189,11 +199,13 @@ def _assert_points_in_front(probe: Probe, T_base_cam: np.ndarray) -> None:
     from epi_vo.core.transforms import invert_T, make_T, rotation_from_quat_xyzw
     from epi_vo.io.msgconv import read_points_xyz
 
-    by_stamp = {_stamp_ns(m.header.stamp): m for m in probe.odom}
+    # Each cloud is in the frame of its units: odom in metres, odom_vo_units (vo/odometry/vo_units') otherwise.
+    assert probe.spin_until(lambda: len(probe.odom_vo_units) >= len(probe.odom))
+    by_frame = {"odom": probe.odom, "odom_vo_units": probe.odom_vo_units}
     assert probe.points
     for cloud in probe.points:
         pts = read_points_xyz(cloud).astype(np.float64)
-        m = by_stamp[_stamp_ns(cloud.header.stamp)]
+        m = {_stamp_ns(m.header.stamp): m for m in by_frame[cloud.header.frame_id]}[_stamp_ns(cloud.header.stamp)]
         q = m.pose.pose.orientation
         T_odom_base = make_T(rotation_from_quat_xyzw([q.x, q.y, q.z, q.w]), _position(m))
         T_cam_odom = invert_T(T_base_cam) @ invert_T(T_odom_base)
@@ -225,15 +237,17 @@ def test_node_waits_for_tf_says_so_then_uses_it(ros: RosSession) -> None:
     try:
         probe.send(frames[:1])
         waiting = "waiting for TF base_link <- camera_optical_frame"
-        assert probe.spin_until(lambda: any(waiting in s["message"] for s in probe.summaries())), probe.summaries()
+        assert probe.spin_until(lambda: any(waiting in s["detail"] for s in probe.summaries())), probe.summaries()
         assert not probe.odom and buf.calls  # no frame goes through before the extrinsic is known
-        s = next(s for s in probe.summaries() if waiting in s["message"])
+        s = next(s for s in probe.summaries() if waiting in s["detail"])
         assert s["extrinsic_source"] == "pending" and s["camera_frame"] == CAMERA_FRAME
+        assert s["extrinsic_message"] == "waiting for TF"
         buf.ready = True
         probe.send(frames[1:])
         assert probe.spin_until(lambda: len(probe.odom) >= len(frames)), len(probe.odom)
         assert probe.spin_until(lambda: bool(probe.summaries()) and probe.summaries()[-1]["extrinsic_source"] == "tf")
         assert probe.summaries()[-1]["camera_xyz"] == "0.1 -0.05 0.3"
+        assert probe.summaries()[-1]["extrinsic_message"] == "from TF"
         _assert_status_pose_is_the_odometry(probe)
         _assert_points_in_front(probe, make_T(R_BASE_OPTICAL, TF_XYZ))
         assert all(s.hardware_id == CAMERA_FRAME for s in probe.frame_statuses())  # the camera's frame id
@@ -257,6 +271,7 @@ def test_node_falls_back_to_the_parameters_when_tf_never_comes(ros: RosSession) 
         assert probe.spin_until(lambda: probe.summaries() and probe.summaries()[-1]["extrinsic_source"]
                                 == "parameters")
         assert probe.summaries()[-1]["camera_xyz"] == "0.2 0 0.5"
+        assert probe.summaries()[-1]["extrinsic_message"] == "from parameters: TF not available"
         assert buf.calls and set(buf.calls) == {("base_link", CAMERA_FRAME)}
         _assert_points_in_front(probe, T_base_cam_from_params([0.2, 0.0, 0.5], [0.0, 0.0, 0.0]))
         assert all(s.hardware_id == "front_cam" for s in probe.statuses(""))  # the parameter overrides it
@@ -278,12 +293,15 @@ class RecordingBroadcaster:
 
 def test_map_frame_id_keeps_the_odometry_continuous_and_broadcasts_the_corrections(
         ros: RosSession, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """REP-105 with the window on (4 keyframes, in line: the replay's poses): with ``map_frame_id: map`` every
-    frame's TF is odom -> base_link and map -> odom; map -> odom is the identity until the window's first
-    correction and moves at it; map -> odom x vo/odometry is, frame by frame, the pose the replay publishes
-    (which jumps by the corrections), and vo/odometry's own step at a corrected frame is not that jump. The
-    summary says how far map is from odom. tf2_ros is not on PyPI: a recording broadcaster stands in."""
+    """REP-105 with the window on (4 keyframes, in line: the replay's poses) in metres (the ground robot's
+    camera 0.45 m above the floor, scale from the floor): with ``map_frame_id: map`` every frame's TF is
+    odom -> base_link, and map -> odom with it once the odometry is metric (a correction in VO units moves
+    no robot's map); map -> odom is the identity until the window's first correction and moves at it;
+    map -> odom x vo/odometry is, frame by frame, the pose the replay publishes (which jumps by the
+    corrections), and vo/odometry's own step at a corrected frame is not that jump. The summary says how far
+    map is from odom. tf2_ros is not on PyPI: a recording broadcaster stands in."""
     import dataclasses
+    import json
 
     from epi_vo.core.config import VoConfig
     from epi_vo.core.transforms import invert_T, make_T, rotation_angle_deg, rotation_from_quat_xyzw
@@ -291,20 +309,29 @@ def test_map_frame_id_keeps_the_odometry_continuous_and_broadcasts_the_correctio
     from epi_vo.ros import node as node_module
     from epi_vo.tools.replay import run_replay
 
-    n = 52
-    run_replay(BAG, tmp_path, dataclasses.replace(VoConfig(), ba_window_keyframes=4, ba_solver="inline"))
+    bag = REPO / "bags" / "ground_robot" / "bag"
+    params = {"ba_window_keyframes": 4, "ba_solver": "inline", "scale_source": "ground_plane",
+              "camera_height_m": 0.45}
+    run_replay(bag, tmp_path, dataclasses.replace(VoConfig(), **params))
     ref = read_odometry(tmp_path / "output.mcap")
     expected = {int(st): make_T(rotation_from_quat_xyzw(q), p)
                 for st, p, q in zip(ref.stamps_ns, ref.positions, ref.quats_xyzw, strict=True)}
+    records = [json.loads(line) for line in (tmp_path / "frames.jsonl").read_text().splitlines()]
+    metric = {int(r["stamp_ns"]) for r in records if r["units"] == "m" and r["has_pose"]}
+    n = len(records)
+    assert len(metric) >= 200
     tf = RecordingBroadcaster()
     monkeypatch.setattr(node_module, "make_tf_broadcaster", lambda node: (tf, ""))
     node = _in_process_node(ros, FakeBuffer(), tf_timeout_s=0.0, camera_xyz=[0.0, 0.0, 0.0], map_frame_id="map",
-                            ba_window_keyframes=4, ba_solver="inline")
+                            **params)
     probe = Probe(ros, "probe_map_odom")
     probe.executor.add_node(node)
     try:
-        probe.send(bag_frames_rclpy(BAG, n))
-        assert probe.spin_until(lambda: len(probe.odom) >= n), len(probe.odom)
+        frames = bag_frames_rclpy(bag, n)
+        for i in range(0, n, SEND_BATCH):  # no more at once than the node's subscription queue holds
+            probe.send(frames[i:i + SEND_BATCH])
+            sent = min(i + SEND_BATCH, n)
+            assert probe.spin_until(lambda sent=sent: len(probe.odom) >= sent), (len(probe.odom), sent)
         assert probe.spin_until(lambda: any("map_to_odom" in s for s in probe.summaries()))
     finally:
         probe.executor.remove_node(node)
@@ -319,23 +346,28 @@ def test_map_frame_id_keeps_the_odometry_continuous_and_broadcasts_the_correctio
                 if (t.header.frame_id, t.child_frame_id) == ("map", "odom")}
     odom_base = {_stamp_ns(t.header.stamp) for t in tf.sent
                  if (t.header.frame_id, t.child_frame_id) == ("odom", "base_link")}
+    assert set(map_odom) == metric  # map -> odom in metres only
     poses = []
     for m in probe.odom:
         st = _stamp_ns(m.header.stamp)
         q = m.pose.pose.orientation
         T = make_T(rotation_from_quat_xyzw([q.x, q.y, q.z, q.w]), _position(m))
-        assert st in map_odom and st in odom_base
+        assert st in odom_base
+        if st not in metric:
+            np.testing.assert_array_equal(T[:3, 3], np.zeros(3))  # held where tracking started
+            np.testing.assert_array_equal(expected[st][:3, 3], np.zeros(3))
+            continue
         np.testing.assert_allclose(map_odom[st] @ T, expected[st], atol=1e-6)
         poses.append((st, T, map_odom[st]))
     moved = [rotation_angle_deg(M[:3, :3]) > 1e-6 or np.linalg.norm(M[:3, 3]) > 1e-9 for _, _, M in poses]
-    assert not moved[0] and sum(moved) >= 30, sum(moved)  # general_motion: corrected from frame 18 on
+    assert not moved[0] and sum(moved) >= 30, sum(moved)
     first = moved.index(True)
     (s0, T0, _), (s1, T1, M1) = poses[first - 1], poses[first]
     own_step = invert_T(T0) @ T1
     published_step = invert_T(expected[s0]) @ expected[s1]  # the replay's, with the jump in it
     assert np.linalg.norm(own_step[:3, 3] - published_step[:3, 3]) > 0.5 * np.linalg.norm(M1[:3, 3])
     last = [s for s in probe.summaries() if "map_to_odom" in s][-1]["map_to_odom"]
-    assert "(units of vo/odometry)" in last and float(last.split()[0]) > 0.0
+    assert "(the status's units)" in last and float(last.split()[0]) > 0.0
 
 
 # -- subprocess nodes -------------------------------------------------------------------------------------------
@@ -349,12 +381,10 @@ def test_auto_transport_namespace_extrinsic_fallback_and_warnings(ros: RosSessio
         with NodeProcess(ros.env, "-r", "__ns:=/robot1", "-p", "camera_xyz:=[0.2, 0.0, 0.5]",
                          "-p", "qos_reliability:=reliable", "-p", "qos_depth:=100",
                          "-p", "process_every_frame:=true") as node:
-            waiting = ("stalled: no image received yet on /robot1/camera/image_raw or "
-                       "/robot1/camera/image_raw/compressed")
-            assert probe.spin_until(lambda: any(s.message == waiting for s in probe.statuses(": tracking"))), \
-                [s.message for s in probe.statuses("")]
-            assert probe.spin_until(lambda: any(s["message"] == waiting and s["image_transport"]
-                                                == "auto (none received yet)" for s in probe.summaries()))
+            waiting = "/robot1/camera/image_raw or /robot1/camera/image_raw/compressed"
+            assert probe.spin_until(lambda: any(s["input_message"] == "no image received yet" and s["image_topic"]
+                                                == waiting and s["image_transport"] == "auto (none received yet)"
+                                                for s in probe.summaries())), probe.summaries()
             probe.send(frames)
             assert probe.spin_until(lambda: len(probe.odom) >= len(frames)
                                     and len(probe.frame_statuses()) >= len(frames)), len(probe.odom)
@@ -367,7 +397,8 @@ def test_auto_transport_namespace_extrinsic_fallback_and_warnings(ros: RosSessio
             # The raw subscription is dropped once compressed images came first.
             assert probe.spin_until(lambda: probe.node.count_subscribers("/robot1/camera/image_raw") == 0)
         names = {s.name for s in probe.statuses("")}
-        assert names == {"/robot1/vo_node: tracking", "/robot1/vo_node: summary"}
+        assert names == {f"/robot1/vo_node: {c}" for c in ("tracking", "input", "extrinsic", "scale")}
+        assert {s.name for a in probe.frame_status for s in a.status} == {"/robot1/vo_node: tracking"}
         assert {s.hardware_id for s in probe.frame_statuses()} == {CAMERA_FRAME}
         _assert_status_pose_is_the_odometry(probe)
         err = node.stderr
@@ -463,13 +494,14 @@ def test_watchdog_keeps_reporting_when_the_simulated_clock_stops(ros: RosSession
 
             assert probe.spin_until(clock_and_check), node.proc.stderr
             n = len(probe.diag)
-            # The clock has stopped: the watchdog (0.5 s) and the summary (1 s) go on.
-            assert probe.spin_until(lambda: len(probe.diag) >= n + 6)
+            # The clock has stopped: /diagnostics (once a second, steady clock) goes on.
+            assert probe.spin_until(lambda: len(probe.diag) >= n + 3)
             later = probe.diag[n:]
             assert all(_stamp_ns(a.header.stamp) == 1234_500_000_000 for a in later)
             names = {s.name for a in later for s in a.status}
-            assert names == {"/vo_node: tracking", "/vo_node: summary"}
-            assert all(s.message.startswith("stalled: no image received yet") for a in later for s in a.status)
+            assert names == {f"/vo_node: {c}" for c in ("tracking", "input", "extrinsic", "scale")}
+            assert all(s.message == "no image received yet" for a in later for s in a.status
+                       if s.name.endswith(": input"))
     finally:
         probe.close()
 

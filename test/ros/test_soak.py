@@ -193,15 +193,17 @@ def test_node_overloaded_bounded_queue_counted_drops_flat_memory(ros: RosSession
     executor.add_node(probe)
     qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
     odom: list[Any] = []
-    statuses: list[dict[str, str]] = []
-    stalled: list[dict[str, str]] = []
+    statuses: list[dict[str, str]] = []  # vo/frame_status
+    stalled: list[dict[str, str]] = []  # the input statuses of /diagnostics once the watchdog says stalled
+
+    def on_frame(arr: Any) -> None:
+        statuses.extend(_values(s) for s in arr.status if s.name.endswith(": tracking"))
 
     def on_diag(arr: Any) -> None:
-        for s in arr.status:
-            if s.name.endswith(": tracking"):
-                (stalled if s.message.startswith("stalled") else statuses).append(_values(s))
+        stalled.extend(_values(s) for s in arr.status if s.name.endswith(": input") and s.message.startswith("stalled"))
 
     probe.create_subscription(Odometry, "vo/odometry", odom.append, qos)
+    probe.create_subscription(DiagnosticArray, "vo/frame_status", on_frame, qos)
     probe.create_subscription(DiagnosticArray, "/diagnostics", on_diag, qos)
     log = (tmp_path / "vo_node.log").open("w")
     node = subprocess.Popen([sys.executable, "-m", "epi_vo.ros.node", "--ros-args", "-p", f"queue_size:={QUEUE_SIZE}",

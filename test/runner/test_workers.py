@@ -4,11 +4,10 @@ for."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
+from bag_frames import decoded_frames, run_frames
 
 from epi_vo.core.camera import CameraModel
 from epi_vo.core.config import VoConfig
@@ -16,29 +15,17 @@ from epi_vo.core.decisions import Decision
 from epi_vo.core.frame import FrameResult, TrackingState
 from epi_vo.core.pipeline import VoPipeline
 from epi_vo.core.selection import select_model
-from epi_vo.io import bagio
-from epi_vo.io.msgconv import decode_frame
 from epi_vo.runner import klt_ahead, make_pipeline
 from epi_vo.runner.klt_ahead import KltAhead
 from epi_vo.runner.workers import Threaded
 
-BAG = Path(__file__).resolve().parents[2] / "bags" / "general_motion" / "bag"
 CFG = VoConfig()
 Frames = list[tuple[int, np.ndarray, CameraModel]]
 
 
 @pytest.fixture(scope="module")
 def frames() -> Frames:
-    out = []
-    with bagio.open_camera_bag(BAG) as bag:
-        for f in bag.iter_frames():
-            out.append((f.stamp_ns, decode_frame(f.image_msg, bag.image_is_compressed),
-                        CameraModel.from_camera_info(f.camera_info_msg)))
-    return out
-
-
-def _run(pipe: VoPipeline, frames: Frames) -> list[FrameResult]:
-    return [pipe.process(g, c, s) for s, g, c in frames]
+    return decoded_frames()
 
 
 @pytest.mark.parametrize("scene_name", ["general_scene_outliers", "planar_scene", "rotation_scene"])
@@ -62,7 +49,7 @@ def test_tracking_ahead_gives_the_records_of_tracking_in_line(frames: list[tuple
     """``announce_next`` (replay's lookahead): KLT into the next image runs on the runner's worker thread
     while the current frame is processed. Every record is the one tracking in line gives, keyframes included (their
     new corners are tracked when the frame comes); the worker's time is recorded apart (``klt_ahead``)."""
-    plain = _run(VoPipeline(), frames)
+    plain = run_frames(VoPipeline(), frames)
     used: list[bool] = []
     take = KltAhead.take
 

@@ -2,7 +2,7 @@
 exits non-zero with one clear line on stderr (never a traceback), and nothing recorded is lost.
 
 Bags are written into tmp_path with rosbags from the real frames of bags/general_motion (640x480 JPEG,
-decoded with ``epi_vo.tools.replay.decode_frame``), so tracking is real and recovery after bad frames can be
+decoded with ``epi_vo.io.msgconv.decode_frame``), so tracking is real and recovery after bad frames can be
 checked.
 """
 
@@ -581,7 +581,7 @@ def test_nothing_lost_with_injected_bad_frames(tmp_path: Path, source: list[Sour
             msg = reader.deserialize(rawdata, con.msgtype)
             head = msg.transforms[0].header if con.topic == "/tf" else msg.header  # TFMessage: per transform
             stamp = head.stamp.sec * 10**9 + head.stamp.nanosec
-            if con.topic == "/diagnostics":
+            if con.topic == "/vo/frame_status":
                 (status,) = msg.status
                 diag_stamps.append(stamp)
                 assert status.message
@@ -680,13 +680,13 @@ def _assert_consistent_outputs(out: Path) -> None:
     recs = [json.loads(line) for line in lines]  # every line parses: none half written
     assert 20 <= len(recs) < 300, "interrupted mid-run"
     assert [r["index"] for r in recs] == list(range(len(recs)))
-    counts = {"/diagnostics": 0, "/vo/odometry": 0}
+    counts = {"/vo/frame_status": 0, "/vo/odometry": 0}
     with AnyReader([out / "output.mcap"], default_typestore=TYPESTORE) as reader:  # finalised: summary + index
         for con, _, rawdata in reader.messages():
             reader.deserialize(rawdata, con.msgtype)
             counts[con.topic] = counts.get(con.topic, 0) + 1
     # The replay stops between frames: every output agrees on the frames written.
-    assert counts["/diagnostics"] == counts["/vo/odometry"] == len(recs), (counts, len(recs))
+    assert counts["/vo/frame_status"] == counts["/vo/odometry"] == len(recs), (counts, len(recs))
     assert tum(out).shape[0] == sum(r["has_pose"] for r in recs)
 
 
@@ -714,11 +714,11 @@ def test_interrupt_between_a_frames_writes_leaves_consistent_outputs(tmp_path: P
         rc = -1
     assert rc == code and "interrupted" in capsys.readouterr().err
     recs = records(tmp_path / "out")
-    counts = {"/diagnostics": 0, "/vo/odometry": 0}
+    counts = {"/vo/frame_status": 0, "/vo/odometry": 0}
     with AnyReader([tmp_path / "out" / "output.mcap"], default_typestore=TYPESTORE) as reader:
         for con, _, _ in reader.messages():
             counts[con.topic] = counts.get(con.topic, 0) + 1
-    assert counts["/diagnostics"] == counts["/vo/odometry"] == len(recs)
+    assert counts["/vo/frame_status"] == counts["/vo/odometry"] == len(recs)
     assert tum(tmp_path / "out").shape[0] == sum(r["has_pose"] for r in recs)
 
 
@@ -856,7 +856,7 @@ def test_header_stamps_that_are_no_ros_time_are_rejected_frames(tmp_path: Path, 
     assert stats["frames"] == n and stats["rejected_frames"] == 4
     stamps = assert_every_written_stamp_is_a_ros_time(tmp_path / "out")
     # (read back in log-time order) every frame has its status; a rejected stamp gets no odometry
-    assert stamps["/diagnostics"] == sorted(r["stamp_ns"] for r in recs)
+    assert stamps["/vo/frame_status"] == sorted(r["stamp_ns"] for r in recs)
     assert stamps["/vo/odometry"] == sorted(r["stamp_ns"] for r in good)
 
 
@@ -872,7 +872,7 @@ def test_the_largest_ros_time_is_written_exactly(tmp_path: Path, source: list[So
     assert len(recs) == 12 and recs[-1]["stamp_ns"] == MAX_STAMP_NS and not recs[-1]["skipped"]
     assert recs[-1]["stamp"] < 2.0**31 and "frame rejected" not in recs[-1]["reason"]
     stamps = assert_every_written_stamp_is_a_ros_time(tmp_path / "out")
-    assert stamps["/vo/odometry"][-1] == stamps["/diagnostics"][-1] == MAX_STAMP_NS
+    assert stamps["/vo/odometry"][-1] == stamps["/vo/frame_status"][-1] == MAX_STAMP_NS
     if recs[-1]["has_pose"]:
         assert (tmp_path / "out" / "trajectory.tum").read_text().splitlines()[-1].startswith("2147483647.999999999 ")
 
@@ -920,7 +920,7 @@ def test_damaged_image_messages_are_rejected_frames(tmp_path: Path, source: list
     assert not any("backwards" in r["reason"] for r in recs)
     assert recs[-1]["state"] == "tracking"
     stamps = assert_every_written_stamp_is_a_ros_time(tmp_path / "out")
-    assert len(stamps["/diagnostics"]) == n and len(stamps["/vo/odometry"]) == n - 3
+    assert len(stamps["/vo/frame_status"]) == n and len(stamps["/vo/odometry"]) == n - 3
     stats = json.loads((tmp_path / "out" / "stats.json").read_text())
     assert stats["frames"] == n and stats["rejected_frames"] == 3 and stats["skipped_messages"] == []
 

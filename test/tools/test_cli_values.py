@@ -38,6 +38,8 @@ CASES = [
     (["play", BAG, "--namespace", "bad ns"], "namespace 'bad ns' is not a valid ROS 2 namespace"),
     (["monitor", "--odometry-topic", "bad topic!", "--once", "--timeout", "5"],
      "--odometry-topic 'bad topic!' is not a valid ROS 2 topic name"),
+    (["monitor", "--vo-units-topic", "vo//units", "--once", "--timeout", "5"],
+     "--vo-units-topic 'vo//units' is not a valid ROS 2 topic name"),
     (["monitor", "--node-name", "bad name", "--once", "--timeout", "5"],
      "--node-name 'bad name' is not a valid ROS 2 node name"),
     (["monitor", "--timeout", "nan", "--once"], "--timeout must be a finite number, not nan"),

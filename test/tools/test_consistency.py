@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from epi_vo.io import tum
-from epi_vo.io.odometry_bag import read_odometry
+from epi_vo.io.odometry_bag import read_estimate_odometry
 from epi_vo.tools.consistency import NEES_KEYS, format_consistency
 from epi_vo.tools.evaluation import replay_dir_nees
 from epi_vo.tools.replay import format_summary, run_replay
@@ -27,7 +27,7 @@ def test_replay_reports_the_covariance_consistency_it_published(tmp_path: Path) 
     assert set(NEES_KEYS) <= set(m)
     pose = replay_dir_nees(tmp_path)
     records = [json.loads(line) for line in (tmp_path / "frames.jsonl").read_text().splitlines()]
-    twist = replay_twist_nees(records, read_odometry(tmp_path / "output.mcap"),
+    twist = replay_twist_nees(records, read_estimate_odometry(tmp_path / "output.mcap"),
                               tum.read_tum(tmp_path / "groundtruth.tum"))
     assert pose is not None and m["nees_frames"] == pose.evaluated == 50
     assert m["nees_pos"] == pytest.approx(pose.mean_nees_pos, rel=1e-9)
@@ -36,7 +36,7 @@ def test_replay_reports_the_covariance_consistency_it_published(tmp_path: Path) 
     assert m["nees_twist_linear"] == pytest.approx(twist.mean_linear, rel=1e-9)
     assert m["nees_twist_angular"] == pytest.approx(twist.mean_angular, rel=1e-9)
     assert m["nees_twist_angular_inside_percent"] == pytest.approx(twist.inside_angular_percent)
-    # the bag's figures (README, Measured): consistent, none off by an order of magnitude
+    # consistent (3 in expectation), none off by an order of magnitude (the bag's row: docs/benchmarks)
     assert 0.5 < m["nees_pos"] < 6 and 0.5 < m["nees_rot"] < 6 and 1.0 < m["nees_twist_angular"] < 6
     stats = json.loads((tmp_path / "stats.json").read_text())["metrics"]
     assert stats["nees_pos"] == pytest.approx(m["nees_pos"])

@@ -32,7 +32,8 @@ MOVED_FLOOR = 0.5  # % of the map's depth a still camera may be moved by (the is
 RPE_FLOOR = 0.02  # deg/frame
 SE3_FLOOR = 0.2  # % of the path
 
-# What epi_vo measures on each family's subset sequence today (2026-11-28, base 3f11d00): ATE % of the path
+# What epi_vo measures on each family's subset sequence as the code is (`epi-vo benchmark --suite subset`; a
+# change that moves them updates them and says why in its commit): ATE % of the path
 # (Sim(3); static families: none), frames with a pose %, RPE rotation deg/frame; static families: the
 # largest displacement as % of the map's depth; metric rows: SE(3)-only ATE %.
 TODAY: dict[str, dict[str, float]] = {
@@ -121,8 +122,51 @@ def test_the_command_records_the_tables_with_the_reference_side_by_side(scenario
     assert fam["seeds"] == 1 and fam["median"] == pytest.approx(TODAY["floor_robot"]["ate"], abs=1e-3)
 
 
+def test_a_rule_is_judged_with_and_without_it_against_a_baseline(scenario_subset: list, tmp_path: Path,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """An ablation: the run with one parameter changed (--set) printed family by family against the run
+    without (--baseline); the changed parameter and the baseline are in the record."""
+    root = str(scenario_subset[0].path.parents[2])
+    assert run_distribution("subset", None, families=["floor_robot"], jobs=1, cache=root, real=False,
+                            record_dir=tmp_path / "a", reference=False) == 0
+    base_json = next((tmp_path / "a").glob("*-subset.json"))
+    capsys.readouterr()
+    assert run_distribution("subset", None, families=["floor_robot"], jobs=1, cache=root, real=False,
+                            record_dir=tmp_path / "b", reference=False, overrides=["kf_min_parallax_deg=4.0"],
+                            baseline=str(base_json)) == 0
+    printed = capsys.readouterr().out
+    before = json.loads(base_json.read_text())
+    after = json.loads(next((tmp_path / "b").glob("*-subset.json")).read_text())
+    assert after["overrides"] == ["kf_min_parallax_deg=4.0"] and after["baseline"] == str(base_json)
+    kf = [after["families"]["floor_robot"]["epi_vo"]["keyframes_per_frame"]["median"],
+          before["families"]["floor_robot"]["epi_vo"]["keyframes_per_frame"]["median"]]
+    assert kf[0] < kf[1]  # fewer keyframes with a larger parallax gate
+    section = printed.split("### Against the baseline", 1)[1]
+    row = next(line for line in section.splitlines() if line.startswith("| floor_robot | epi_vo | 1 |"))
+    assert f"{kf[1]:.2f} -> {kf[0]:.2f}" in row
+    assert "| floor_robot | epi_vo[ground_plane] | 1 |" in section
+    assert "reference" not in section
+
+
+def test_a_record_is_replaced_only_by_a_run_of_the_same_commit(tmp_path: Path) -> None:
+    from epi_vo.tools.bench_record import write_record
+
+    md, _ = write_record(tmp_path, "distribution", "a", {"header": {"commit": "1" * 40}}, "2026-11-28", "1" * 40)
+    assert md.name == "2026-11-28-distribution.md"
+    md2, _ = write_record(tmp_path, "distribution", "b", {"header": {"commit": "1" * 40}}, "2026-11-28", "1" * 40)
+    assert md2 == md and md.read_text() == "b\n"
+    md3, js3 = write_record(tmp_path, "distribution", "c", {"header": {"commit": "2" * 40}}, "2026-11-28", "2" * 40)
+    assert md3.name == "2026-11-28-distribution-2222222.md" and js3.name == "2026-11-28-distribution-2222222.json"
+    assert md.read_text() == "b\n"  # the other commit's record stands beside it
+
+
 @pytest.mark.parametrize(("args", "text"), [
     (["--suite", "distribution", "--bags", "bags"], "--bags is an option of the bundled suite"),
+    (["--baseline", "x.json"], "--baseline is an option of --suite distribution and subset"),
+    (["--suite", "subset", "--set", "kf_min_parallax_deg", "--no-record"], "expected NAME=VALUE"),
+    (["--suite", "subset", "--set", "kf_min_parallax=2", "--no-record"], "kf_min_parallax_deg"),
+    (["--suite", "subset", "--set", "kf_min_parallax_deg=-1", "--no-record"], "kf_min_parallax_deg"),
+    (["--suite", "subset", "--baseline", "/nonexistent/x.json", "--no-record"], "--baseline /nonexistent/x.json"),
     (["--suite", "subset", "--families", "nope", "--no-record"], "unknown families nope"),
     (["--suite", "subset", "--jobs", "0", "--no-record"], "--jobs must be at least 1"),
 ])

@@ -11,8 +11,8 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from epi_vo.core.errors import EvaluationError
+from epi_vo.io.trajectory import StampedPoses
 from epi_vo.tools.evaluation import (
-    StampedPoses,
     TrajectoryMetrics,
     evaluate_trajectory,
     metric_poses,

@@ -17,48 +17,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from bag_copies import BAGS, REPO, TYPESTORE, copy_frames
 from rosbags.highlevel import AnyReader
-from rosbags.rosbag2 import StoragePlugin, Writer
-from rosbags.typesys import Stores, get_typestore
 
 from epi_vo.cli import main
 from epi_vo.tools.fleet_bags import find_bags, is_fleet, output_names
 from epi_vo.tools.fleet_summary import EXIT_BAGS_FAILED, BagRow, BagStatus, exit_code, row_from_directory
 from epi_vo.tools.replay import run_replay
-
-REPO = Path(__file__).resolve().parents[2]
-BAGS = REPO / "bags"
-TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
-
-
-def _copy_frames(src: Path, dst: Path, n_images: int, *, repeat: int = 1) -> Path:
-    """The first ``n_images`` images of ``src`` (with the messages of the other topics up to the last of them)
-    into a new MCAP bag ``dst``. ``repeat`` > 1 plays them forward, backward, ... with increasing stamps."""
-    with AnyReader([src], default_typestore=TYPESTORE) as reader:
-        msgs = list(reader.messages())
-        conns = {c.id: c for c in reader.connections}
-        images = [m for m in msgs if m[0].msgtype.endswith("CompressedImage")][:n_images]
-        t_end = images[-1][1]
-        kept = [m for m in msgs if m[1] <= t_end]
-        with Writer(dst, version=9, storage_plugin=StoragePlugin.MCAP) as w:
-            out_conns = {cid: w.add_connection(c.topic, c.msgtype, typestore=TYPESTORE) for cid, c in conns.items()}
-            if repeat == 1:
-                for con, t, raw in kept:
-                    w.write(out_conns[con.id], t, raw)
-            else:  # images and camera_info only, re-stamped
-                info = next(m for m in kept if m[0].msgtype.endswith("CameraInfo"))
-                order = [*range(len(images)), *range(len(images) - 2, 0, -1)]
-                t0, period = images[0][1], images[1][1] - images[0][1]
-                for i in range(len(order) * repeat):
-                    con, _, raw = images[order[i % len(order)]]
-                    t = t0 + i * period
-                    img = reader.deserialize(raw, con.msgtype)
-                    img.header.stamp.sec, img.header.stamp.nanosec = divmod(t, 10**9)
-                    cinfo = reader.deserialize(info[2], info[0].msgtype)
-                    cinfo.header.stamp = img.header.stamp
-                    w.write(out_conns[con.id], t, TYPESTORE.serialize_cdr(img, con.msgtype))
-                    w.write(out_conns[info[0].id], t, TYPESTORE.serialize_cdr(cinfo, info[0].msgtype))
-    return dst
 
 
 @pytest.fixture(scope="module")
@@ -66,7 +31,7 @@ def fleet_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Three bags of 30 frames (general_motion, planar, pure_rotation) and a broken one."""
     d = tmp_path_factory.mktemp("fleet")
     for name in ("general_motion", "planar"):
-        _copy_frames(BAGS / name / "bag", d / name, 30)
+        copy_frames(BAGS / name / "bag", d / name, 30)
     (d / "zz_broken.mcap").write_bytes(b"\x89MCAP0\r\n this is no bag")
     return d
 
@@ -273,9 +238,9 @@ def _default_signals() -> None:
 def test_interrupt_leaves_finished_bags_valid(fleet_dir: Path, tmp_path: Path) -> None:
     bags = tmp_path / "bags"
     bags.mkdir()
-    _copy_frames(fleet_dir / "planar", bags / "a_short", 20)
-    _copy_frames(BAGS / "general_motion" / "bag", bags / "b_long", 52, repeat=6)  # ~600 frames
-    _copy_frames(fleet_dir / "planar", bags / "c_short", 20)
+    copy_frames(fleet_dir / "planar", bags / "a_short", 20)
+    copy_frames(BAGS / "general_motion" / "bag", bags / "b_long", 52, repeat=6)  # ~600 frames
+    copy_frames(fleet_dir / "planar", bags / "c_short", 20)
     out = tmp_path / "out"
     proc = subprocess.Popen([sys.executable, "-m", "epi_vo.cli", "replay", str(bags), "-o", str(out), "--jobs", "1",
                              "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,

@@ -26,6 +26,7 @@ from epi_vo.core.odometry import T_base_cam_from_params
 from epi_vo.core.pipeline import VoPipeline
 from epi_vo.io import bagio, tum
 from epi_vo.io.msgconv import decode_frame
+from epi_vo.io.odometry_bag import read_odometry
 from epi_vo.tools.replay import ReplaySummary, run_replay
 
 REPO = Path(__file__).resolve().parents[2]
@@ -81,9 +82,14 @@ def test_an_upside_down_camera_claims_no_metres_and_says_why(upside_down: tuple[
     assert s.metric_from_frame is None and s.units == "vo"
     recs = [json.loads(line) for line in (out / "frames.jsonl").read_text().splitlines()]
     assert not any(r["metric_scale"] for r in recs)
-    # Nothing is published as metres: the position holds at the map's origin with the 'unknown' variance.
-    assert all(r["position"] == [0.0, 0.0, 0.0] for r in recs)
-    assert all(r["covariance_diagonal"][0] >= 1e4 for r in recs)
+    # Nothing is published as metres: vo/odometry holds the position where tracking started with the 'unknown'
+    # variance; the motion, in VO units, is on vo/odometry/vo_units (the records' poses).
+    fused = read_odometry(out / "output.mcap")
+    vo = read_odometry(out / "output.mcap", "/vo/odometry/vo_units")
+    assert len(fused.stamps_ns) == len(vo.stamps_ns) == 300 and not fused.positions.any()
+    assert np.all(fused.pose_covariance[:, 0, 0] >= 1e4) and np.all(fused.twist_covariance[:, 0, 0] >= 1e4)
+    assert np.linalg.norm(vo.positions[-1]) > 1.0 and vo.frame_id == "odom_vo_units"
+    assert all(r["units"] == "vo" for r in recs) and max(np.linalg.norm(r["position"]) for r in recs) > 1.0
     # Where a plane had the points a floor needs, the reason says what was wrong with it.
     said = [r for r in recs if "well beneath it; the floor carries the scene" in r["scale_reason"]]
     assert sum(r["is_keyframe"] for r in said) >= 5

@@ -1,4 +1,4 @@
-"""scripts/floor_truth.py, the diagnostic behind the README's KITTI ground-plane analysis: every floor
+"""scripts/floor_truth.py, the diagnostic of the ground-plane scale (docs/tools.md): every floor
 measurement of a ``ground_plane`` replay beside the ground truth. On the bundled ground-robot bag (a
 flat, textured floor exactly 0.45 m below the camera) the floor's scale is the true one to a few per
 mille, and the inliers' heights are the camera height."""

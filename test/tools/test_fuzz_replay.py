@@ -30,13 +30,13 @@ example must satisfy:
    covariances, PointCloud2 points, Path poses, DiagnosticArray values that parse as numbers); every
    header stamp and log / publish time in output.mcap a valid ROS time (sec in [0, 2^31-1],
    nanosec < 1e9); output.mcap readable;
-5. a clean bag (every message well formed and consistent with the README's rules, valid stamps, a
+5. a clean bag (every message well formed and consistent with docs/bad_input.md's rules, valid stamps, a
    consistent binning / roi allowed) exits 0 with no rejected frame;
-6. a frame the README says cannot be used (unsupported encoding, data shorter than step x height, size
+6. a frame docs/bad_input.md says cannot be used (unsupported encoding, data shorter than step x height, size
    different from camera_info's after binning / roi, smaller than the KLT frontend can use, K[0] == 0,
    non-finite K or D, unknown distortion model, non-zero D of the wrong length, implausible intrinsics,
    no camera_info message) has no pose, and the replay exits 3;
-7. a record saying "frame rejected" means the replay exits 3 (the README: rejected frames -> exit 3);
+7. a record saying "frame rejected" means the replay exits 3 (docs/tools.md: rejected frames -> exit 3);
 8. with a wheel stream, exit code 0 or 3: ``stats.json``'s ``wheel_odometry`` counts every message written
    and what became of it as the one rule says (messages in the bag's order, used only when stamped after
    every message used before; ``_wheel_expected`` is a model of it), every record's ``wheel_messages`` is
@@ -212,7 +212,7 @@ class BuiltBag:
     n_images: int
     image_order: list[int]  # frame index of the k-th image message in the bag
     has_info_topic: bool
-    frame_class: list[str]  # per frame: "good", "bad" (README: cannot be used) or "unknown"
+    frame_class: list[str]  # per frame: "good", "bad" (docs/bad_input.md: cannot be used) or "unknown"
     frame_why: list[str]
     clean: bool  # every frame good, valid stamps, nothing corrupted: must exit 0 with nothing rejected
     why_not_clean: str
@@ -468,7 +468,7 @@ def _info_problem(info: Any) -> str | None:
 
 
 def _image_problem(msg: Any) -> tuple[str, str]:
-    """("good" / "bad" / "unknown", why) for a raw Image message by the README's rules."""
+    """("good" / "bad" / "unknown", why) for a raw Image message by the documented rules (docs/bad_input.md)."""
     enc = msg.encoding
     if enc in ENCODING_ALIASES:
         return "unknown", f"encoding alias {enc}"
@@ -567,7 +567,7 @@ def build_bag(plan: BagPlan, directory: Path) -> BuiltBag:
                 w.write(cw, 1_000_000_500 + j * 1_000, bytes(TYPESTORE.serialize_cdr(msg, Odometry.__msgtype__)))
             wheel_expected = _wheel_expected(wheel)
 
-    # --- what the README says about each frame --------------------------------------------------
+    # --- what the documented rules say about each frame ------------------------------------------
     contents = [_info_content(infos[i]) for i in written_infos]
     uniform = bool(contents) and all(_same_content(c, contents[0]) for c in contents)
     info_cdr_corrupted = any(t == "info" for t, _ in corrupted)
@@ -677,7 +677,7 @@ _ZERO_TWIST = _geometry("TwistWithCovariance", twist=_geometry("Twist", linear=_
 
 
 def _wheel_expected(msgs: list[Any]) -> dict[str, int]:
-    """The counts the README's wheel rule gives (a model of it, written from the rule, not from the code)."""
+    """The counts the documented wheel rule gives (a model of it, written from the rule, not from the code)."""
     counts = dict.fromkeys(("received", "used", "out_of_order", "duplicate_stamp", "non_finite", "invalid_stamp"), 0)
     newest = None
     for msg in msgs:
@@ -1149,7 +1149,7 @@ def _check_frames(built: BuiltBag, rc: int, recs: list[dict[str, Any]], last_lin
         rejected = [(j, r["reason"]) for j, r in enumerate(recs) if _rejected(r)]
         _check(rc == 0 and not rejected, "clean-bag-not-accepted", rejected[0][1].split(";")[0] if rejected else "",
                f"clean bag: exit {rc}, rejected frames {rejected[:3]}; {last_line}")
-    # 6. Frames the README says cannot be used: no pose, exit 3.
+    # 6. Frames docs/bad_input.md says cannot be used: no pose, exit 3.
     bad = [i for i, c in enumerate(built.frame_class) if c == "bad"]
     if bad:
         why = built.frame_why[bad[0]]

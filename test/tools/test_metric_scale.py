@@ -18,6 +18,7 @@ from epi_vo.core.config import VoConfig
 from epi_vo.core.pipeline import VoPipeline
 from epi_vo.io import bagio, tum
 from epi_vo.io.msgconv import decode_frame
+from epi_vo.io.odometry_bag import read_odometry
 from epi_vo.tools import evaluation
 from epi_vo.tools.replay import ReplaySummary, run_replay
 
@@ -25,7 +26,8 @@ REPO = Path(__file__).resolve().parents[2]
 BAG = REPO / "bags" / "ground_robot" / "bag"
 GT_PATH_M = 11.24  # camera path length of the bag (bags/README.md)
 GROUND_PLANE = {"scale_source": "ground_plane", "camera_height_m": 0.45}
-WHEELS = {"scale_source": "wheel_odometry", "wheel_odometry_topic": "/wheel/odom"}
+# Relative, as a node's parameter usually is: the replay reads it as the root namespace's, /wheel/odom.
+WHEELS = {"scale_source": "wheel_odometry", "wheel_odometry_topic": "wheel/odom"}
 
 
 def _params(tmp: Path, values: dict[str, object]) -> Path:
@@ -81,20 +83,17 @@ def test_the_floor_view_takes_e_with_parallax_and_does_not_drift_in_yaw(none: tu
     assert s.metrics is not None and s.metrics["ate_percent_of_path"] < 0.25
     nees = evaluation.replay_dir_nees(out)
     assert nees is not None and nees.evaluated >= 290
-    # The yaw drifted 0.96 deg over the bag while the renderer slid the floor's texture with its level of
-    # detail (-0.007 deg per keyframe); on the bag as re-rendered 2026-11-25 the last pose is 0.13 deg off.
+    # The last pose's rotation is about 0.13 deg off the ground truth after the 11 m drive.
     gt_q = tum.read_tum(out / "groundtruth.tum")[2][-1]
     last = next(r for r in reversed(recs) if r["state"] == "tracking")
     assert last["index"] == len(recs) - 1
     R_err = Rotation.from_quat(gt_q).inv() * Rotation.from_quat(last["quat_xyzw"])
     assert math.degrees(np.linalg.norm(R_err.as_rotvec())) < 0.3
     # The published rotation covariance covers the drift, cautiously: its keyframe chain (130 keyframes)
-    # claimed 3-5x the per-keyframe rotation error in sigma with E's covariance at pixel_noise_px per
-    # keyframe (NEES 0.29; 5.1 on the old rendering, whose drift it covered); at the noise each step's own
-    # frames gathered (2.3 per keyframe here) 0.76; with E's poses at that noise in the current image only
-    # (covariance.ONE_IMAGE_SHARE, 2026-11-27) 1.31; 0.92 once the first map took the epipolar pose of H's
-    # inliers (geometry.refine_planar_pose: H's pose was 0.023 deg off, which the NEES had counted); 1.11
-    # with twist_noise_floor_px 0.25 instead of 0.3 (75 % of its frames sit at the floor).
+    # takes each step's noise from the frames the step gathered (2.3 per keyframe here), E's poses at that
+    # noise in the current image only (covariance.ONE_IMAGE_SHARE), the first map on the epipolar pose of H's
+    # inliers (geometry.refine_planar_pose), and twist_noise_floor_px, at which 75 % of its frames sit. A
+    # whole pixel_noise_px per keyframe would claim 3-5x the rotation error in sigma (NEES about 0.3).
     assert 1.0 <= nees.mean_nees_rot <= 6.0
     assert nees.inside_rot_percent >= 90.0
     # Position, VO units after the one global scale: the map's scale drift grows the covariance
@@ -106,7 +105,7 @@ def test_the_floor_map_starts_on_the_decomposition_its_off_plane_points_fit(tmp_
     # With a 31 px KLT window the first pair has 3 of E's inliers off the floor. E's own rotation (fitted
     # to the floor and those 3) agreed with H's wrong decomposition: the map started 4.3 deg off, the
     # floor was then called a moving object on 73 frames and the run ended at 20.7 % ATE with rotation
-    # NEES 5900 (2026-11-25). The 3 points themselves fit only the true motion.
+    # NEES 5900. The 3 points themselves fit only the true motion.
     s = run_replay(BAG, tmp_path, dataclasses.replace(VoConfig(), klt_window_px=31))
     recs = _records(tmp_path)
     assert recs[1]["reason"].startswith("planar scene: the 3 points off H's plane pick its decomposition")
@@ -132,10 +131,15 @@ def test_metric_sources_give_metres(source: str, request: pytest.FixtureRequest)
     metric = [r for r in recs if r["metric_scale"]]
     assert len(metric) == s.frames - s.metric_from_frame
     assert all(r["units"] == "m" and 0 < r["scale_rel_std"] < 0.2 for r in metric)
-    # Before metric scale the position holds at the map's origin and says the scale is unknown.
+    # Before metric scale the records' poses are in VO units and say so; what a robot may fuse (vo/odometry)
+    # holds the position where tracking started, with the 'unknown' variance, and is metres after.
     before = [r for r in recs if not r["metric_scale"]]
-    assert all(r["position"] == [0.0, 0.0, 0.0] for r in before)
-    assert all(r["covariance_diagonal"][0] >= 1e4 for r in before if r["has_pose"])
+    assert all(r["units"] == "vo" for r in before) and any(r["position"] != [0.0, 0.0, 0.0] for r in before)
+    fused = read_odometry(out / "output.mcap")
+    held = np.isin(fused.stamps_ns, [r["stamp_ns"] for r in before])
+    assert held.sum() == len(before) and not fused.positions[held].any()
+    assert np.all(fused.pose_covariance[held, 0, 0] >= 1e4)
+    assert np.all(fused.pose_covariance[~held, 0, 0] < 1.0) and np.linalg.norm(fused.positions[-1]) > 5.0
     assert all(r["covariance_diagonal"][0] < 1.0 for r in metric)
     # The held poses are no positions in metres: the metrics are over the metric ones, the held counted.
     held = sum(1 for r in before if r["has_pose"])
@@ -218,7 +222,7 @@ def test_ground_plane_without_camera_height_is_an_error(tmp_path: Path, capsys: 
 
 
 def test_wheel_topic_missing_from_the_bag_is_an_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    params = _params(tmp_path, {"scale_source": "wheel_odometry", "wheel_odometry_topic": "/odom"})
+    params = _params(tmp_path, {"scale_source": "wheel_odometry"})  # the default topic, odom: /odom in a bag
     assert main(["replay", str(BAG), "--output", str(tmp_path / "o"), "--params", str(params)]) == 2
     err = capsys.readouterr().err
     assert "wheel_odometry_topic '/odom' is not in the bag" in err and "/wheel/odom" in err

@@ -23,9 +23,9 @@ def refined(tmp_path_factory: pytest.TempPathFactory) -> tuple[ReplaySummary, Pa
 
 
 def test_refined_tracks_follow_the_floor_closer(refined: tuple[ReplaySummary, Path]) -> None:
-    """Sim(3) ATE 0.041 % of the path and 0.0074 deg/frame RPE rotation (measured 2026-11-27) where
-    chained KLT gives 0.204 % and 0.0093 (the bag's row in the README's benchmark table; its own test
-    bounds it by 1 %). The bounds leave room for other OpenCV builds, and fail on the default tracks."""
+    """Sim(3) ATE about 0.04 % of the path and 0.0074 deg/frame RPE rotation where chained KLT gives 0.204 %
+    and 0.0093 (the bag's epi_vo row in docs/benchmarks; its own test bounds it by 1 %). The bounds leave
+    room for other OpenCV builds, and fail on the default tracks."""
     s, out = refined
     assert s.tracked_percent == 100.0 and s.metrics is not None
     assert s.metrics["ate_percent_of_path"] < 0.08

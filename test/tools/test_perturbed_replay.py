@@ -1,4 +1,4 @@
-"""scripts/perturbed_replay.py, the source of the README's robustness figures: it replays what it says
+"""scripts/perturbed_replay.py, the robustness replays (docs/tools.md): it replays what it says
 (frames skipped, dropped, exposure changed). A subprocess: it patches the replay's reader and decoder."""
 
 from __future__ import annotations
@@ -120,7 +120,7 @@ def test_a_rotating_camera_with_a_wrong_focal_length_moves_nowhere_and_names_the
 def test_a_principal_point_off_by_3_px_is_covered_when_its_uncertainty_is_declared(tmp_path: Path) -> None:
     """ground_robot with camera_info's cx 3 px off: every step's direction turns by 3 / fx (0.34 deg) and
     the error adds up along the path, which E's per-step covariance does not know: position NEES 8.9, 73 %
-    inside 3 sigma (2026-11-27). Declared, ``principal_point_sigma_px: 3`` carries that coherent part
+    inside 3 sigma. Declared, ``principal_point_sigma_px: 3`` carries that coherent part
     (``map_scale.DirectionOffset``): 1.0, 99 % inside. Same poses either way (covariance only)."""
     bag = REPO / "bags" / "ground_robot" / "bag"
     runs = {}

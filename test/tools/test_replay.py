@@ -94,13 +94,13 @@ def test_output_bag_has_one_odometry_and_diagnostics_per_frame(general: tuple[Re
                 pts = read_points_xyz(msg)
                 assert pts.shape[0] > 0 and np.all(np.isfinite(pts))
                 n_points += pts.shape[0]
-            elif con.topic == "/diagnostics":
+            elif con.topic == "/vo/frame_status":
                 (status,) = msg.status
                 assert status.name == "epi_vo: tracking" and status.message
                 keys = {kv.key for kv in status.values}
                 assert {"state", "model", "rh", "n_inliers", "median_parallax_deg"} <= keys
     assert counts["/vo/odometry"] == s.frames
-    assert counts["/diagnostics"] == s.frames
+    assert counts["/vo/frame_status"] == s.frames
     assert counts["/vo/points"] == s.keyframes - 1 or counts["/vo/points"] >= 1
     assert n_points >= 50
 

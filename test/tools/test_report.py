@@ -42,8 +42,8 @@ from epi_vo.tools.report_data import (
     scale_series,
     spans,
     timeline,
-    trajectory_views,
 )
+from epi_vo.tools.report_views import trajectory_views
 
 REPO = Path(__file__).resolve().parents[2]
 

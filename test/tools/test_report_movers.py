@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from epi_vo.tools.evaluation import StampedPoses
+from epi_vo.io.trajectory import StampedPoses
 from epi_vo.tools.replay import run_replay
 from epi_vo.tools.report import write_report
 from epi_vo.tools.report_data import Run, load_run, spans

@@ -1,4 +1,4 @@
-"""scripts/throughput_bag.py, the bag of the README's end-to-end replay figures: general_motion's frames
+"""scripts/throughput_bag.py, the bag of the end-to-end replay throughput (docs/tools.md): general_motion's frames
 played back and forth as raw mono8, with their camera_info and ground truth, at 15 Hz."""
 
 from __future__ import annotations

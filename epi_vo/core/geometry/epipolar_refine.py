@@ -7,12 +7,12 @@ and the test of a homography's pose (``pose.refine_planar_pose``). Conventions: 
 from __future__ import annotations
 
 import math
-from typing import cast
 
 import cv2
 import numpy as np
 
 from epi_vo.core.geometry.common import F64, homogeneous, nearest_rotation, skew
+from epi_vo.core.geometry.least_squares import Linearised, levenberg_marquardt
 
 
 def _signed_sampson(E: F64, h_ref: F64, h_cur: F64) -> F64:
@@ -65,32 +65,22 @@ def refine_relative_pose(R_cur_ref: F64, t_dir: F64, xn_ref: F64, xn_cur: F64, i
     R = np.asarray(R_cur_ref, dtype=np.float64)
     t = np.asarray(t_dir, dtype=np.float64) / np.linalg.norm(t_dir)
 
-    def moved(v: F64, R0: F64, t0: F64, B: F64) -> tuple[F64, F64]:
-        d = t0 + B @ v[3:]
-        return cv2.Rodrigues(v[:3])[0] @ R0, d / np.linalg.norm(d)
+    Pose = tuple[F64, F64]
 
-    r = _signed_sampson(skew(t) @ R, h_ref, h_cur)
-    cost0 = cost = float(r @ r)
-    lam = 1e-3
-    for _ in range(iterations):
-        B = np.linalg.svd(np.eye(3) - np.outer(t, t))[0][:, :2]  # t's tangent plane
-        r, J = _sampson_jacobian(R, t, B, h_ref, h_cur)
-        A, g = J.T @ J, J.T @ r
-        while lam < 1e8:
-            step = cast(F64, np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-18), -g))
-            R1, t1 = moved(step, R, t, B)
-            r1 = _signed_sampson(skew(t1) @ R1, h_ref, h_cur)
-            c1 = float(r1 @ r1)
-            if math.isfinite(c1) and c1 < cost:
-                R, t, r, lam = R1, t1, r1, max(lam / 10.0, 1e-9)
-                done = cost - c1 < 1e-10 * cost
-                cost = c1
-                break
-            lam *= 10.0
-        else:
-            break
-        if done:
-            break
+    def residuals(pose: Pose) -> F64:
+        return _signed_sampson(skew(pose[1]) @ pose[0], h_ref, h_cur)
+
+    def linearise(pose: Pose) -> Linearised[Pose]:
+        R0, t0 = pose
+        B = np.linalg.svd(np.eye(3) - np.outer(t0, t0))[0][:, :2]  # t's tangent plane
+        r, J = _sampson_jacobian(R0, t0, B, h_ref, h_cur)
+
+        def move(v: F64) -> Pose:
+            d = t0 + B @ v[3:]
+            return cv2.Rodrigues(v[:3])[0] @ R0, d / np.linalg.norm(d)
+        return Linearised(r, J, move)
+
+    (R, t), cost0, cost = levenberg_marquardt((R, t), linearise, residuals, iterations)
     if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
         return None
     return nearest_rotation(R), t, math.sqrt(cost0 / n), math.sqrt(cost / n)

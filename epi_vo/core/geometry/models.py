@@ -15,6 +15,7 @@ import numpy as np
 
 from epi_vo.core.geometry.common import F64, Mask, homogeneous, skew
 from epi_vo.core.geometry.epipolar_refine import refine_relative_pose
+from epi_vo.core.geometry.least_squares import Linearised, levenberg_marquardt
 
 # Chi-square 95 % quantiles (ORB-SLAM): 1 DoF for a point-to-line distance, 2 DoF for a
 # point-to-point distance. E is scored with the 2-DoF constant so that both models' scores share
@@ -290,38 +291,27 @@ def _refine_homography(H: F64, uv_ref: F64, uv_cur: F64, iterations: int = 15) -
     x = homogeneous(uv_ref) @ T_ref.T
     y = (homogeneous(uv_cur) @ T_cur.T)[:, :2]
 
-    def residuals(M: F64) -> tuple[F64, F64, F64]:
-        p = x @ M.T
-        uv = p[:, :2] / p[:, 2:3]
-        return (uv - y).ravel(), uv, p[:, 2]
-
-    r, uv, w = residuals(Hn)
-    cost = float(r @ r)
-    lam = 1e-3
     n = x.shape[0]
-    for _ in range(iterations):
+
+    def projected(M: F64) -> tuple[F64, F64]:
+        p = x @ M.T
+        return p[:, :2] / p[:, 2:3], p[:, 2]
+
+    def residuals(M: F64) -> F64:
+        r: F64 = (projected(M)[0] - y).ravel()
+        return r
+
+    def linearise(M: F64) -> Linearised[F64]:
+        uv, w = projected(M)
         J = np.zeros((n, 2, 8))
         xs = x / w[:, None]
         J[:, 0, 0:3] = xs
         J[:, 1, 3:6] = xs
         J[:, 0, 6:8] = -uv[:, 0:1] * xs[:, :2]
         J[:, 1, 6:8] = -uv[:, 1:2] * xs[:, :2]
-        Jm = J.reshape(2 * n, 8)
-        A, g = Jm.T @ Jm, Jm.T @ r
-        while lam < 1e8:
-            step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-18), -g)
-            M = Hn + np.append(step, 0.0).reshape(3, 3)
-            r1, uv1, w1 = residuals(M)
-            c1 = float(r1 @ r1)
-            if math.isfinite(c1) and c1 < cost:
-                done = cost - c1 < 1e-10 * cost
-                Hn, r, uv, w, cost, lam = M, r1, uv1, w1, c1, max(lam / 10.0, 1e-9)
-                break
-            lam *= 10.0
-        else:
-            break
-        if done:
-            break
+        return Linearised((uv - y).ravel(), J.reshape(2 * n, 8), lambda step: M + np.append(step, 0.0).reshape(3, 3))
+
+    Hn = levenberg_marquardt(Hn, linearise, residuals, iterations)[0]
     H_out = np.linalg.inv(T_cur) @ Hn @ T_ref
     if not (np.all(np.isfinite(H_out)) and abs(np.linalg.det(H_out)) > 1e-12 and abs(H_out[2, 2]) > 1e-12):
         return None
