@@ -237,6 +237,14 @@ class ProbeBase:
     def spin_until(self, predicate: Callable[[], bool], timeout_s: float = PROBE_WAIT_S) -> bool:
         return spin_until(self.executor, predicate, timeout_s)
 
+    def publish_pairs(self, pub_img: Any, pub_info: Any, frames: list[tuple[Any, Any]]) -> None:
+        """Publish (image, camera_info) pairs once both publishers are matched, spinning between them."""
+        assert self.spin_until(lambda: pub_img.get_subscription_count() > 0 and pub_info.get_subscription_count() > 0)
+        for img, info in frames:
+            pub_info.publish(info)
+            pub_img.publish(img)
+            self.executor.spin_once(timeout_sec=0.02)
+
     def close(self) -> None:
         self.executor.shutdown()
         self.node.destroy_node()

@@ -48,7 +48,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from types import FrameType, MappingProxyType
 from typing import Any
@@ -492,17 +492,17 @@ class _Subscriber:
         self.executor.add_node(self.node)
 
     def _on_diagnostics(self, msg: Any) -> None:
-        state, now = self.state, time.time()
-        for s in msg.status:
-            state = state.update_from_health(s.name, s.level, s.message, [(kv.key, kv.value) for kv in s.values],
-                                             now, s.hardware_id)
-        self.state = state
+        self._take(msg, MonitorState.update_from_health)
 
     def _on_frame_status(self, msg: Any) -> None:
+        self._take(msg, MonitorState.update_from_frame)
+
+    def _take(self, msg: Any, update: Callable[..., MonitorState]) -> None:
+        """Every status of a DiagnosticArray into the state, with ``update`` (the /diagnostics or the per-frame one)."""
         state, now = self.state, time.time()
         for s in msg.status:
-            state = state.update_from_frame(s.name, s.level, s.message, [(kv.key, kv.value) for kv in s.values],
-                                            now, s.hardware_id)
+            state = update(state, s.name, s.level, s.message, [(kv.key, kv.value) for kv in s.values], now,
+                           s.hardware_id)
         self.state = state
 
     def _on_odometry(self, msg: Any) -> None:

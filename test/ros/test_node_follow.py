@@ -92,12 +92,7 @@ class Probe(ProbeBase):
 
     def send(self, frames: list[tuple[Any, Any]], until: int) -> None:
         """Publish (image, camera_info) pairs, then wait until ``until`` vo/odometry messages came (one a frame)."""
-        assert self.spin_until(lambda: self.pub_img.get_subscription_count() > 0
-                               and self.pub_info.get_subscription_count() > 0)
-        for img, info in frames:
-            self.pub_info.publish(info)
-            self.pub_img.publish(img)
-            self.executor.spin_once(timeout_sec=0.02)
+        self.publish_pairs(self.pub_img, self.pub_info, frames)
         assert self.spin_until(lambda: len(self.odom) >= until), len(self.odom)
 
 
