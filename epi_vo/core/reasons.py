@@ -51,8 +51,7 @@ def _undetermined(d: Details) -> str:
     if not math.isfinite(d["rotation_sigma_deg"]):
         why = "no covariance"
     else:
-        why = (f"rotation sigma {d['rotation_sigma_deg']:.2f} deg, direction sigma {d['direction_sigma_deg']:.1f} deg "
-               f"at the {d['noise_px']:.2f} px of image noise its inliers show")
+        why = f"rotation sigma {d['rotation_sigma_deg']:.2f} deg, direction sigma {d['direction_sigma_deg']:.1f} deg"
     return (f"initialization deferred: E's pose is not determined by these points ({why}); waiting for baseline, "
             "position held")
 

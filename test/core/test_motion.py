@@ -959,7 +959,7 @@ def _patch_scene(seed: int, box: tuple[float, float, float, float], side_m: floa
 @pytest.mark.parametrize("seed", [0, 1, 2, 4])  # seed 3's parallax is below init_min_parallax_deg
 def test_a_first_pose_e_does_not_determine_is_not_used_for_the_map(seed: int) -> None:
     """A small sideways baseline seen over a corner of the image: E's rotation trades against its direction
-    of travel (bas-relief), its covariance at the noise its inliers show says so and
+    of travel (bas-relief), its covariance says so (rotation sigma 0.4-1.2 deg, direction 16-19 deg) and
     the map waits, holding the position with that rotation uncertainty. The same motion over the whole
     image initialises. A map started on such a pose (a cart on 40 % of the view, the rest far) starts 1 deg
     off: 5.5 % ATE against 2.5 % when it waits."""
@@ -1046,48 +1046,3 @@ def test_on_a_plane_an_e_the_map_agrees_with_costs_no_fit_of_the_map(planar_scen
 
     monkeypatch.setattr(geo, "refine_pose_pnp", no_fit)
     assert map_disagrees(CFG, ctx, X, R_true, t_true, True) == (None, None)
-
-
-def _strafe_scene(seed: int, noise_px: float) -> Any:
-    """120 points 4-10 m deep over the whole 640x480 image of a 35 deg view (focal length 1000 px); the
-    current camera 0.5 m to the side, turned 2 deg about y; ``noise_px`` of image noise."""
-    from conftest import SCENE_K, TwoViewScene
-    from scipy.spatial.transform import Rotation
-
-    rng = np.random.default_rng(seed)
-    K = SCENE_K.copy()
-    K[0, 0] = K[1, 1] = 1000.0
-    uv = np.column_stack([rng.uniform(10.0, 629.0, 120), rng.uniform(10.0, 469.0, 120)])
-    X = np.column_stack([(uv - K[:2, 2]) / np.diag(K)[:2], np.ones(120)]) * rng.uniform(4.0, 10.0, 120)[:, None]
-    R = Rotation.from_euler("y", 2.0, degrees=True).as_matrix()
-    t = np.array([0.5, 0.0, 0.0])
-
-    def project(P: np.ndarray) -> np.ndarray:
-        p = P @ K.T
-        return p[:, :2] / p[:, 2:3]
-
-    uv_ref, uv_cur = project(X), project(X @ R.T + t)
-    return TwoViewScene("general", K, R, t, X, uv_ref, uv_cur, uv_ref + rng.normal(0, noise_px, uv_ref.shape),
-                        uv_cur + rng.normal(0, noise_px, uv_cur.shape), np.zeros(120, bool), None, None, None)
-
-
-@pytest.mark.parametrize("seed", [0, 2, 3, 4, 5])  # seed 1's 1.5 px still initialises (its sigma 0.2 deg)
-def test_whether_a_first_pose_is_determined_is_judged_at_the_noise_its_inliers_show(seed: int) -> None:
-    """A narrow view strafing past the scene (orbit, sideways): E trades a rotation about the vertical
-    against the direction of travel (bas-relief), and its rotation's standard deviation grows with the
-    image noise. With 0.3 px of noise the pose is determined (the map starts, its shape right) although at
-    the configured pixel_noise_px (0.8) its sigma would exceed init_max_rotation_sigma_deg; with 1.5 px
-    the same motion waits for baseline."""
-    clean = _strafe_scene(seed, 0.3)
-    m, st, _ = _estimate(clean, _no_map(clean))
-    assert m is not None and m.state is TrackingState.TRACKING and m.new_map is not None
-    assert _rot_err_deg(m, clean) < 0.3
-    good = m.new_map.good
-    ratio = m.new_map.X_ref[good, 2] / np.asarray(clean.X_ref)[good, 2]
-    assert np.median(np.abs(ratio / np.median(ratio) - 1.0)) < 0.03
-
-    noisy = _strafe_scene(seed, 1.5)
-    m, st, _ = _estimate(noisy, _no_map(noisy))
-    assert m is not None and m.state is TrackingState.INITIALIZING and m.new_map is None
-    assert any(r.startswith("initialization deferred: E's pose is not determined by these points (rotation sigma")
-               for r in _reasons(st))

@@ -14,7 +14,7 @@ DETAILS = dict(text="operator reset", seconds=4.9331, problem="bad image", note=
                gain=1.6, n=12, need=25, movers=3, region=(1, 2, 30, 40), spread=0.25, fraction=0.75, n_moving=5,
                rh=0.5, parallax=0.3, angle=2.0, rotation=1.0, direction=20.0, off=12, n_e=100, stat=30.0, moved=0.02,
                turned=1.0, ratio=0.95, parallax_focal=0.05, max_wait=10, best=0.4, runner=2.9, views=2, waited=2,
-               rotation_sigma_deg=0.5, direction_sigma_deg=18.7, noise_px=0.31, plane=False)
+               rotation_sigma_deg=0.5, direction_sigma_deg=18.7, plane=False)
 
 
 @pytest.mark.parametrize("decision", list(Decision))
@@ -32,9 +32,6 @@ def test_known_sentences() -> None:
     assert sentence(note(Decision.INIT_DEFERRED, rotation_sigma_deg=math.nan, direction_sigma_deg=math.nan)) == (
         "initialization deferred: E's pose is not determined by these points (no covariance); waiting for baseline, "
         "position held")
-    assert sentence(note(Decision.INIT_DEFERRED, rotation_sigma_deg=0.5, direction_sigma_deg=18.7, noise_px=0.31)) == (
-        "initialization deferred: E's pose is not determined by these points (rotation sigma 0.50 deg, direction "
-        "sigma 18.7 deg at the 0.31 px of image noise its inliers show); waiting for baseline, position held")
     assert sentence(Note(Decision.FRAME_SKIPPED, (("problem", "undecodable"), ("note", "recorded at 5 ns")))) == (
         "frame rejected: undecodable; frame skipped (recorded at 5 ns)")
 

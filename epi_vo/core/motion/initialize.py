@@ -51,17 +51,14 @@ def initialize(cfg: VoConfig, ctx: MotionContext, R: F64, t_dir: F64, inl: NDArr
     cov = None if planar else geo.essential_pose_covariance(
         R, t_dir, xn_kf[inl], xn_cur[inl], cfg.pixel_noise_px / K[0, 0], baseline, cfg.scale_drift_per_keyframe**2)
     if not planar:
-        noise_px = inlier_noise_px(cfg, ctx, R, t_dir, inl)
-        shape_cov = geo.essential_pose_covariance(R, t_dir, xn_kf[inl], xn_cur[inl], noise_px / K[0, 0], 1.0, 0.0)
-        undetermined = geo.pose_undetermined(shape_cov, t_dir, cfg.init_max_rotation_sigma_deg,
-                                             cfg.init_max_direction_sigma_deg)
+        undetermined = geo.pose_undetermined(cov, t, cfg.init_max_rotation_sigma_deg, cfg.init_max_direction_sigma_deg)
         if undetermined is not None:
             if cov is not None and np.all(np.isfinite(cov)):
                 held = hold.cov_rel.copy()
                 held[3:, 3:] += cov[3:, 3:]  # the held orientation is E's, with E's uncertainty
                 hold = Motion(hold.state, hold.R_cur_kf, hold.t_cur_kf, held, hold.inliers)
             return est.noted(note(Decision.INIT_DEFERRED, rotation_sigma_deg=undetermined[0],
-                                  direction_sigma_deg=undetermined[1], noise_px=noise_px), hold)
+                                  direction_sigma_deg=undetermined[1]), hold)
     est = est.noted(note(how, n=n_good))
     if cov is None or not np.all(np.isfinite(cov)):
         cov = covm.block((cfg.scale_drift_per_keyframe * baseline) ** 2, rot_cov)
@@ -73,18 +70,3 @@ def initialize(cfg: VoConfig, ctx: MotionContext, R: F64, t_dir: F64, inl: NDArr
                                            ctx.noise_sq, one_image=False,
                                            residual_sq=residual_sq(cfg, ctx, R, t_dir, inl))
     return est.gave(Motion(TrackingState.TRACKING, R, t, cov, inl, new_map=full, cov_pose=pose))
-
-
-def inlier_noise_px(cfg: VoConfig, ctx: MotionContext, R: F64, t_dir: F64, inl: NDArray[np.bool_]) -> float:
-    """The image noise (px) E's inliers show about its pose (their Sampson RMS, ``geometry.sampson_rms``),
-    never below ``twist_noise_floor_px`` (the least noise a frame's tracks are taken to have);
-    ``pixel_noise_px`` when too few inliers measure it.
-
-    Whether a first pose is determined by its points is judged at this noise, not at a configured one: a
-    render's tracks carry a tenth of a pixel, a real camera's several tenths plus the lens distortion its
-    camera_info does not model, and a constant gate at one noise level defers a clean strafing view for
-    tens of frames while it lets a noisy one through."""
-    rms = geo.sampson_rms(R, t_dir, ctx.kf.xn[ctx.rows][inl], ctx.xn_cur[inl])
-    if rms is None:
-        return cfg.pixel_noise_px
-    return max(rms * float(ctx.kf.camera.K[0, 0]), cfg.twist_noise_floor_px)
