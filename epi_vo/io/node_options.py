@@ -107,7 +107,8 @@ NODE_DOCS: dict[str, str] = {
     "camera_rpy": "camera body orientation in child_frame_id, roll pitch yaw (rad; the optical rotation is "
                   "added); used as camera_xyz",
     "tf_timeout_s": "how long the first image waits for TF child_frame_id <- its header.frame_id before "
-                    "camera_xyz / camera_rpy are used (s; 0: never look up TF)",
+                    "camera_xyz / camera_rpy are used; a TF that comes later or moves is followed after "
+                    "(s; 0: never look up TF)",
     "image_transport": "'auto' (subscribe to raw and compressed, use whichever arrives first), 'raw' "
                        "(sensor_msgs/Image) or 'compressed' (sensor_msgs/CompressedImage)",
     "qos_reliability": "input QoS reliability: 'best_effort' (sensor data) or 'reliable'",
