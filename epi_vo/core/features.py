@@ -223,20 +223,30 @@ def exposure_change(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], p
     return gain
 
 
-def pyramid_reach_px(cfg: VoConfig) -> float:
-    """How far (px) the KLT pyramid follows a point from where its search starts: half a window at the
-    coarsest level, ``2**klt_levels`` pixels of the image each."""
-    return float((cfg.klt_window_px // 2) * 2**cfg.klt_levels)
+def pyramid_levels(height: int, width: int, cfg: VoConfig) -> int:
+    """The pyramid levels above the image that KLT uses on a ``height`` x ``width`` image: ``klt_levels``,
+    fewer where a level would be no larger than the window (OpenCV builds no such level)."""
+    levels = 0
+    while levels < cfg.klt_levels:
+        height, width = (height + 1) // 2, (width + 1) // 2
+        if height <= cfg.klt_window_px or width <= cfg.klt_window_px:
+            break
+        levels += 1
+    return levels
+
+
+def pyramid_reach_px(levels: int, cfg: VoConfig) -> float:
+    """How far (px) a pyramid of ``levels`` levels follows a point from where its search starts: half a
+    window at the coarsest level, ``2**levels`` pixels of the image each."""
+    return float((cfg.klt_window_px // 2) * 2**levels)
 
 
 def image_shift(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], levels: int) -> NDArray[np.float32]:
     """The whole image's motion ``gray_prev`` -> ``gray_cur`` (px, (2,) float32): the phase correlation of
-    the two images at the pyramid's coarsest level (``levels`` halvings; the detail KLT itself starts
-    from), zero when it cannot be measured."""
+    the two images ``levels`` halvings down (``pyramid_levels``: the detail KLT itself starts from), zero
+    when it cannot be measured."""
     a, b = gray_prev, gray_cur
     for _ in range(levels):
-        if min(a.shape[:2]) < 8:
-            break
         a, b = cv2.pyrDown(a), cv2.pyrDown(b)
     fa, fb_ = a.astype(np.float32), b.astype(np.float32)
     window = cv2.createHanningWindow((fa.shape[1], fa.shape[0]), cv2.CV_32F)
@@ -256,8 +266,9 @@ def _klt_both_ways(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pt
     That motion is one figure for the whole image; a scene of near and far parts (or a mover) can make it
     another part's, so a track lost from there is tracked again from where it was.
     """
-    shift = image_shift(gray_prev, gray_cur, cfg.klt_levels)
-    if float(np.hypot(shift[0], shift[1])) <= pyramid_reach_px(cfg):
+    levels = pyramid_levels(gray_prev.shape[0], gray_prev.shape[1], cfg)
+    shift = image_shift(gray_prev, gray_cur, levels)
+    if float(np.hypot(shift[0], shift[1])) <= pyramid_reach_px(levels, cfg):
         return _klt_from(gray_prev, gray_cur, pts_prev, pts_prev, cfg)
     p1, ok, fb = _klt_from(gray_prev, gray_cur, pts_prev, pts_prev + shift, cfg)
     lost = np.flatnonzero(~ok)

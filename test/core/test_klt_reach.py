@@ -36,7 +36,7 @@ def _grid(x0: float, x1: float, y0: float, y1: float) -> np.ndarray:
 def test_the_image_shift_is_the_whole_images_motion(texture: np.ndarray) -> None:
     """Measured at the pyramid's coarsest level (an eighth of the image): a few pixels off, well inside the
     reach the pyramid then follows from there."""
-    assert float(np.hypot(*FAR)) > 2 * fe.pyramid_reach_px(CFG)
+    assert float(np.hypot(*FAR)) > 2 * fe.pyramid_reach_px(CFG.klt_levels, CFG)
     assert np.allclose(fe.image_shift(texture, _shifted(texture, FAR), CFG.klt_levels), FAR, atol=4.0)
     assert np.allclose(fe.image_shift(texture, texture, CFG.klt_levels), 0.0, atol=0.05)
     flat = np.full_like(texture, 128)
@@ -89,3 +89,14 @@ def test_motion_within_reach_is_tracked_from_where_each_point_was(texture: np.nd
                                               maxLevel=CFG.klt_levels, criteria=fe._LK_CRITERIA)
     assert np.array_equal(tracks.pts[tracks.ok], p_alone.reshape(-1, 2)[tracks.ok])
     assert np.count_nonzero(tracks.ok) >= 0.9 * len(pts)
+
+
+@pytest.mark.parametrize(("size", "levels"), [((480, 640), 3), ((240, 320), 3), ((121, 121), 3), ((120, 120), 2),
+                                              ((31, 200), 1), ((30, 200), 0)])
+def test_the_reach_is_the_pyramid_opencv_builds(size: tuple[int, int], levels: int) -> None:
+    """A level no larger than the window is not built (OpenCV's rule): a small image's pyramid reaches less."""
+    assert fe.pyramid_levels(*size, CFG) == levels
+    built, _ = cv2.buildOpticalFlowPyramid(np.zeros(size, np.uint8), (CFG.klt_window_px, CFG.klt_window_px),
+                                           CFG.klt_levels, withDerivatives=False)
+    assert built == levels
+    assert fe.pyramid_reach_px(levels, CFG) == 7.0 * 2**levels
