@@ -247,7 +247,7 @@ def image_shift(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], level
     when it cannot be measured."""
     a, b = gray_prev, gray_cur
     for _ in range(levels):
-        a, b = cv2.pyrDown(a), cv2.pyrDown(b)
+        a, b = cast(NDArray[np.uint8], cv2.pyrDown(a)), cast(NDArray[np.uint8], cv2.pyrDown(b))
     fa, fb_ = a.astype(np.float32), b.astype(np.float32)
     window = cv2.createHanningWindow((fa.shape[1], fa.shape[0]), cv2.CV_32F)
     (dx, dy), _ = cv2.phaseCorrelate(fa, fb_, window)
@@ -283,7 +283,7 @@ def _klt_from(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_pre
     """Pyramidal KLT of ``pts_prev`` with each search started at ``start``, and the forward-backward check."""
     win = (cfg.klt_window_px, cfg.klt_window_px)
     p0 = pts_prev.reshape(-1, 1, 2).astype(np.float32)
-    p1, st1, _ = cv2.calcOpticalFlowPyrLK(gray_prev, gray_cur, p0,  # type: ignore[call-overload]
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(gray_prev, gray_cur, p0,
                                           start.reshape(-1, 1, 2).astype(np.float32), winSize=win,
                                           maxLevel=cfg.klt_levels, criteria=_LK_CRITERIA,
                                           flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
