@@ -223,13 +223,70 @@ def exposure_change(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], p
     return gain
 
 
+def pyramid_levels(height: int, width: int, cfg: VoConfig) -> int:
+    """The pyramid levels above the image that KLT uses on a ``height`` x ``width`` image: ``klt_levels``,
+    fewer where a level would be no larger than the window (OpenCV builds no such level)."""
+    levels = 0
+    while levels < cfg.klt_levels:
+        height, width = (height + 1) // 2, (width + 1) // 2
+        if height <= cfg.klt_window_px or width <= cfg.klt_window_px:
+            break
+        levels += 1
+    return levels
+
+
+def pyramid_reach_px(levels: int, cfg: VoConfig) -> float:
+    """How far (px) a pyramid of ``levels`` levels follows a point from where its search starts: half a
+    window at the coarsest level, ``2**levels`` pixels of the image each."""
+    return float((cfg.klt_window_px // 2) * 2**levels)
+
+
+def image_shift(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], levels: int) -> NDArray[np.float32]:
+    """The whole image's motion ``gray_prev`` -> ``gray_cur`` (px, (2,) float32): the phase correlation of
+    the two images ``levels`` halvings down (``pyramid_levels``: the detail KLT itself starts from), zero
+    when it cannot be measured."""
+    a, b = gray_prev, gray_cur
+    for _ in range(levels):
+        a, b = cast(NDArray[np.uint8], cv2.pyrDown(a)), cast(NDArray[np.uint8], cv2.pyrDown(b))
+    fa, fb_ = a.astype(np.float32), b.astype(np.float32)
+    window = cv2.createHanningWindow((fa.shape[1], fa.shape[0]), cv2.CV_32F)
+    (dx, dy), _ = cv2.phaseCorrelate(fa, fb_, window)
+    shift = np.array([dx * gray_prev.shape[1] / a.shape[1], dy * gray_prev.shape[0] / a.shape[0]], np.float32)
+    return shift if bool(np.all(np.isfinite(shift))) else np.zeros(2, np.float32)
+
+
 def _klt_both_ways(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_prev: F32,
                    cfg: VoConfig) -> tuple[F32, Mask, NDArray[np.float32]]:
+    """KLT from where each point was, or - when the whole image moved further than the pyramid follows
+    (``pyramid_reach_px``) - from where the image's motion (``image_shift``) puts it.
+
+    A camera's turn moves the image by an angle times the focal length, whatever the image's size, while
+    the pyramid's reach is a fixed number of pixels: a 960 px camera taking off moves its image 100-150 px
+    a frame. Started at the whole image's motion, a track has to follow only its own departure from it.
+    That motion is one figure for the whole image; a scene of near and far parts (or a mover) can make it
+    another part's, so a track lost from there is tracked again from where it was.
+    """
+    levels = pyramid_levels(gray_prev.shape[0], gray_prev.shape[1], cfg)
+    shift = image_shift(gray_prev, gray_cur, levels)
+    if float(np.hypot(shift[0], shift[1])) <= pyramid_reach_px(levels, cfg):
+        return _klt_from(gray_prev, gray_cur, pts_prev, pts_prev, cfg)
+    p1, ok, fb = _klt_from(gray_prev, gray_cur, pts_prev, pts_prev + shift, cfg)
+    lost = np.flatnonzero(~ok)
+    if lost.size:
+        p1_z, ok_z, fb_z = _klt_from(gray_prev, gray_cur, pts_prev[lost], pts_prev[lost], cfg)
+        p1[lost], ok[lost], fb[lost] = p1_z, ok_z, fb_z
+    return p1, ok, fb
+
+
+def _klt_from(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_prev: F32, start: F32,
+              cfg: VoConfig) -> tuple[F32, Mask, NDArray[np.float32]]:
+    """Pyramidal KLT of ``pts_prev`` with each search started at ``start``, and the forward-backward check."""
     win = (cfg.klt_window_px, cfg.klt_window_px)
     p0 = pts_prev.reshape(-1, 1, 2).astype(np.float32)
-    p1, st1, _ = cv2.calcOpticalFlowPyrLK(gray_prev, gray_cur, p0, None, winSize=win,  # type: ignore[call-overload]
-                                          maxLevel=cfg.klt_levels,
-                                          criteria=_LK_CRITERIA)
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(gray_prev, gray_cur, p0,
+                                          start.reshape(-1, 1, 2).astype(np.float32), winSize=win,
+                                          maxLevel=cfg.klt_levels, criteria=_LK_CRITERIA,
+                                          flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
     # Backward pass seeded with the start points: a good track converges there at once, so the
     # full-resolution level alone suffices (0.9 ms instead of 1.6 with two levels, 200 points); a bad
     # one does not come back. Without the coarse level the check is also stricter: it drops the few tracks
