@@ -239,3 +239,92 @@ def test_initialising_re_anchors_when_too_few_features_survive(general_scene) ->
     rows = np.arange(2 * CFG.min_inliers, dtype=np.int64)  # enough survive (a low tracked ratio alone is not enough)
     X, _ = _run(s, _truth(s, TrackingState.INITIALIZING, rows=rows), _keyframe(s), rows)
     assert X is None
+
+
+# --- depth from the widest baseline a track has ---------------------------------------------------------------
+def _wide_scene(seed: int, noise_px: float) -> tuple[Keyframe, Motion, np.ndarray, np.ndarray, np.ndarray]:
+    """Points 4-8 m ahead of a keyframe, first seen 1 m to its left (their first views), and a current view
+    0.15 m (about 1.5 degrees of parallax) to its right. Returns the keyframe (no depth yet, its first views
+    given), the true motion, the current view's normalized points, the true points in the current frame and
+    the first views moved into the current frame."""
+    rng = np.random.default_rng(seed)
+    f, n = 300.0, 150
+    K = np.array([[f, 0.0, 320.0], [0.0, f, 240.0], [0.0, 0.0, 1.0]])
+    cam = CameraModel.create(640, 480, K, [])
+    X_kf = np.column_stack([rng.uniform(-3.0, 3.0, n), rng.uniform(-2.0, 2.0, n), rng.uniform(4.0, 8.0, n)])
+    c_first = np.array([-1.0, 0.0, 0.0])
+    R = geo.nearest_rotation(np.eye(3) + geo.skew(np.array([0.0, 0.01, 0.0])))
+    t = -R @ np.array([0.15, 0.0, 0.0])
+    X_cur = X_kf @ R.T + t
+
+    def seen(X: np.ndarray) -> np.ndarray:
+        return X[:, :2] / X[:, 2:3] + rng.normal(0.0, noise_px / f, (n, 2))
+
+    d_first = np.column_stack([seen(X_kf - c_first), np.ones(n)])
+    d_first /= np.linalg.norm(d_first, axis=1, keepdims=True)
+    xn_kf, xn_cur = seen(X_kf), seen(X_cur)
+    pts = (xn_kf * f + K[:2, 2]).astype(np.float32)
+    first = np.column_stack([np.tile(c_first, (n, 1)), d_first])
+    kf = Keyframe(1, KF_STAMP_NS, np.eye(4), np.zeros((6, 6)), pts, xn_kf, cam.to_pixels(xn_kf),
+                  np.full((n, 3), np.nan), None, cam, np.arange(n, dtype=np.int64), first)
+    motion = Motion(TrackingState.TRACKING, R, t, np.eye(6) * 1e-4, np.ones(n, bool), None)
+    first_cur = np.column_stack([first[:, :3] @ R.T + t, first[:, 3:] @ R.T])
+    return kf, motion, xn_cur, X_cur, first_cur
+
+
+def _wide_map(kf: Keyframe, motion: Motion, xn_cur: np.ndarray) -> KeyframeMap:
+    n = xn_cur.shape[0]
+    par = float(np.median(geo.parallax_deg(motion.R_cur_kf, kf.xn, xn_cur)))
+    return keyframe_map(CFG, motion, kf, np.arange(n, dtype=np.int64), xn_cur, STAMP_NS, n, par)
+
+
+def test_a_point_first_seen_keyframes_back_gets_its_depth_from_that_wider_baseline() -> None:
+    """At 1.5 degrees of parallax to the last keyframe, 0.5 px of noise puts several per cent into a pair's
+    depths; from the track's first view (eight times the baseline) the error is several times smaller. The
+    first views move into the new keyframe with it."""
+    kf, motion, xn_cur, X_true, first_cur = _wide_scene(0, 0.5)
+    wide = _wide_map(kf, motion, xn_cur)
+    pair = _wide_map(dataclasses.replace(kf, first_rays=None), motion, xn_cur)  # no first views: the pair's only
+    assert wide.X_cur is not None and pair.X_cur is not None
+    assert wide.n_triangulated >= 0.95 * X_true.shape[0] and pair.n_triangulated >= 0.8 * X_true.shape[0]
+    err_wide = np.nanmedian(_rel_err(wide.X_cur, X_true))
+    err_pair = np.nanmedian(_rel_err(pair.X_cur, X_true))
+    assert err_wide < 0.01 < err_pair and err_wide < err_pair / 4
+    assert wide.first_rays is not None
+    np.testing.assert_allclose(wide.first_rays, first_cur, atol=1e-12)
+
+
+def test_without_noise_the_first_views_give_the_true_points() -> None:
+    kf, motion, xn_cur, X_true, _ = _wide_scene(1, 0.0)
+    mapped = _wide_map(kf, motion, xn_cur)
+    assert mapped.X_cur is not None and mapped.n_triangulated == X_true.shape[0]
+    np.testing.assert_allclose(mapped.X_cur, X_true, rtol=1e-9)
+
+
+def test_a_first_view_that_disagrees_with_the_point_is_not_used() -> None:
+    """A first view whose ray misses the point across the epipolar plane (the track jumped to another corner
+    since) fails the reprojection gate in that view: the pair's triangulation is kept. (A miss along the
+    epipolar line is a depth error no two views can see.)"""
+    kf, motion, xn_cur, X_true, _ = _wide_scene(2, 0.0)
+    assert kf.first_rays is not None
+    first = kf.first_rays.copy()
+    off = first[:10, 3:] + np.array([0.0, 0.02, 0.0])  # 6 px off at f = 300 px, across the horizontal baseline
+    first[:10, 3:] = off / np.linalg.norm(off, axis=1, keepdims=True)
+    mapped = _wide_map(dataclasses.replace(kf, first_rays=first), motion, xn_cur)
+    assert mapped.X_cur is not None and mapped.n_triangulated == X_true.shape[0]
+    np.testing.assert_allclose(mapped.X_cur, X_true, rtol=1e-6)  # the pair's (noise-free) points, not the wide ones
+
+
+def test_a_new_map_s_points_are_first_seen_at_its_reference(general_scene) -> None:
+    s = general_scene
+    motion0 = _truth(s)
+    kf = _keyframe(s)
+    xn_cur = kf.camera.normalize(s.uv_cur_obs)
+    tri = geo.triangulate(motion0.R_cur_kf, motion0.t_cur_kf, kf.xn, xn_cur, s.K, CFG.max_reprojection_error_px, 0.5)
+    _, st = _run(s, dataclasses.replace(motion0, new_map=tri), kf)
+    rays = st.mapped.first_rays
+    assert rays is not None
+    np.testing.assert_allclose(rays[:, :3], np.tile(motion0.t_cur_kf, (s.n, 1)))  # the reference's centre
+    ref_rays = np.column_stack([kf.xn, np.ones(s.n)]) @ motion0.R_cur_kf.T
+    np.testing.assert_allclose(rays[:, 3:], ref_rays / np.linalg.norm(ref_rays, axis=1, keepdims=True))
+
