@@ -22,12 +22,6 @@ F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
 
 
-def own_rays(xn: F64) -> F64:
-    """(N, 6) first views of features first seen in this view: origin 0, unit ray through ``xn`` (N, 2)."""
-    d = np.hstack([xn, np.ones((xn.shape[0], 1))])
-    return np.hstack([np.zeros_like(d), d / np.linalg.norm(d, axis=1, keepdims=True)])
-
-
 @dataclass(frozen=True)
 class Keyframe:
     """The reference view all correspondences of the following frames are measured from.
@@ -50,11 +44,6 @@ class Keyframe:
     descriptors: NDArray[np.uint8] | None
     camera: CameraModel
     ids: NDArray[np.int64] | None = None  # None: no track ids (every feature its own track)
-    # (N, 6) each feature's first view, in this keyframe's camera frame: the centre of the keyframe that
-    # first saw its track (3) and the unit ray from there to it (3). Depth is triangulated from the widest
-    # baseline a track has (``mapping``), not only from the last keyframe pair. None: every feature first
-    # seen here.
-    first_rays: F64 | None = None
 
     @property
     def n_features(self) -> int:
@@ -68,10 +57,9 @@ class Keyframe:
 def make_keyframe(index: int, stamp_ns: int, T_w_kf: F64, cov_w_kf: F64, gray: NDArray[np.uint8],
                   camera: CameraModel, pts_tracked: F32, X_tracked: F64, cfg: VoConfig, orb: cv2.ORB | None,
                   orb_cur: fe.OrbFeatures | None, ids_tracked: NDArray[np.int64] | None = None,
-                  next_id: int = 0, rays_tracked: F64 | None = None) -> Keyframe:
-    """The current frame as the new reference: tracked features keep their depth, track id and first view
-    (``rays_tracked``, (N, 6) in this frame; None: first seen here), the grid is topped up with new features
-    numbered from ``next_id`` (``ids_tracked`` None: the tracked ones too)."""
+                  next_id: int = 0) -> Keyframe:
+    """The current frame as the new reference: tracked features keep their depth and track id, the grid
+    is topped up with new features numbered from ``next_id`` (``ids_tracked`` None: the tracked ones too)."""
     if ids_tracked is None:
         ids_tracked = next_id + np.arange(pts_tracked.shape[0], dtype=np.int64)
         next_id += pts_tracked.shape[0]
@@ -80,26 +68,17 @@ def make_keyframe(index: int, stamp_ns: int, T_w_kf: F64, cov_w_kf: F64, gray: N
         pts = np.vstack([pts_tracked, new]).astype(np.float32)
         X = np.vstack([X_tracked, np.full((new.shape[0], 3), np.nan)])
         ids = np.concatenate([ids_tracked, next_id + np.arange(new.shape[0])]).astype(np.int64)
-        first = np.full((pts.shape[0], 6), np.nan)
-        if rays_tracked is not None:
-            first[:rays_tracked.shape[0]] = rays_tracked
         desc = None
     else:
         feats = orb_cur if orb_cur is not None else fe.detect_orb(orb, gray, cfg)
         pts, desc = feats.pts, feats.descriptors
         X = np.full((pts.shape[0], 3), np.nan)
         ids = next_id + np.arange(pts.shape[0], dtype=np.int64)
-        first = np.full((pts.shape[0], 6), np.nan)
         if X_tracked.shape[0]:
             # For ORB the tracked points are a subset of this frame's detections: match by position.
-            for k, (p, x, i) in enumerate(zip(pts_tracked, X_tracked, ids_tracked, strict=False)):
+            for p, x, i in zip(pts_tracked, X_tracked, ids_tracked, strict=False):
                 j = int(np.argmin(np.sum((pts - p) ** 2, axis=1)))
                 X[j] = x
                 ids[j] = i
-                if rays_tracked is not None:
-                    first[j] = rays_tracked[k]
     xn = camera.normalize(pts)
-    unknown = ~np.all(np.isfinite(first), axis=1)  # no first view elsewhere: first seen here
-    first[unknown] = own_rays(xn[unknown])
-    return Keyframe(index, stamp_ns, T_w_kf.copy(), cov_w_kf, pts, xn, camera.to_pixels(xn), X, desc, camera, ids,
-                    first)
+    return Keyframe(index, stamp_ns, T_w_kf.copy(), cov_w_kf, pts, xn, camera.to_pixels(xn), X, desc, camera, ids)

@@ -62,13 +62,12 @@ def _ms(t0: float) -> float:
 
 def set_keyframe(state: TrackState, cfg: VoConfig, orb: cv2.ORB | None, gray: NDArray[np.uint8],
                  camera: CameraModel, stamp_ns: int, cov_w: F64, pts_tracked: F32, X_tracked: F64,
-                 orb_cur: fe.OrbFeatures | None, ids_tracked: I64 | None = None,
-                 rays_tracked: F64 | None = None) -> TrackState:
-    """The current frame as the reference: the tracked features kept (with depth, track id and first view),
-    the grid topped up. Without ``ids_tracked`` (a new map) the window of adjusted keyframes is dropped."""
+                 orb_cur: fe.OrbFeatures | None, ids_tracked: I64 | None = None) -> TrackState:
+    """The current frame as the reference: the tracked features kept (with depth and track id), the grid
+    topped up. Without ``ids_tracked`` (a new map) the window of adjusted keyframes is dropped."""
     window = state.window.cleared() if ids_tracked is None else state.window
     kf = make_keyframe(state.index, stamp_ns, state.T_w_c, cov_w, gray, camera, pts_tracked, X_tracked, cfg, orb,
-                       orb_cur, ids_tracked, state.next_id, rays_tracked)
+                       orb_cur, ids_tracked, state.next_id)
     next_id, patches = state.next_id, state.patches
     if kf.ids is not None and kf.ids.size:
         next_id = max(next_id, int(kf.ids.max()) + 1)
@@ -157,7 +156,7 @@ def maybe_keyframe(state: TrackState, cfg: VoConfig, orb: cv2.ORB | None, solver
                           mapped.median_reproj_err_px, notes=mapped.notes)
     if mapped.X_cur is None:
         return state, out
-    X_cur, rays = mapped.X_cur, mapped.first_rays
+    X_cur = mapped.X_cur
     if mapped.triangulated:
         n_triangulated = mapped.n_triangulated
     tracking = motion.state is TrackingState.TRACKING
@@ -167,8 +166,6 @@ def maybe_keyframe(state: TrackState, cfg: VoConfig, orb: cv2.ORB | None, solver
     jumped = False
     if tracking:
         state, X_cur, t, step_scale, jumped = metric_step(state, motion, kf, X_cur, stamp_ns, gray, camera)
-        if rays is not None:  # the first views' centres are positions of the map: they scale with it
-            rays = np.hstack([rays[:, :3] * step_scale[1], rays[:, 3:]])
         state = dataclasses.replace(state, scale=state.scale.on_keyframe(float(np.linalg.norm(t)),
                                                                          (stamp_ns - kf.stamp_ns) * 1e-9))
     points_w = None
@@ -183,7 +180,7 @@ def maybe_keyframe(state: TrackState, cfg: VoConfig, orb: cv2.ORB | None, solver
         state = dataclasses.replace(state, map_scale=map_scale,
                                     offset=state.offset.with_step(d, kf.T_w_kf[:3, :3], state.fx))
     ids_tracked = kf.ids[rows] if kf.ids is not None else None
-    state = set_keyframe(state, cfg, orb, gray, camera, stamp_ns, cov, pts_cur, X_cur, orb_cur, ids_tracked, rays)
+    state = set_keyframe(state, cfg, orb, gray, camera, stamp_ns, cov, pts_cur, X_cur, orb_cur, ids_tracked)
     out = dataclasses.replace(out, is_keyframe=True, points_w=points_w, jumped=jumped)
     if not tracking:
         return dataclasses.replace(state, window=state.window.cleared()), out

@@ -61,13 +61,7 @@ from epi_vo.core.geometry.pose import (
     rotation_from_homography,
     solution_off_plane,
 )
-from epi_vo.core.geometry.triangulation import (
-    ScaleEstimate,
-    Triangulation,
-    scale_from_points,
-    triangulate,
-    triangulate_rays,
-)
+from epi_vo.core.geometry.triangulation import ScaleEstimate, Triangulation, scale_from_points, triangulate
 from epi_vo.core.geometry.uncertainty import (
     essential_pose_covariance,
     fuse,
@@ -134,5 +128,4 @@ __all__ = [
     "solution_off_plane",
     "transfer_errors_sq",
     "triangulate",
-    "triangulate_rays",
 ]

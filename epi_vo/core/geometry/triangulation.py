@@ -93,52 +93,6 @@ def triangulate(R_cur_ref: F64, t_cur_ref: F64, xn_ref: F64, xn_cur: F64, K: F64
     return Triangulation(X_ref, good, positive, err, angle)
 
 
-def triangulate_rays(origin_cur: F64, ray_cur: F64, xn_cur: F64, K: F64, max_reproj_err_px: float,
-                     min_angle_deg: float) -> Triangulation:
-    """Each point from its own first view and the current one: the midpoint of the shortest segment
-    between the first view's ray (from camera centre ``origin_cur`` (N, 3) along the unit direction
-    ``ray_cur`` (N, 3), both in the current camera frame) and the current view's ray through ``xn_cur``
-    (N, 2); H&Z 12.5 (the midpoint method). Each row may come from another view (a track's first
-    keyframe), which a single pose pair (``triangulate``) cannot take.
-
-    ``X_ref`` of the result is in the *current* camera frame; the gates are ``triangulate``'s: positive
-    depth along both rays, reprojection error in both views (in the first view the angle between its ray
-    and the point times the focal length: the pixel error near the image centre), ray angle."""
-    n = xn_cur.shape[0]
-    if n == 0:
-        empty = np.zeros((0,))
-        return Triangulation(np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0, bool), empty, empty)
-    b = homogeneous(xn_cur)
-    d = ray_cur
-    # o + s d = u b in the least-squares sense: [dd -db; db -bb] [s u]^T = [-do; -bo]
-    dd = np.einsum("ij,ij->i", d, d)
-    bb = np.einsum("ij,ij->i", b, b)
-    db = np.einsum("ij,ij->i", d, b)
-    do = np.einsum("ij,ij->i", d, origin_cur)
-    bo = np.einsum("ij,ij->i", b, origin_cur)
-    det = db * db - dd * bb
-    ok = np.all(np.isfinite(origin_cur), axis=1) & np.all(np.isfinite(d), axis=1) & (np.abs(det) > 1e-15)
-    safe = np.where(ok, det, 1.0)
-    s = np.where(ok, (do * bb - db * bo) / safe, np.nan)
-    u = np.where(ok, (db * do - dd * bo) / safe, np.nan)
-    X_cur = 0.5 * (origin_cur + s[:, None] * d + u[:, None] * b)
-    X_cur[~ok] = np.nan
-    finite = np.all(np.isfinite(X_cur), axis=1)
-    with np.errstate(invalid="ignore"):
-        positive = finite & (s > 0.0) & (u > 0.0) & (X_cur[:, 2] > 0.0)
-    f = np.array([K[0, 0], K[1, 1]])
-    seen = X_cur - origin_cur
-    with np.errstate(divide="ignore", invalid="ignore"):
-        e_cur = np.linalg.norm((X_cur[:, :2] / X_cur[:, 2:3] - xn_cur) * f, axis=1)
-        cos_first = np.einsum("ij,ij->i", seen, d) / (np.linalg.norm(seen, axis=1) * np.sqrt(dd))
-        e_first = np.arccos(np.clip(np.nan_to_num(cos_first, nan=-1.0), -1.0, 1.0)) * float(np.mean(f))
-        cos_a = np.einsum("ij,ij->i", seen, X_cur) / (np.linalg.norm(seen, axis=1) * np.linalg.norm(X_cur, axis=1))
-    err = np.where(finite & ~np.isnan(e_cur), np.maximum(e_first, e_cur), np.inf)
-    angle = np.degrees(np.arccos(np.clip(np.nan_to_num(cos_a, nan=1.0), -1.0, 1.0)))
-    good = positive & (err <= max_reproj_err_px) & (angle >= min_angle_deg)
-    return Triangulation(X_cur, good, positive, err, angle)
-
-
 @dataclass(frozen=True)
 class ScaleEstimate:
     """Scale ``s`` such that ``s * t_dir`` is the translation in map units, from map points."""
