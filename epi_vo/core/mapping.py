@@ -57,12 +57,7 @@ def keyframe_map(cfg: VoConfig, motion: Motion, kf: Keyframe, rows: NDArray[np.i
         # carry the scale (at low parallax no keyframe would come until tracking was lost).
         held = np.isfinite(kf.X_kf[rows][:, 0]) & motion.inliers
         weak = weak or int(np.count_nonzero(held)) < THIN_MAP_FACTOR * cfg.min_scale_points
-    # Parallax makes a keyframe when no rotation explains it: the motion's own rotation error, or a short
-    # translation across a narrow view (bas-relief), would otherwise pass for parallax and make keyframes
-    # whose pairs triangulate nothing better than the last ones.
-    inl = motion.inliers
-    parallax = (median_parallax_deg >= cfg.kf_min_parallax_deg and bool(np.any(inl)) and float(np.median(
-        geo.unexplained_parallax_deg(kf.xn[rows[inl]], xn_cur[inl]))) >= cfg.kf_min_parallax_deg)
+    parallax = median_parallax_deg >= cfg.kf_min_parallax_deg
     R, t = motion.R_cur_kf, motion.t_cur_kf
     if motion.new_map is not None:
         X_cur = motion.new_map.X_ref @ R.T + t

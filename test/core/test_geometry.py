@@ -626,48 +626,6 @@ def test_parallax_empty() -> None:
     assert geo.parallax_deg(np.eye(3), np.zeros((0, 2)), np.zeros((0, 2))).shape == (0,)
 
 
-def _scene_points(seed: int, n: int = 200, depth: tuple[float, float] = (4.0, 8.0)) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    return np.column_stack([rng.uniform(-2.0, 2.0, n), rng.uniform(-1.5, 1.5, n), rng.uniform(*depth, n)])
-
-
-def test_unexplained_parallax_of_a_rotation_is_zero_whatever_rotation_was_estimated() -> None:
-    """A pure rotation of 5 degrees: no parallax is left, where ``parallax_deg`` under a rotation 0.5 degrees
-    off (an estimate's error) reports about half a degree on every point."""
-    X_ref = _scene_points(0)
-    R = _rotation((0.02, math.radians(5.0), -0.01))
-    xn_ref, xn_cur = _xn_of(X_ref), _xn_of(X_ref @ R.T)
-    assert np.max(geo.unexplained_parallax_deg(xn_ref, xn_cur)) < 1e-4  # arccos near 1: ~1e-6 deg of rounding
-    R_off = _rotation((0.0, math.radians(5.5), 0.0)) @ _rotation((0.02, 0.0, -0.01))
-    assert np.median(geo.parallax_deg(R_off, xn_ref, xn_cur)) > 0.4
-
-
-def test_unexplained_parallax_of_a_forward_step_is_its_parallax() -> None:
-    """Moving along the optical axis no rotation explains the radial flow: what is left is nearly all of
-    the parallax the translation made (the best rotation absorbs only the flow's mean, about zero)."""
-    X_ref = _scene_points(1)
-    R = _rotation((0.0, math.radians(3.0), 0.0))
-    t = np.array([0.0, 0.0, -0.5])
-    xn_ref, xn_cur = _xn_of(X_ref), _xn_of(X_ref @ R.T + t)
-    true = np.median(geo.parallax_deg(R, xn_ref, xn_cur))
-    left = np.median(geo.unexplained_parallax_deg(xn_ref, xn_cur))
-    assert true > 1.0 and left == pytest.approx(true, rel=0.25)
-
-
-def test_a_sideways_step_to_a_far_flat_scene_is_mostly_explained_by_a_rotation() -> None:
-    """Sideways across a narrow view of points at about one depth, a translation moves every ray almost
-    alike (bas-relief): most of its parallax is a rotation's, and leaves depth undetermined."""
-    X_ref = _scene_points(2, depth=(7.8, 8.2))
-    t = np.array([0.2, 0.0, 0.0])
-    xn_ref, xn_cur = _xn_of(X_ref), _xn_of(X_ref + t)
-    assert np.median(geo.parallax_deg(np.eye(3), xn_ref, xn_cur)) > 1.2
-    assert np.median(geo.unexplained_parallax_deg(xn_ref, xn_cur)) < 0.2
-
-
-def test_unexplained_parallax_empty() -> None:
-    assert geo.unexplained_parallax_deg(np.zeros((0, 2)), np.zeros((0, 2))).shape == (0,)
-
-
 # --- scale from map points ---------------------------------------------------------------------------------
 
 

@@ -60,7 +60,6 @@ from epi_vo.core.geometry.pose import (
     refine_pose_pnp,
     rotation_from_homography,
     solution_off_plane,
-    unexplained_parallax_deg,
 )
 from epi_vo.core.geometry.triangulation import ScaleEstimate, Triangulation, scale_from_points, triangulate
 from epi_vo.core.geometry.uncertainty import (
@@ -129,5 +128,4 @@ __all__ = [
     "solution_off_plane",
     "transfer_errors_sq",
     "triangulate",
-    "unexplained_parallax_deg",
 ]

@@ -247,28 +247,6 @@ def parallax_deg(R_cur_ref: F64, xn_ref: F64, xn_cur: F64) -> F64:
     return angles
 
 
-def unexplained_parallax_deg(xn_ref: F64, xn_cur: F64) -> F64:
-    """Per-point angle (deg) between the current ray and the reference ray under the rotation that best
-    explains all of them (least squares on the unit rays, Kabsch / Horn's method): the parallax no rotation
-    accounts for.
-
-    ``parallax_deg`` under an estimated rotation counts that rotation's error as parallax (a rotation error
-    moves every ray alike); and for a small baseline seen over a narrow field of view a translation across
-    the view is nearly a rotation (the bas-relief ambiguity), so that part of the parallax determines no
-    depth either. What is left after the best rotation is what triangulation can use.
-    """
-    if xn_ref.shape[0] == 0:
-        return np.zeros(0)
-    b_ref = homogeneous(xn_ref)
-    b_ref /= np.linalg.norm(b_ref, axis=1, keepdims=True)
-    b_cur = homogeneous(xn_cur)
-    b_cur /= np.linalg.norm(b_cur, axis=1, keepdims=True)
-    U, _, Vt = np.linalg.svd(b_ref.T @ b_cur)
-    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(Vt.T @ U.T)))])
-    R_cur_ref = Vt.T @ D @ U.T
-    return parallax_deg(R_cur_ref, xn_ref, xn_cur)
-
-
 def refine_pose_pnp(X_ref: F64, uv_cur: F64, K: F64, R_cur_ref: F64, t_cur_ref: F64,
                     max_reproj_err_px: float, robust_start: bool = False) -> tuple[F64, F64, Mask, F64] | None:
     """Motion-only refinement of (R, t) on map points by Levenberg-Marquardt (``cv2.solvePnPRefineLM``).
