@@ -59,6 +59,10 @@ SCALE_WINDOW = 15
 # Fewer measurements than this: their MAD is no estimate of their spread, their sample variance bounds the
 # noise from below (``ScaleFilter.updated``).
 SMALL_WINDOW = 7
+# Earlier measurements of one kind of fit (the floor among the map points, its homography between the images)
+# needed before the kind's own scatter in the window weighs its next one: fewer say nothing of it, and the
+# window's overall spread stands for it.
+KIND_MIN_FITS = 3
 # A floor seen from one mounting keeps its normal between keyframes within this (deg), a wrong plane's does
 # not: two fits establish metric scale only when their normals agree within it, and once FLOOR_STEADY_FITS
 # fits are in, a new fit is sought within it of their median normal.
@@ -72,6 +76,14 @@ SCALE_CHANGE_RUN = 3
 # A map rebuilt after a loss takes its baseline from the last keyframe speed over the time since its
 # keyframe: its scale is that uncertain (relative, 1 sigma) until a scale source measures it.
 NEW_MAP_REL_STD = 0.3
+
+
+# The kinds of scale measurement, each with its own noise (``ScaleFilter.updated``): the floor among a keyframe's
+# map points, the floor's homography between two keyframes' images, the wheels' distance.
+FIT_POINTS = "points"
+FIT_VIEW = "view"
+FIT_WHEELS = "wheels"
+Measured = tuple[float, float, str]  # log(true / map) scale, its variance, the kind of fit
 
 
 class Units(enum.StrEnum):
@@ -132,6 +144,17 @@ class WindowAnchor:
     wheel_rel_sigma: float = math.nan
 
 
+def _spread_var(zs: F64, med: float) -> float:
+    """The variance of measurements ``zs`` (the newest last) about the window's median ``med``: their MAD's;
+    for fewer than SMALL_WINDOW, at least the earlier ones' sample variance: a few measurements' MAD is no
+    estimate of their spread (two may agree by chance where the fits scatter widely), and a wild newest one
+    (a wall taken for the floor) must not widen its own gate."""
+    var = (1.4826 * float(np.median(np.abs(zs - med)))) ** 2
+    if zs.size < SMALL_WINDOW:
+        var = max(var, float(np.var(zs[:-1] if zs.size > 2 else zs, ddof=1)))
+    return var
+
+
 @dataclass(frozen=True)
 class ScaleFilter:
     """Robust filter of the current map's scale error, in log space (frozen: each call returns the filter after it).
@@ -148,7 +171,7 @@ class ScaleFilter:
     drift_per_keyframe: float
     maxlen: int = SCALE_WINDOW
     min_count: int = 2
-    window: tuple[tuple[float, float], ...] = ()  # (z, its variance), oldest first
+    window: tuple[tuple[float, float, str], ...] = ()  # (z, its variance, the kind of fit), oldest first
     var: float = math.inf
     total: float = 1.0  # product of every correction: metres per VO unit of the first map
     outlier: bool = False  # the last measurement was judged an outlier by the window
@@ -174,28 +197,30 @@ class ScaleFilter:
         """The map's scale became uncertain by ``rel_std`` (1 sigma) more: a map rebuilt after a loss."""
         return dataclasses.replace(self, var=self.var + rel_std**2 if self.established else self.var, window=())
 
-    def updated(self, z: float, r: float) -> tuple[ScaleFilter, float]:
+    def updated(self, z: float, r: float, kind: str = "") -> tuple[ScaleFilter, float]:
         """Fold in one measurement: the filter after it, and the correction factor to apply to the map
-        (1.0 while not established).
+        (1.0 while not established). ``kind``: which fit measured it, when a source has fits of different
+        noise (the floor among the map points, the floor's homography).
 
         The window's median and MAD judge the new measurement (an outlier is kept in the window but not
         applied) and say how noisy the measurements really are; the filter then takes this one measurement
-        with that noise, so a measurement counts once however long it stays in the window.
+        with that noise, so a measurement counts once however long it stays in the window. Where the
+        window holds fits of several kinds, a measurement's noise is its own kind's scatter about the
+        window's median: the quoted errors of one fit say little of another's, and a kind that scatters
+        more must weigh less.
         """
-        window = (*self.window, (z, r))[-self.maxlen:]
+        window = (*self.window, (z, r, kind))[-self.maxlen:]
         f = dataclasses.replace(self, window=window, outlier=False)
         if len(window) < self.min_count:
             return f, 1.0
         zs = np.array([w[0] for w in window])
         med = float(np.median(zs))
         n = zs.size
-        mad_var = (1.4826 * float(np.median(np.abs(zs - med)))) ** 2
-        r_eff = max(mad_var, r)
-        if n < SMALL_WINDOW:
-            # A few measurements' MAD is no estimate of their spread (two may agree by chance where the fits
-            # scatter widely): their sample variance is the floor. Without the newest: a wild one (a wall
-            # taken for the floor) must not widen its own gate.
-            r_eff = max(r_eff, float(np.var(zs[:-1] if n > 2 else zs, ddof=1)))
+        r_eff = max(_spread_var(zs, med), r)
+        # the same kind's earlier measurements (the newest must not widen its own gate)
+        same = np.array([w[0] for w in window[:-1] if w[2] == kind])
+        if 0 < same.size < n - 1 and same.size >= KIND_MIN_FITS:
+            r_eff = max(_spread_var(np.append(same, z), med), r)
         if not self.established:
             var = 1.57 * r_eff / n  # the variance of a median of n
             log_c = med
@@ -214,7 +239,7 @@ class ScaleFilter:
                 f = dataclasses.replace(f, window=window[-SCALE_CHANGE_RUN:], run=0)
                 var = 1.57 * r_new / SCALE_CHANGE_RUN
                 factor = math.exp(log_c)
-                return dataclasses.replace(f, window=tuple((x - log_c, v) for x, v in f.window), var=var,
+                return dataclasses.replace(f, window=tuple((x - log_c, v, k) for x, v, k in f.window), var=var,
                                            total=self.total * factor), factor
             # The filter knows the scale no better than the mean of the window's measurements at the noise the
             # window shows now: a first pair that agreed by chance leaves a variance too small for the later
@@ -225,7 +250,7 @@ class ScaleFilter:
             log_c = gain * z
             f = dataclasses.replace(f, run=0)
         factor = math.exp(log_c)
-        return dataclasses.replace(f, window=tuple((x - log_c, v) for x, v in window), var=var,
+        return dataclasses.replace(f, window=tuple((x - log_c, v, k) for x, v, k in window), var=var,
                                    total=self.total * factor), factor
 
 
@@ -314,8 +339,9 @@ class ScaleSource:
                                                   "establish metric scale: VO units")
         return src, factor
 
-    def measure(self, step: KeyframeStep, wheel: WheelOdometry) -> tuple[Self, tuple[float, float] | None]:
-        """(log(true / map) scale, its variance) at this keyframe, or None with ``reason`` set."""
+    def measure(self, step: KeyframeStep, wheel: WheelOdometry) -> tuple[Self, Measured | None]:
+        """(log(true / map) scale, its variance, the kind of fit) at this keyframe, or None with ``reason``
+        set."""
         return self, None
 
     def on_corrected(self, factor: float) -> Self:
@@ -349,7 +375,7 @@ class GroundPlaneScale(ScaleSource):
     fit_min_rel_std: float = 0.005
     reason: str = "ground plane not seen yet: scale unknown (VO units)"
     normals: tuple[F64, ...] = ()  # the floor normals of the last FLOOR_HISTORY fits
-    waiting: tuple[tuple[F64, float, float], ...] = ()  # fits before metric scale: (normal, z, r)
+    waiting: tuple[tuple[F64, float, float, str], ...] = ()  # fits before metric scale: (normal, z, r, kind)
     view: FloorView | None = None  # the last keyframe's image (``floor_view``)
 
     def viewing(self, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int) -> Self:
@@ -375,8 +401,8 @@ class GroundPlaneScale(ScaleSource):
                 f"{len(waiting)} floor fit(s), no two with normals within {FLOOR_STEADY_DEG:g} deg: metric scale "
                 "waits for two that agree (VO units)")), 1.0
         f, factor = src.filter, 1.0
-        for _, z, r in [*agree, (normal, *measured)]:
-            f, k = f.updated(z, r)
+        for _, z, r, kind in [*agree, (normal, *measured)]:
+            f, k = f.updated(z, r, kind)
             factor *= k
         src = dataclasses.replace(src, waiting=(), normals=(*(w[0] for w in agree), normal)[-FLOOR_HISTORY:],
                                   filter=f)
@@ -413,7 +439,7 @@ class GroundPlaneScale(ScaleSource):
         n = np.median(np.array(self.normals), axis=0)
         return n / np.linalg.norm(n), min(FLOOR_STEADY_DEG, self.max_tilt_deg)
 
-    def measure(self, step: KeyframeStep, wheel: WheelOdometry) -> tuple[Self, tuple[float, float] | None]:
+    def measure(self, step: KeyframeStep, wheel: WheelOdometry) -> tuple[Self, Measured | None]:
         """The floor among the map points when they hold one; else the floor's homography between the two
         keyframes' images (``floor_view``): a sparsely textured floor (asphalt, concrete) gives the map few
         points, yet it fills the lower image. Where the points hold a floor they are the better measurement
@@ -427,9 +453,10 @@ class GroundPlaneScale(ScaleSource):
             return src, None
         src = dataclasses.replace(src, normals=(*src.normals, seen.normal_up)[-FLOOR_HISTORY:])
         r = seen.rel_std**2 + self.fit_min_rel_std**2
-        return dataclasses.replace(src, plane=seen, reason=""), (math.log(self.camera_height_m / seen.height), r)
+        return dataclasses.replace(src, plane=seen, reason=""), (math.log(self.camera_height_m / seen.height), r,
+                                                                 FIT_VIEW)
 
-    def _measure_points(self, step: KeyframeStep) -> tuple[Self, tuple[float, float] | None]:
+    def _measure_points(self, step: KeyframeStep) -> tuple[Self, Measured | None]:
         up, tilt = self._expected_up()
         search = find_floor(step.X_cur, max_tilt_deg=tilt, inlier_ratio=self.inlier_ratio,
                             min_points=self.min_points, up=up)
@@ -462,7 +489,8 @@ class GroundPlaneScale(ScaleSource):
         # The fit's own standard error, at least fit_min_rel_std; the filter's window raises it to the fits'
         # spread.
         r = plane.rel_std**2 + self.fit_min_rel_std**2
-        return dataclasses.replace(src, plane=plane, reason=""), (math.log(self.camera_height_m / plane.height), r)
+        return dataclasses.replace(src, plane=plane, reason=""), (math.log(self.camera_height_m / plane.height), r,
+                                                                  FIT_POINTS)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -501,7 +529,7 @@ class WheelOdometryScale(ScaleSource):
         xyz, _ = wheel.position_at(step.stamp_ns, self.timeout_ns)
         return None if xyz is None else WindowAnchor(wheel_xyz=xyz, wheel_rel_sigma=self.rel_sigma)
 
-    def measure(self, step: KeyframeStep, wheel: WheelOdometry) -> tuple[Self, tuple[float, float] | None]:
+    def measure(self, step: KeyframeStep, wheel: WheelOdometry) -> tuple[Self, Measured | None]:
         src = dataclasses.replace(self, steps=(*self.steps, (step.kf_stamp_ns, step.stamp_ns,
                                                              step.step_length))[-WHEEL_STEPS:])
         d_wheel = d_vo = 0.0
@@ -525,7 +553,7 @@ class WheelOdometryScale(ScaleSource):
         # Only the wheels' random part: their calibration error is common to every measurement, the
         # source's systematic error (``systematic_rel``).
         r = (self.noise_m / d_wheel) ** 2
-        return dataclasses.replace(src, reason=""), (math.log(d_wheel / d_vo), r)
+        return dataclasses.replace(src, reason=""), (math.log(d_wheel / d_vo), r, FIT_WHEELS)
 
 
 def source_from_config(cfg: VoConfig) -> ScaleSource:
