@@ -73,6 +73,10 @@ WHEEL_STEPS = 500  # keyframe steps remembered for the wheel measurement (it nee
 # Measurements in a row beyond the window's 3-sigma gate on one side: the map's scale changed (a VO scale jump),
 # no outlier. Three fall there by chance once in ~10^8 (0.00135^3); the map then takes their median at once.
 SCALE_CHANGE_RUN = 3
+# The last measurements whose mean shows a change of the map's scale the filter has not followed (``updated``):
+# as many as make a jump, enough that their noise rarely mimics a change (the mean of three is known to
+# 1/sqrt(3) of one), few enough that the map follows a drift within a few keyframes.
+SCALE_TREND_RUN = SCALE_CHANGE_RUN
 # A map rebuilt after a loss takes its baseline from the last keyframe speed over the time since its
 # keyframe: its scale is that uncertain (relative, 1 sigma) until a scale source measures it.
 NEW_MAP_REL_STD = 0.3
@@ -244,7 +248,13 @@ class ScaleFilter:
             # The filter knows the scale no better than the mean of the window's measurements at the noise the
             # window shows now: a first pair that agreed by chance leaves a variance too small for the later
             # measurements ever to move the map far, and the window's spread reveals it.
-            prior = max(self.var, r_eff / n)
+            # Nor surer than the last few measurements' agreement on a change it has not followed: their mean
+            # (relative to the map as corrected) beyond what their noise explains is the map's scale drifting
+            # faster than ``drift_per_keyframe`` (the VO's scale wanders by several per cent a keyframe on a
+            # hard stretch), and the filter follows it within a few keyframes instead of a window's length.
+            recent = zs[-SCALE_TREND_RUN:]
+            trend = float(np.mean(recent)) ** 2 - r_eff / recent.size
+            prior = max(self.var, r_eff / n, trend)
             gain = prior / (prior + r_eff)
             var = (1.0 - gain) * prior
             log_c = gain * z
