@@ -168,7 +168,9 @@ class ScaleFilter:
     MAD judge the newest (beyond 3 sigma: an outlier, not applied; ``SCALE_CHANGE_RUN`` of them in a row on
     one side: a jump of the map's scale) and give the measurement noise; a 1-D Kalman filter whose process
     noise is the VO's scale drift per keyframe takes each measurement once, its variance never below that
-    of the mean of the window's measurements at that noise. Metric scale is established once ``min_count``
+    of the mean of the window's measurements at that noise, nor below what the last ``SCALE_TREND_RUN``
+    measurements' mean shows of a change it has not followed. Each measurement's noise is its own kind's
+    scatter where the window holds fits of several kinds (``updated``). Metric scale is established once ``min_count``
     measurements are in the window: the first correction is their median.
     """
 
