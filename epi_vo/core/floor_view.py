@@ -61,9 +61,6 @@ FLOOR_NORMAL_SIGMA_DEG = 3.0
 # move it by.
 FLOOR_ROTATION_SIGMA_DEG = 0.2
 FLOOR_HUBER = 1.345  # Huber's constant, in robust standard deviations of the residuals (95 % efficiency)
-# Of the aligned pixels, at least this share must fit the floor's homography (Huber weight 1): less is no
-# floor seen, only its occluders and the image's noise.
-FLOOR_MIN_FIT_SHARE = 0.3
 # A floor whose height the fit knows no better than this (relative, 1 sigma) is not seen: the floor region's
 # parallax over the step is too small to tell a floor from a far surface (a floor seen from tens of steps
 # above it, or the top of a far wall taken for one: the floor's side of a camera not mounted as declared).
@@ -400,8 +397,6 @@ def floor_between(view: FloorView, gray: NDArray[np.uint8], camera: CameraModel,
         return FloorFit(None, n_used, share, why="the floor's fit diverged")
     if float(n_up @ (R_cur_kf @ up if forward else up)) < math.cos(math.radians(max_tilt_deg)):
         return FloorFit(None, n_used, share, why="the floor's fit left the floor's directions")
-    if share < FLOOR_MIN_FIT_SHARE:
-        return FloorFit(None, n_used, share, why=f"only {100 * share:.0f} % of the floor region fits a floor")
     rel_std = math.sqrt(max(float(u @ cov_u @ u), 0.0)) / norm_u**2
     h_base = step / norm_u
     if forward:

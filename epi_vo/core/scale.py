@@ -59,6 +59,10 @@ SCALE_WINDOW = 15
 # Fewer measurements than this: their MAD is no estimate of their spread, their sample variance bounds the
 # noise from below (``ScaleFilter.updated``).
 SMALL_WINDOW = 7
+# Earlier measurements of one kind of fit (the floor among the map points, its homography between the images)
+# needed before the kind's own scatter in the window weighs its next one: fewer say nothing of it, and the
+# window's overall spread stands for it.
+KIND_MIN_FITS = 3
 # A floor seen from one mounting keeps its normal between keyframes within this (deg), a wrong plane's does
 # not: two fits establish metric scale only when their normals agree within it, and once FLOOR_STEADY_FITS
 # fits are in, a new fit is sought within it of their median normal.
@@ -69,9 +73,21 @@ WHEEL_STEPS = 500  # keyframe steps remembered for the wheel measurement (it nee
 # Measurements in a row beyond the window's 3-sigma gate on one side: the map's scale changed (a VO scale jump),
 # no outlier. Three fall there by chance once in ~10^8 (0.00135^3); the map then takes their median at once.
 SCALE_CHANGE_RUN = 3
+# The last measurements whose mean shows a change of the map's scale the filter has not followed (``updated``):
+# as many as make a jump, enough that their noise rarely mimics a change (the mean of three is known to
+# 1/sqrt(3) of one), few enough that the map follows a drift within a few keyframes.
+SCALE_TREND_RUN = SCALE_CHANGE_RUN
 # A map rebuilt after a loss takes its baseline from the last keyframe speed over the time since its
 # keyframe: its scale is that uncertain (relative, 1 sigma) until a scale source measures it.
 NEW_MAP_REL_STD = 0.3
+
+
+# The kinds of scale measurement, each with its own noise (``ScaleFilter.updated``): the floor among a keyframe's
+# map points, the floor's homography between two keyframes' images, the wheels' distance.
+FIT_POINTS = "points"
+FIT_VIEW = "view"
+FIT_WHEELS = "wheels"
+Measured = tuple[float, float, str]  # log(true / map) scale, its variance, the kind of fit
 
 
 class Units(enum.StrEnum):
@@ -132,6 +148,17 @@ class WindowAnchor:
     wheel_rel_sigma: float = math.nan
 
 
+def _spread_var(zs: F64, med: float) -> float:
+    """The variance of measurements ``zs`` (the newest last) about the window's median ``med``: their MAD's;
+    for fewer than SMALL_WINDOW, at least the earlier ones' sample variance: a few measurements' MAD is no
+    estimate of their spread (two may agree by chance where the fits scatter widely), and a wild newest one
+    (a wall taken for the floor) must not widen its own gate."""
+    var = (1.4826 * float(np.median(np.abs(zs - med)))) ** 2
+    if zs.size < SMALL_WINDOW:
+        var = max(var, float(np.var(zs[:-1] if zs.size > 2 else zs, ddof=1)))
+    return var
+
+
 @dataclass(frozen=True)
 class ScaleFilter:
     """Robust filter of the current map's scale error, in log space (frozen: each call returns the filter after it).
@@ -141,14 +168,16 @@ class ScaleFilter:
     MAD judge the newest (beyond 3 sigma: an outlier, not applied; ``SCALE_CHANGE_RUN`` of them in a row on
     one side: a jump of the map's scale) and give the measurement noise; a 1-D Kalman filter whose process
     noise is the VO's scale drift per keyframe takes each measurement once, its variance never below that
-    of the mean of the window's measurements at that noise. Metric scale is established once ``min_count``
+    of the mean of the window's measurements at that noise, nor below what the last ``SCALE_TREND_RUN``
+    measurements' mean shows of a change it has not followed. Each measurement's noise is its own kind's
+    scatter where the window holds fits of several kinds (``updated``). Metric scale is established once ``min_count``
     measurements are in the window: the first correction is their median.
     """
 
     drift_per_keyframe: float
     maxlen: int = SCALE_WINDOW
     min_count: int = 2
-    window: tuple[tuple[float, float], ...] = ()  # (z, its variance), oldest first
+    window: tuple[tuple[float, float, str], ...] = ()  # (z, its variance, the kind of fit), oldest first
     var: float = math.inf
     total: float = 1.0  # product of every correction: metres per VO unit of the first map
     outlier: bool = False  # the last measurement was judged an outlier by the window
@@ -174,28 +203,30 @@ class ScaleFilter:
         """The map's scale became uncertain by ``rel_std`` (1 sigma) more: a map rebuilt after a loss."""
         return dataclasses.replace(self, var=self.var + rel_std**2 if self.established else self.var, window=())
 
-    def updated(self, z: float, r: float) -> tuple[ScaleFilter, float]:
+    def updated(self, z: float, r: float, kind: str = "") -> tuple[ScaleFilter, float]:
         """Fold in one measurement: the filter after it, and the correction factor to apply to the map
-        (1.0 while not established).
+        (1.0 while not established). ``kind``: which fit measured it, when a source has fits of different
+        noise (the floor among the map points, the floor's homography).
 
         The window's median and MAD judge the new measurement (an outlier is kept in the window but not
         applied) and say how noisy the measurements really are; the filter then takes this one measurement
-        with that noise, so a measurement counts once however long it stays in the window.
+        with that noise, so a measurement counts once however long it stays in the window. Where the
+        window holds fits of several kinds, a measurement's noise is its own kind's scatter about the
+        window's median: the quoted errors of one fit say little of another's, and a kind that scatters
+        more must weigh less.
         """
-        window = (*self.window, (z, r))[-self.maxlen:]
+        window = (*self.window, (z, r, kind))[-self.maxlen:]
         f = dataclasses.replace(self, window=window, outlier=False)
         if len(window) < self.min_count:
             return f, 1.0
         zs = np.array([w[0] for w in window])
         med = float(np.median(zs))
         n = zs.size
-        mad_var = (1.4826 * float(np.median(np.abs(zs - med)))) ** 2
-        r_eff = max(mad_var, r)
-        if n < SMALL_WINDOW:
-            # A few measurements' MAD is no estimate of their spread (two may agree by chance where the fits
-            # scatter widely): their sample variance is the floor. Without the newest: a wild one (a wall
-            # taken for the floor) must not widen its own gate.
-            r_eff = max(r_eff, float(np.var(zs[:-1] if n > 2 else zs, ddof=1)))
+        r_eff = max(_spread_var(zs, med), r)
+        # the same kind's earlier measurements (the newest must not widen its own gate)
+        same = np.array([w[0] for w in window[:-1] if w[2] == kind])
+        if 0 < same.size < n - 1 and same.size >= KIND_MIN_FITS:
+            r_eff = max(_spread_var(np.append(same, z), med), r)
         if not self.established:
             var = 1.57 * r_eff / n  # the variance of a median of n
             log_c = med
@@ -214,18 +245,24 @@ class ScaleFilter:
                 f = dataclasses.replace(f, window=window[-SCALE_CHANGE_RUN:], run=0)
                 var = 1.57 * r_new / SCALE_CHANGE_RUN
                 factor = math.exp(log_c)
-                return dataclasses.replace(f, window=tuple((x - log_c, v) for x, v in f.window), var=var,
+                return dataclasses.replace(f, window=tuple((x - log_c, v, k) for x, v, k in f.window), var=var,
                                            total=self.total * factor), factor
             # The filter knows the scale no better than the mean of the window's measurements at the noise the
             # window shows now: a first pair that agreed by chance leaves a variance too small for the later
             # measurements ever to move the map far, and the window's spread reveals it.
-            prior = max(self.var, r_eff / n)
+            # Nor surer than the last few measurements' agreement on a change it has not followed: their mean
+            # (relative to the map as corrected) beyond what their noise explains is the map's scale drifting
+            # faster than ``drift_per_keyframe`` (the VO's scale wanders by several per cent a keyframe on a
+            # hard stretch), and the filter follows it within a few keyframes instead of a window's length.
+            recent = zs[-SCALE_TREND_RUN:]
+            trend = float(np.mean(recent)) ** 2 - r_eff / recent.size
+            prior = max(self.var, r_eff / n, trend)
             gain = prior / (prior + r_eff)
             var = (1.0 - gain) * prior
             log_c = gain * z
             f = dataclasses.replace(f, run=0)
         factor = math.exp(log_c)
-        return dataclasses.replace(f, window=tuple((x - log_c, v) for x, v in window), var=var,
+        return dataclasses.replace(f, window=tuple((x - log_c, v, k) for x, v, k in window), var=var,
                                    total=self.total * factor), factor
 
 
@@ -314,8 +351,9 @@ class ScaleSource:
                                                   "establish metric scale: VO units")
         return src, factor
 
-    def measure(self, step: KeyframeStep, wheel: WheelOdometry) -> tuple[Self, tuple[float, float] | None]:
-        """(log(true / map) scale, its variance) at this keyframe, or None with ``reason`` set."""
+    def measure(self, step: KeyframeStep, wheel: WheelOdometry) -> tuple[Self, Measured | None]:
+        """(log(true / map) scale, its variance, the kind of fit) at this keyframe, or None with ``reason``
+        set."""
         return self, None
 
     def on_corrected(self, factor: float) -> Self:
@@ -349,7 +387,7 @@ class GroundPlaneScale(ScaleSource):
     fit_min_rel_std: float = 0.005
     reason: str = "ground plane not seen yet: scale unknown (VO units)"
     normals: tuple[F64, ...] = ()  # the floor normals of the last FLOOR_HISTORY fits
-    waiting: tuple[tuple[F64, float, float], ...] = ()  # fits before metric scale: (normal, z, r)
+    waiting: tuple[tuple[F64, float, float, str], ...] = ()  # fits before metric scale: (normal, z, r, kind)
     view: FloorView | None = None  # the last keyframe's image (``floor_view``)
 
     def viewing(self, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int) -> Self:
@@ -375,8 +413,8 @@ class GroundPlaneScale(ScaleSource):
                 f"{len(waiting)} floor fit(s), no two with normals within {FLOOR_STEADY_DEG:g} deg: metric scale "
                 "waits for two that agree (VO units)")), 1.0
         f, factor = src.filter, 1.0
-        for _, z, r in [*agree, (normal, *measured)]:
-            f, k = f.updated(z, r)
+        for _, z, r, kind in [*agree, (normal, *measured)]:
+            f, k = f.updated(z, r, kind)
             factor *= k
         src = dataclasses.replace(src, waiting=(), normals=(*(w[0] for w in agree), normal)[-FLOOR_HISTORY:],
                                   filter=f)
@@ -413,7 +451,7 @@ class GroundPlaneScale(ScaleSource):
         n = np.median(np.array(self.normals), axis=0)
         return n / np.linalg.norm(n), min(FLOOR_STEADY_DEG, self.max_tilt_deg)
 
-    def measure(self, step: KeyframeStep, wheel: WheelOdometry) -> tuple[Self, tuple[float, float] | None]:
+    def measure(self, step: KeyframeStep, wheel: WheelOdometry) -> tuple[Self, Measured | None]:
         """The floor among the map points when they hold one; else the floor's homography between the two
         keyframes' images (``floor_view``): a sparsely textured floor (asphalt, concrete) gives the map few
         points, yet it fills the lower image. Where the points hold a floor they are the better measurement
@@ -427,9 +465,10 @@ class GroundPlaneScale(ScaleSource):
             return src, None
         src = dataclasses.replace(src, normals=(*src.normals, seen.normal_up)[-FLOOR_HISTORY:])
         r = seen.rel_std**2 + self.fit_min_rel_std**2
-        return dataclasses.replace(src, plane=seen, reason=""), (math.log(self.camera_height_m / seen.height), r)
+        return dataclasses.replace(src, plane=seen, reason=""), (math.log(self.camera_height_m / seen.height), r,
+                                                                 FIT_VIEW)
 
-    def _measure_points(self, step: KeyframeStep) -> tuple[Self, tuple[float, float] | None]:
+    def _measure_points(self, step: KeyframeStep) -> tuple[Self, Measured | None]:
         up, tilt = self._expected_up()
         search = find_floor(step.X_cur, max_tilt_deg=tilt, inlier_ratio=self.inlier_ratio,
                             min_points=self.min_points, up=up)
@@ -462,7 +501,8 @@ class GroundPlaneScale(ScaleSource):
         # The fit's own standard error, at least fit_min_rel_std; the filter's window raises it to the fits'
         # spread.
         r = plane.rel_std**2 + self.fit_min_rel_std**2
-        return dataclasses.replace(src, plane=plane, reason=""), (math.log(self.camera_height_m / plane.height), r)
+        return dataclasses.replace(src, plane=plane, reason=""), (math.log(self.camera_height_m / plane.height), r,
+                                                                  FIT_POINTS)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -501,7 +541,7 @@ class WheelOdometryScale(ScaleSource):
         xyz, _ = wheel.position_at(step.stamp_ns, self.timeout_ns)
         return None if xyz is None else WindowAnchor(wheel_xyz=xyz, wheel_rel_sigma=self.rel_sigma)
 
-    def measure(self, step: KeyframeStep, wheel: WheelOdometry) -> tuple[Self, tuple[float, float] | None]:
+    def measure(self, step: KeyframeStep, wheel: WheelOdometry) -> tuple[Self, Measured | None]:
         src = dataclasses.replace(self, steps=(*self.steps, (step.kf_stamp_ns, step.stamp_ns,
                                                              step.step_length))[-WHEEL_STEPS:])
         d_wheel = d_vo = 0.0
@@ -525,7 +565,7 @@ class WheelOdometryScale(ScaleSource):
         # Only the wheels' random part: their calibration error is common to every measurement, the
         # source's systematic error (``systematic_rel``).
         r = (self.noise_m / d_wheel) ** 2
-        return dataclasses.replace(src, reason=""), (math.log(d_wheel / d_vo), r)
+        return dataclasses.replace(src, reason=""), (math.log(d_wheel / d_vo), r, FIT_WHEELS)
 
 
 def source_from_config(cfg: VoConfig) -> ScaleSource:
