@@ -151,6 +151,10 @@ class VoConfig:
     static_min_fraction: float = _knob(
         0.5, "before a map exists: the camera is static when at least this fraction of the tracked features did "
         "not move (chi-square gate at score_sigma_px)", 0.0, 1.0)
+    static_min_spread: float = _knob(
+        0.5, "the still features must also cover at least this fraction of the occupied cells of a 4x4 image grid",
+        0.0,
+        1.0)
 
     # --- degeneracy, parallax and triangulation gates ----------------------------------------
     init_min_parallax_deg: float = _knob(0.5, "median parallax needed to initialise the map (deg)", 0.01, 45.0)

@@ -40,6 +40,7 @@ class Decision(enum.Enum):
     # --- model selection and motion ---------------------------------------------------------------
     NO_MODEL = "no_model"  # neither E nor H could be estimated
     MOTION_NOT_FINITE = "motion_not_finite"  # the motion estimate was not finite: no pose
+    INLIERS_CLUSTERED = "inliers_clustered"  # the pose's inliers cover ``spread`` of the occupied cells
     CAMERA_STATIC = "camera_static"  # the "no motion" hypothesis explains the frame
     TOO_FEW_E_INLIERS = "too_few_e_inliers"  # after cheirality
     TOO_FEW_H_INLIERS = "too_few_h_inliers"

@@ -89,6 +89,8 @@ _TEXT: dict[Decision, str | Callable[[Details], str]] = {
                                        "pose and map",
     Decision.NO_MODEL: "no two-view model could be estimated",
     Decision.MOTION_NOT_FINITE: "the motion estimate is not finite (check the calibration): no pose this frame",
+    Decision.INLIERS_CLUSTERED: "the pose's inliers are clustered: they cover {spread:.0%} of the image cells holding "
+                                "features (a moving object may dominate)",
     Decision.CAMERA_STATIC: _static,
     Decision.TOO_FEW_E_INLIERS: "too few inliers after cheirality ({n} < {need}, RH {rh:.2f})",
     Decision.TOO_FEW_H_INLIERS: "too few homography inliers ({n} < {need})",

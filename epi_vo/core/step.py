@@ -236,6 +236,10 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
             motion = mo.expanded(motion, use)
     state, movers = book_movers(state, kf, rows, uv_cur, excluded, motion, est.n_moving, est.moving_region)
     notes = notes + movers.notes
+    if motion is not None and motion.state is TrackingState.TRACKING:
+        spread = mo.grid_spread(uv_cur, motion.inliers, camera.width, camera.height)
+        if spread < cfg.static_min_spread:
+            notes = (*notes, note(Decision.INLIERS_CLUSTERED, spread=spread))
     inl = motion.inliers if motion is not None else np.zeros(n_tracked, bool)
     observed = Observed(est.model, rh, n_tracked, est.n_inliers, est.median_parallax_deg, est.n_triangulated,
                         est.positive_depth_ratio, est.median_reproj_err_px, est.relative_scale, est.static_score,

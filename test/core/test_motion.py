@@ -632,6 +632,17 @@ def test_a_mover_covering_most_of_the_view_is_not_taken_for_the_background(gener
     assert st.static_score < 0.4
 
 
+def test_static_features_clustered_in_one_corner_do_not_make_the_camera_static(general_scene) -> None:
+    cfg = dataclasses.replace(CFG, static_min_fraction=0.2)
+    s, _ = _static_with_mover(general_scene, -1.0, (14.0, 4.0))  # everything moved ...
+    corner = (general_scene.uv_ref_obs[:, 0] < 160) & (general_scene.uv_ref_obs[:, 1] < 120)
+    cur = s.uv_cur_obs.copy()
+    cur[corner] = general_scene.uv_ref_obs[corner]  # ... but a corner patch that stayed
+    s = dataclasses.replace(s, uv_cur_obs=cur)
+    m, st, _ = _estimate(s, _no_map(s), cfg)
+    assert st.static_score >= 0.02 and (m is None or m.state is not TrackingState.STATIC)
+
+
 def test_with_a_map_the_static_hypothesis_leaves_the_pose_to_the_map(general_scene) -> None:
     s, _ = _static_with_mover(general_scene, 430.0, (14.0, 4.0))
     m, _, _ = _estimate(s, _true_map(s))

@@ -46,6 +46,8 @@ def static_camera(cfg: VoConfig, ctx: MotionContext, sel: ModelSelection, est: M
         return est
     K = ctx.kf.camera
     spread = grid_spread(ctx.uv_cur, still, K.width, K.height)
+    if spread < cfg.static_min_spread:
+        return est
     moved = ~still
     n_moving = int(np.count_nonzero(moved))
     n_still = int(np.count_nonzero(still))
