@@ -127,11 +127,9 @@ def _first_map_from_plane(cfg: VoConfig, ctx: MotionContext, sel: ModelSelection
             R_off = chosen.R
             est = est.noted(note(Decision.PLANE_PICKED_BY_OFF_POINTS, off=off_plane))
     planar = None
-    if R_off is None:
-        # The views are gathered from the first frame on, below the first map's parallax too: the plane
-        # is told apart by the time the baseline allows a map.
+    if R_off is None and est.median_parallax_deg >= cfg.init_min_parallax_deg:
         est, verdict, planar, spread = plane_by_views(cfg, ctx, H, in_h, est)
-        if verdict is PlaneVerdict.WAIT and est.median_parallax_deg >= cfg.init_min_parallax_deg:
+        if verdict is PlaneVerdict.WAIT:
             # Neither solution's rotation (nor R_h, which assumes no translation) can be published: the
             # orientation is held too, its variance covering every valid solution's rotation.
             return est.gave(Motion(TrackingState.INITIALIZING, np.eye(3), zero,
