@@ -172,8 +172,6 @@ class VoConfig:
     e_map_max_rotation_diff_deg: float = _knob(
         0.3, "E's rotation further than this from the map points' pose: a mover took E's consensus, the map decides "
         "(deg)", 0.01, 45.0)
-    rotation_only_parallax_deg: float = _knob(
-        0.15, "with H chosen, median parallax below this is treated as rotation only (deg)", 0.0, 10.0)
     min_rotation_for_rotation_only_deg: float = _knob(
         0.5, "rotation needed before a no-parallax motion is called pure rotation (deg)", 0.0, 90.0)
     min_triangulation_angle_deg: float = _knob(0.5, "points seen under a smaller ray angle get no depth (deg)",

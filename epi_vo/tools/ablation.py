@@ -44,7 +44,6 @@ RULES: tuple[Rule, ...] = (
     Rule("static_min_spread", 0.0, "a still camera's still features cover the image"),
     Rule("e_map_max_rotation_diff_deg", 45.0, "E far from the map's pose: the map decides (a mover took E)"),
     Rule("plane_e_min_parallax_deg", 0.0, "with a plane, the pose from E only above this parallax"),
-    Rule("rotation_only_parallax_deg", 0.0, "little parallax under H is a pure rotation"),
     Rule("min_positive_depth_ratio", 0.0, "cheirality: most inliers in front of both views"),
     Rule("min_triangulation_angle_deg", 0.0, "no depth from a small ray angle"),
     Rule("max_reprojection_error_px", 100.0, "triangulated points must reproject"),

@@ -7,6 +7,7 @@
   of a pose on map points;
 * ``camera_error``: a rotation fitted with the focal length and radial distortion a calibration may have
   wrong;
+* ``gric``: Torr's model selection between a model and its special case (a homography and a rotation);
 * ``triangulation``: triangulation through its gates, scale of a direction from map points;
 * ``common``: homogeneous coordinates, cross-product matrix, ray depths, nearest rotation, reprojection
   errors.
@@ -14,7 +15,7 @@
 Everything is re-exported here: ``from epi_vo.core import geometry as geo`` then ``geo.recover_pose``.
 """
 
-from epi_vo.core.geometry.camera_error import CameraErrorRotation, rotation_under_camera_error
+from epi_vo.core.geometry.camera_error import CameraErrorRotation, ray_angles, rotation_under_camera_error
 from epi_vo.core.geometry.common import (
     F64,
     Mask,
@@ -26,6 +27,7 @@ from epi_vo.core.geometry.common import (
     skew,
 )
 from epi_vo.core.geometry.epipolar_refine import refine_relative_pose
+from epi_vo.core.geometry.gric import gric, simpler_explains
 from epi_vo.core.geometry.models import (
     CHI2_1DOF,
     CHI2_2DOF,
@@ -95,6 +97,7 @@ __all__ = [
     "focal_for_rotation",
     "fundamental_from_essential",
     "fuse",
+    "gric",
     "homogeneous",
     "homography_solutions",
     "map_information",
@@ -108,6 +111,7 @@ __all__ = [
     "polished_by_opencv",
     "pose_from_homography",
     "pose_undetermined",
+    "ray_angles",
     "ray_depths",
     "recover_pose",
     "refine_planar_pose",
@@ -124,6 +128,7 @@ __all__ = [
     "score_fundamental",
     "score_homography",
     "score_static",
+    "simpler_explains",
     "skew",
     "solution_off_plane",
     "transfer_errors_sq",

@@ -41,12 +41,16 @@ JACOBIAN_STEP = 1e-6
 class CameraErrorRotation:
     """A rotation ``R`` (reference -> current) under the focal length ``ratio`` x the calibration's and the
     radial distortion ``k1`` the calibration does not declare (``x_true = x_undistorted / ratio``, then
-    distorted by ``1 + k1 r^2`` as the lens of Brown's model), with the median parallax (deg) its rays leave."""
+    distorted by ``1 + k1 r^2`` as the lens of Brown's model), with the median parallax (deg) its rays leave
+    and each point's (rad, (N,)), and the standard deviation of the focal length's log ratio (what the rays
+    and the prior determine of it: little over a rotation of a few degrees)."""
 
     R: F64
     ratio: float
     k1: float
     parallax_deg: float
+    angles: F64
+    log_ratio_sigma: float
 
 
 def _true_rays(xn: F64, log_ratio: float, k1: float) -> F64:
@@ -110,8 +114,16 @@ def rotation_under_camera_error(R0: F64, ratio0: float, xn_ref: F64, xn_cur: F64
             break
     R = np.asarray(cv2.Rodrigues(p[:3])[0], np.float64) @ R0
     k1 = float(p[4]) if radial else 0.0
-    b_ref, b_cur = _true_rays(xn_ref, p[3], k1), _true_rays(xn_cur, p[3], k1)
-    q = b_ref @ R.T
+    angles = ray_angles(R, math.exp(p[3]), k1, xn_ref, xn_cur)
+    log_ratio_sigma = math.sqrt(max(float(np.linalg.inv(A)[3, 3]), 0.0))
+    return CameraErrorRotation(R, math.exp(p[3]), k1, float(np.degrees(np.median(angles))), angles,
+                               log_ratio_sigma)
+
+
+def ray_angles(R: F64, ratio: float, k1: float, xn_ref: F64, xn_cur: F64) -> F64:
+    """The angle (rad, (N,)) between each current point's ray and its reference point's ray turned by ``R``,
+    under the camera ``(ratio, k1)`` (``CameraErrorRotation``'s): the parallax a rotation leaves."""
+    q, b_cur = _true_rays(xn_ref, math.log(ratio), k1) @ R.T, _true_rays(xn_cur, math.log(ratio), k1)
     cos_a = np.einsum("ij,ij->i", q, b_cur) / (np.linalg.norm(q, axis=1) * np.linalg.norm(b_cur, axis=1))
-    parallax = float(np.median(np.degrees(np.arccos(np.clip(cos_a, -1.0, 1.0)))))
-    return CameraErrorRotation(R, math.exp(p[3]), k1, parallax)
+    out: F64 = np.arccos(np.clip(cos_a, -1.0, 1.0))
+    return out

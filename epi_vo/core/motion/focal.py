@@ -31,6 +31,26 @@ FOCAL_RATIO_SIGMA = 0.01  # of that focal length, relative: its estimates scatte
 # Below this displacement of the image's farthest corner (px) an undeclared radial distortion is within the
 # calibration's tolerance (the tracks' own noise): the calibration is not blamed for it.
 RADIAL_TOLERANCE_PX = 1.0
+ROTATION_PARAMS = 3  # a rotation's degrees of freedom (GRIC's count; each camera term fitted adds one)
+HOMOGRAPHY_PARAMS = 8
+# A fitted focal length this many of its standard deviations outside FOCAL_SUSPECT_RANGE is implausible (two:
+# a plausible camera is rejected by chance once in ~40 fits)
+FOCAL_RANGE_SIGMAS = 2.0
+
+
+def rotation_explains(cfg: VoConfig, ctx: MotionContext, H: F64, in_h: NDArray[np.bool_], angles: F64,
+                      n_params: int) -> bool:
+    """A rotation (``n_params``: 3, with each camera term fitted one more) explains H's inliers as well as H
+    does, by GRIC (``geometry.gric``) at the model selection's noise (``score_sigma_px``, both images alike):
+    the parallax ``angles`` (rad, per inlier) it leaves is no more than H's transfer errors by what its fewer
+    parameters are worth. A translation's parallax grows with the baseline over the depth, a rotation's
+    residual stays at the noise: in pixels, whatever the image's size."""
+    K = ctx.kf.camera.K
+    d_cur, d_ref = geo.transfer_errors_sq(H, ctx.kf.uv[ctx.rows][in_h], ctx.uv_cur[in_h])
+    var = 2.0 * cfg.score_sigma_px**2  # a residual between two images carries both images' noise
+    chi2_h = 0.5 * (d_cur + d_ref) / var
+    chi2_r = (angles * K[0, 0]) ** 2 / var
+    return geo.simpler_explains(chi2_r, n_params, chi2_h, HOMOGRAPHY_PARAMS)
 
 
 def rotation_under_other_focal(cfg: VoConfig, ctx: MotionContext, H: F64, in_h: NDArray[np.bool_],
@@ -43,7 +63,7 @@ def rotation_under_other_focal(cfg: VoConfig, ctx: MotionContext, H: F64, in_h: 
     deg at 5 deg of rotation; k1 0.05 undeclared: 0.5-0.9 deg at 10-15 deg) and would be taken for parallax,
     a plane and a translation. The rotation is fitted to the points with the focal length, and with the
     radial distortion when that is not enough (``geometry.rotation_under_camera_error``). When the rays then
-    line up (parallax below ``rotation_only_parallax_deg``) under a focal length within ``FOCAL_SUSPECT_RANGE``
+    line up (``rotation_explains``) under a focal length within ``FOCAL_SUSPECT_RANGE``
     of the calibration's, with the distortion moving the image corner within that range too, the motion is
     that rotation (position held) before a map exists; with a map the map's points decide and the reason
     says what else the motion could be. A camera within the calibration's tolerance
@@ -60,7 +80,12 @@ def rotation_under_other_focal(cfg: VoConfig, ctx: MotionContext, H: F64, in_h: 
     f = geo.focal_for_rotation(H, K)
     lo, hi = FOCAL_SUSPECT_RANGE
     if f is None or not (1.0 - FOCAL_PRECHECK_MARGIN) * lo <= f / K[0, 0] <= (1.0 + FOCAL_PRECHECK_MARGIN) * hi:
-        return est, None
+        # H's entries fix the focal length only as well as the rotation shows it (poorly over a few degrees):
+        # the fit starts from the calibration's instead, unless the parallax is more than a plausible camera
+        # can leave (a focal length off by e leaves at most |e - 1| x the rotation's angle).
+        if est.median_parallax_deg > max(hi - 1.0, 1.0 - lo) * rotation_angle_deg(geo.rotation_from_homography(H, K)):
+            return est, None
+        f = float(K[0, 0])
     K_f = K.copy()
     K_f[:2, :2] *= f / K[0, 0]
     R_f, xn_kf, xn_cur, noise = geo.rotation_from_homography(H, K_f), ctx.kf.xn[ctx.rows][in_h], ctx.xn_cur[in_h], \
@@ -69,8 +94,12 @@ def rotation_under_other_focal(cfg: VoConfig, ctx: MotionContext, H: F64, in_h: 
     # when the rays do not line up without it (k1 trades against the focal length and the pan's angle: on a
     # rotation of a few degrees it takes up the tracks' noise, 0.25 deg of rotation on a 4.7 deg one).
     fit = geo.rotation_under_camera_error(R_f, f / K[0, 0], xn_kf, xn_cur, noise, radial=False)
-    if fit is None or not fit.parallax_deg < cfg.rotation_only_parallax_deg:
+    if fit is None or not rotation_explains(cfg, ctx, H, in_h, fit.angles, ROTATION_PARAMS + 1):
         fit = geo.rotation_under_camera_error(R_f, f / K[0, 0], xn_kf, xn_cur, noise)
+    # The focal length is judged within what the rays determine of it (FOCAL_RANGE_SIGMAS standard
+    # deviations): over a pan of a few degrees they barely do, and a fit outside the range is no evidence.
+    margin = math.exp(FOCAL_RANGE_SIGMAS * fit.log_ratio_sigma) if fit is not None else 1.0
+    lo, hi = lo / margin, hi * margin
     if fit is None or not lo <= fit.ratio <= hi:
         return est, None
     ratio, par_f = fit.ratio, fit.parallax_deg
@@ -82,7 +111,8 @@ def rotation_under_other_focal(cfg: VoConfig, ctx: MotionContext, H: F64, in_h: 
     if not lo <= corner / r_true * (1.0 + fit.k1 * r_true**2) <= hi:
         return est, None
     angle = rotation_angle_deg(fit.R)
-    if not (par_f < cfg.rotation_only_parallax_deg and angle >= cfg.min_rotation_for_rotation_only_deg):
+    if not (angle >= cfg.min_rotation_for_rotation_only_deg
+            and rotation_explains(cfg, ctx, H, in_h, fit.angles, ROTATION_PARAMS + (2 if fit.k1 != 0.0 else 1))):
         return est, None
     # The rotation also carries the focal length's error (a rotation under a focal length off by e is off
     # by about e x its angle): FOCAL_RATIO_SIGMA of it.

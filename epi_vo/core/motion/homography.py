@@ -14,7 +14,7 @@ from epi_vo.core.config import VoConfig
 from epi_vo.core.decisions import Decision, note
 from epi_vo.core.frame import Model, TrackingState
 from epi_vo.core.motion.essential import from_essential, track_with_map
-from epi_vo.core.motion.focal import rotation_under_other_focal
+from epi_vo.core.motion.focal import ROTATION_PARAMS, rotation_explains, rotation_under_other_focal
 from epi_vo.core.motion.initialize import initialize
 from epi_vo.core.motion.plane_views import PlaneVerdict, plane_by_views
 from epi_vo.core.motion.record import Motion, MotionContext, MotionEstimate, has_map, with_inliers
@@ -67,7 +67,8 @@ def from_homography(cfg: VoConfig, ctx: MotionContext, sel: ModelSelection, est:
         return est.noted(note(Decision.TOO_FEW_H_INLIERS, n=est.n_inliers, need=cfg.min_inliers))
     rot_cov = covm.rotation_var(cfg.pixel_noise_px, K[0, 0], est.n_inliers)
     zero = np.zeros(3)
-    if est.median_parallax_deg < cfg.rotation_only_parallax_deg:
+    if rotation_explains(cfg, ctx, H, in_h, geo.ray_angles(R_h, 1.0, 0.0, xn_kf[in_h], xn_cur[in_h]),
+                         ROTATION_PARAMS):
         angle = rotation_angle_deg(R_h)
         if angle >= cfg.min_rotation_for_rotation_only_deg:
             return est.noted(note(Decision.PURE_ROTATION, rh=sel.rh, parallax=est.median_parallax_deg, angle=angle),
