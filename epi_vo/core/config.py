@@ -361,12 +361,24 @@ def is_parameter_name(name: object) -> bool:
     return name.startswith("qos_overrides.")
 
 
+#: Parameters that existed and were removed, with what took their place: a parameter file written for an
+#: older epi_vo that still sets one is refused with this reason rather than a bare "unknown".
+REMOVED_PARAMETERS: dict[str, str] = {
+    "rotation_only_parallax_deg": "removed: pure rotation is chosen by GRIC against the homography; "
+                                  "delete the key",
+}
+
+
 def unknown_names_text(names: list[str], candidates: tuple[str, ...] | None = None) -> str:
-    """'a (did you mean b?), c': each unknown name with its closest parameter name when one is close."""
+    """'a (did you mean b?), c': each unknown name with its closest parameter name when one is close, or
+    why it was removed (:data:`REMOVED_PARAMETERS`)."""
     pool = list(candidates) if candidates is not None else [*PIPELINE_NAMES, *NODE_PARAMETER_NAMES,
                                                             *ROS_PARAMETER_NAMES]
     parts = []
     for name in sorted(names, key=str):
+        if str(name) in REMOVED_PARAMETERS:
+            parts.append(f"{name} ({REMOVED_PARAMETERS[str(name)]})")
+            continue
         close = difflib.get_close_matches(str(name), pool, n=1)
         parts.append(f"{name} (did you mean {close[0]}?)" if close else str(name))
     return ", ".join(parts)

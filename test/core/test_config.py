@@ -179,6 +179,12 @@ def test_from_dict_unknown_parameter() -> None:
         from_dict({"b_knob": 1, "min_inliers": 2, "a_knob": 2})
 
 
+def test_from_dict_a_removed_parameter_says_what_replaced_it() -> None:
+    with pytest.raises(ConfigError, match=r"unknown parameters: rotation_only_parallax_deg \(removed: pure "
+                                          r"rotation is chosen by GRIC"):
+        from_dict({"rotation_only_parallax_deg": 0.3})
+
+
 def test_from_dict_widens_ints_to_floats() -> None:
     cfg = from_dict({"ransac_threshold_px": 2, "kf_max_interval_s": 3})
     assert cfg.ransac_threshold_px == 2.0 and type(cfg.ransac_threshold_px) is float
