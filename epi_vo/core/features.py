@@ -118,7 +118,9 @@ def detect_corners(gray: NDArray[np.uint8], existing: F32, cfg: VoConfig) -> F32
 # measured on the tracks themselves (the median ratio of 5x5 patch means at both ends, over the leading
 # EXPOSURE_MAX_TRACKS rows; from the image means when fewer than EXPOSURE_MIN_TRACKS survived). When it
 # moves the mean grey level by EXPOSURE_MIN_LEVELS or more, the current image is scaled onto the previous
-# one and tracked again; the second attempt is taken unless it keeps fewer of those tracks. Without an
+# one and tracked again; the second attempt is taken unless it keeps fewer of those tracks. When the tracks
+# that survived show no change but the whole image's mean grey level moved by EXPOSURE_MIN_LEVELS, that is
+# the guess tracked again (a large step keeps mostly the patches it changed least). Without an
 # exposure change the estimate still moves by a few levels (under 5: each patch's view changes): the
 # threshold is about twice that noise. The track counts bound the median's noise from below and its cost
 # from above.
@@ -173,6 +175,10 @@ def track_klt(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_pre
     lead = slice(0, EXPOSURE_MAX_TRACKS)
     lead_ok = ok[lead]
     measured = exposure_change(gray_prev, gray_cur, pts_prev[lead][lead_ok], p1[lead][lead_ok])
+    if measured is None:
+        # The tracks a large step lets through at all are those whose grey levels it moved least (dark or
+        # flat patches): they may say "no change" while the whole image says one. Its means are then the guess.
+        measured = _whole_image_change(gray_prev, gray_cur)
     if measured is not None:
         mapped = cast(NDArray[np.uint8], cv2.convertScaleAbs(gray_cur, alpha=measured, beta=0.0))
         p1_m, ok_m, fb_m = _klt_both_ways(gray_prev, mapped, pts_prev, cfg)
@@ -253,6 +259,15 @@ def image_shift(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], level
     (dx, dy), _ = cv2.phaseCorrelate(fa, fb_, window)
     shift = np.array([dx * gray_prev.shape[1] / a.shape[1], dy * gray_prev.shape[0] / a.shape[0]], np.float32)
     return shift if bool(np.all(np.isfinite(shift))) else np.zeros(2, np.float32)
+
+
+def _whole_image_change(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8]) -> float | None:
+    """The gain mapping ``gray_cur``'s mean grey level onto ``gray_prev``'s, None when it moves it by less
+    than ``EXPOSURE_MIN_LEVELS`` (or the current image is black)."""
+    m_prev, m_cur = float(cv2.mean(gray_prev)[0]), float(cv2.mean(gray_cur)[0])
+    if not m_cur > 1.0 or abs(m_prev - m_cur) < EXPOSURE_MIN_LEVELS:
+        return None
+    return m_prev / m_cur
 
 
 def _klt_both_ways(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_prev: F32,

@@ -39,13 +39,25 @@ def _no_points() -> F32:
     return np.zeros((0, 2), np.float32)
 
 
+def _no_uv() -> F64:
+    return np.zeros((0, 2))
+
+
 @dataclass(frozen=True)
 class Tracks:
-    """The live tracks: each one's keyframe row, its position in the previous image, and that image."""
+    """The live tracks: each one's keyframe row, its position in the previous image, and that image; and
+    the tracks born since the keyframe (``step._replenished``), which have no keyframe row: where each was
+    found (undistorted pixels) and its position in the previous image."""
 
     rows: I64 = field(default_factory=_no_rows)
     pts: F32 = field(default_factory=_no_points)
     gray: NDArray[np.uint8] | None = None  # the previous image, KLT's start
+    born_uv: F64 = field(default_factory=_no_uv)  # (M, 2) undistorted pixels where each newborn was found
+    born_pts: F32 = field(default_factory=_no_points)  # (M, 2) its raw pixels in the previous image
+    born_stamp_ns: I64 = field(default_factory=_no_rows)  # (M,) the stamp of the image it was found in
+    # The bucketing grid's cells (row-major) that held a still track on a frame of a still camera since the
+    # keyframe (empty: none judged yet): where the background is, to be found again where its tracks die.
+    still_cells: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
 
 
 @dataclass(frozen=True)

@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 
 from epi_vo.core import covariance as covm
 from epi_vo.core import features as fe
+from epi_vo.core import geometry as geo
 from epi_vo.core import motion as mo
 from epi_vo.core.camera import CameraModel
 from epi_vo.core.config import Frontend, VoConfig
@@ -186,10 +187,14 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
     tracked = fe.track(gray, cfg, env.orb, state.tracks.gray, state.tracks.pts, state.tracks.rows, kf.descriptors,
                        env.workers.track_klt)
     pts_cur, rows, orb_cur, track_noise = tracked.pts, tracked.rows, tracked.orb, tracked.noise_px
+    born_uv, born_pts, born_stamp_ns = _newborn_tracked(state.tracks, gray, cfg, tracked.gain)
+    born_uv_cur = camera.to_pixels(camera.normalize(born_pts))
+    born_uv_kf = _at_keyframe(born_uv, born_uv_cur, born_stamp_ns, kf.stamp_ns, stamp_ns)
     n_refined = None
     if state.patches is not None and kf.ids is not None:
         patches, pts_cur, n_refined = state.patches.refined(gray, pts_cur, kf.ids[rows])
         state = dataclasses.replace(state, patches=patches)
+    tracks_now = Tracks(rows, pts_cur, state.tracks.gray, born_uv, born_pts, born_stamp_ns)
     # This frame's image noise as a share of pixel_noise_px: its twist's, and one step of its pose's.
     noise_ratio = covm.twist_noise_ratio(track_noise, cfg.twist_noise_fb_factor, cfg.twist_noise_floor_px,
                                          cfg.pixel_noise_px)
@@ -223,7 +228,8 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
         H = sel.H if sel.H is not None else H
         timings["models"] = _ms(t0)
         ctx = mo.MotionContext(kf, rows_u, xn_u, uv_u, state.T_cur_kf_prev, state.scale.initial_baseline,
-                               _noise_since(state, kf, cfg), cfg.frontend is Frontend.KLT, stamp_ns)
+                               _noise_since(state, kf, cfg), cfg.frontend is Frontend.KLT, stamp_ns,
+                               born_uv=born_uv_kf, born_uv_cur=born_uv_cur)
         est = mo.estimate(cfg, ctx, sel, state.motion)
         state = dataclasses.replace(state, motion=est.memory)
         notes = notes + est.notes
@@ -255,7 +261,7 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
             state = dataclasses.replace(new_reference(state, cfg, env.orb, gray, camera, stamp_ns, orb_cur),
                                         fail_count=0)
         else:
-            state = dataclasses.replace(state, tracks=Tracks(rows, pts_cur, state.tracks.gray))
+            state = dataclasses.replace(state, tracks=tracks_now)
         timings["mapping"] = _ms(t0)
         state = dataclasses.replace(state, tracks=dataclasses.replace(state.tracks, gray=gray))
         return publish(state, cfg, stamp_ns, TrackingState.LOST, False, restart_now, observed, notes, timings, t_start)
@@ -267,7 +273,7 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
                            motion.t_cur_kf, motion.R_cur_kf)
     state, step_cov = _step_covariance(state, cfg, kf, motion, T_w_c[:3, 3] - state.last_pos_w, noise_ratio)
     state = dataclasses.replace(state, fail_count=0, T_w_c=T_w_c, cov_w_c=cov_w_c, last_pos_w=T_w_c[:3, 3].copy(),
-                                T_cur_kf_prev=T_cur_kf, tracks=Tracks(rows, pts_cur, state.tracks.gray))
+                                T_cur_kf_prev=T_cur_kf, tracks=tracks_now)
     if motion.state is TrackingState.TRACKING:
         state = dataclasses.replace(state, handover=state.handover.booked(stamp_ns, state.T_w_c, state.cov_w_c))
     if motion.state is TrackingState.INITIALIZING:
@@ -277,6 +283,10 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
         state = dataclasses.replace(state, cov_w_c=held)
     state, kfo = maybe_keyframe(state, cfg, env.orb, env.workers.solver, motion, kf, rows, pts_cur, xn_cur, gray,
                                 camera, stamp_ns, orb_cur, est.n_inliers, est.median_parallax_deg, est.n_triangulated)
+    if motion.state is TrackingState.STATIC and not kfo.is_keyframe and env.orb is None:
+        born_still = geo.score_static(born_uv_kf, born_uv_cur, cfg.score_sigma_px)[1]
+        state = _replenished(state, cfg, gray, camera, stamp_ns,
+                             np.vstack([pts_cur[motion.inliers], born_pts[born_still]]).astype(np.float32))
     timings.update(kfo.timings)
     timings["mapping"] = _ms(t0)
     notes = notes + kfo.notes
@@ -291,6 +301,65 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
     step_cov = _unmeasured_step(state, cfg, step_cov, motion.state, kfo.jumped)
     return publish(state, cfg, stamp_ns, motion.state, True, kfo.is_keyframe, observed, notes, timings, t_start,
                    step_covariance=step_cov)
+
+
+def _newborn_tracked(tracks: Tracks, gray: NDArray[np.uint8], cfg: VoConfig, gain: float
+                     ) -> tuple[F64, NDArray[np.float32], NDArray[np.int64]]:
+    """The tracks born since the keyframe followed into ``gray`` (at the exposure ``gain`` the keyframe's
+    tracks were followed with): where each kept one was found (undistorted pixels), where it is now (raw
+    pixels) and when it was found."""
+    if tracks.born_pts.shape[0] == 0 or tracks.gray is None:
+        return tracks.born_uv, tracks.born_pts, tracks.born_stamp_ns
+    kept = fe.track_klt(tracks.gray, gray, tracks.born_pts, cfg, gain=gain)
+    return tracks.born_uv[kept.ok], kept.pts[kept.ok], tracks.born_stamp_ns[kept.ok]
+
+
+def _at_keyframe(born_uv: F64, born_uv_cur: F64, born_stamp_ns: NDArray[np.int64], kf_stamp_ns: int,
+                 stamp_ns: int) -> F64:
+    """Where each newborn would have been at the keyframe had it moved at the image velocity it shows since
+    it was found (``MotionContext.born_uv``): still ones stay where they were found."""
+    since_found = np.maximum(stamp_ns - born_stamp_ns, 1).astype(np.float64)
+    stretch = np.maximum(stamp_ns - kf_stamp_ns, 1) / since_found
+    return born_uv_cur + (born_uv - born_uv_cur) * stretch[:, None]
+
+
+def _replenished(state: TrackState, cfg: VoConfig, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int,
+                 still_pts: NDArray[np.float32]) -> TrackState:
+    """A still camera's background found again where its tracks died (a mover crossing the view occludes
+    them one after the other): new corners in the grid cells that held a still track (``still_pts`` now,
+    ``Tracks.still_cells`` at the frames before) and hold no track now, tracked from here on as newborns.
+    Without a keyframe row they take no part in E, H or a map; they show where the still background is in
+    the "no camera motion" hypothesis (``motion.static``), so that the still features keep their spread
+    instead of the mover taking the view. Cells whose tracks moved and left the view (a camera starting to
+    move) are not refilled. The next keyframe drops them (it tops its grid up itself)."""
+    tracks = state.tracks
+    existing = np.vstack([tracks.pts, tracks.born_pts]).astype(np.float32)
+    h, w = gray.shape[:2]
+    still_cells = _cells(still_pts, cfg, w, h)
+    if tracks.still_cells.size:
+        still_cells |= tracks.still_cells
+    refill = still_cells & ~_cells(existing, cfg, w, h)
+    new = fe.detect_corners(gray, existing, cfg) if refill.any() else np.zeros((0, 2), np.float32)
+    new = new[refill[_cell_of(new, cfg, w, h)]]
+    born_uv = np.vstack([tracks.born_uv, camera.to_pixels(camera.normalize(new))])
+    born_pts = np.vstack([tracks.born_pts, new]).astype(np.float32)
+    born_stamp_ns = np.concatenate([tracks.born_stamp_ns, np.full(new.shape[0], stamp_ns, np.int64)])
+    return dataclasses.replace(state, tracks=dataclasses.replace(tracks, born_uv=born_uv, born_pts=born_pts,
+                                                                 born_stamp_ns=born_stamp_ns, still_cells=still_cells))
+
+
+def _cell_of(pts: NDArray[np.float32], cfg: VoConfig, width: int, height: int) -> NDArray[np.int64]:
+    """The bucketing grid's cell (row-major) of each raw pixel (N, 2)."""
+    c = np.clip((pts[:, 0] * cfg.grid_cols / width).astype(np.int64), 0, cfg.grid_cols - 1)
+    r = np.clip((pts[:, 1] * cfg.grid_rows / height).astype(np.int64), 0, cfg.grid_rows - 1)
+    return r * cfg.grid_cols + c
+
+
+def _cells(pts: NDArray[np.float32], cfg: VoConfig, width: int, height: int) -> NDArray[np.bool_]:
+    """The bucketing grid's cells holding any of ``pts``."""
+    held = np.zeros(cfg.grid_rows * cfg.grid_cols, bool)
+    held[_cell_of(pts, cfg, width, height)] = True
+    return held
 
 
 def _noise_since(state: TrackState, kf: Keyframe, cfg: VoConfig) -> float:

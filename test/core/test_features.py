@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 from klt_texture import SHIFT
@@ -121,3 +122,32 @@ def test_the_tracking_noise_is_the_per_axis_rms_of_the_kept_tracks_forward_backw
     assert 0.0 < clean.noise_px < 0.005, clean.noise_px
     assert dirty.noise_px > 5.0 * clean.noise_px, (clean.noise_px, dirty.noise_px)
     assert clean.gain == 1.0 and clean.notes == ()  # the same exposure: no decision to report
+
+
+def test_a_step_the_surviving_tracks_do_not_show_is_measured_on_the_whole_image(points: np.ndarray) -> None:
+    """A still background half in shadow (grey 10-40) and half lit (40-240), the next image 25 % darker:
+    the tracks Lucas-Kanade keeps across the step are the shadow's, whose 25 % is under EXPOSURE_MIN_LEVELS
+    (a few grey levels), so the tracks alone say "no change" and the lit half's tracks are lost or biased.
+    The whole image's means say 1.33: tracked again with it, every track is kept, within a tenth of a pixel."""
+    rng = np.random.default_rng(3)
+    t = cv2.GaussianBlur(rng.integers(0, 256, (480, 640), dtype=np.uint8), (0, 0), 2.0).astype(np.float64)
+    t = (t - t.min()) / (t.max() - t.min())
+    scene = np.where(np.arange(480)[:, None] < 250, 10.0 + 30.0 * t, 40.0 + 200.0 * t)
+    M = np.array([[1.0, 0.0, SHIFT[0]], [0.0, 1.0, SHIFT[1]]])
+    moved = cv2.warpAffine(scene.astype(np.float32), M, (640, 480), flags=cv2.INTER_CUBIC,
+                           borderMode=cv2.BORDER_REFLECT)
+    prev = np.round(scene).astype(np.uint8)
+    cur = np.clip(np.round(moved * 0.75), 0, 255).astype(np.uint8)
+    lead = slice(0, fe.EXPOSURE_MAX_TRACKS)
+    p1, ok, _ = fe._klt_both_ways(prev, cur, points, CFG)
+    assert np.count_nonzero(ok[lead]) >= fe.EXPOSURE_MIN_TRACKS  # the tracks decide, not the image means ...
+    assert fe.exposure_change(prev, cur, points[lead][ok[lead]], p1[lead][ok[lead]]) is None  # ... and see none
+
+    tracks = fe.track_klt(prev, cur, points, CFG)
+    err = np.linalg.norm(tracks.pts - (points + SHIFT), axis=1)
+    assert tracks.gain == pytest.approx(1.0 / 0.75, rel=0.02)
+    assert np.count_nonzero(tracks.ok) == len(points)
+    assert float(np.median(err[tracks.ok])) < 0.1 and float(np.max(err[tracks.ok])) < 0.3
+    # Without the whole image's guess: most tracks lost, the rest a pixel off.
+    assert np.count_nonzero(ok) < 0.4 * len(points) and float(np.median(np.linalg.norm(p1 - (points + SHIFT),
+                                                                                         axis=1)[ok])) > 0.5

@@ -1072,3 +1072,36 @@ def test_on_a_plane_an_e_the_map_agrees_with_costs_no_fit_of_the_map(planar_scen
 
     monkeypatch.setattr(geo, "refine_pose_pnp", no_fit)
     assert map_disagrees(CFG, ctx, X, R_true, t_true, True) == (None, None)
+
+
+def _static_with_newborns(scene: Any, cfg: VoConfig, born_uv: np.ndarray, born_uv_cur: np.ndarray) -> MotionEstimate:
+    """The clustered-corner case below (everything moved but a corner patch), with tracks born since the
+    keyframe (``MotionContext.born_uv``: where each would have been at the keyframe)."""
+    s, _ = _static_with_mover(scene, -1.0, (14.0, 4.0))
+    corner = (scene.uv_ref_obs[:, 0] < 160) & (scene.uv_ref_obs[:, 1] < 120)
+    cur = s.uv_cur_obs.copy()
+    cur[corner] = scene.uv_ref_obs[corner]
+    s = dataclasses.replace(s, uv_cur_obs=cur)
+    kf = _keyframe(s, _no_map(s))
+    xn_cur = kf.camera.normalize(s.uv_cur_obs)
+    ctx = MotionContext(kf, np.arange(s.n, dtype=np.int64), xn_cur, kf.camera.to_pixels(xn_cur), np.eye(4),
+                        lambda dt: 1.0, stamp_ns=KF_STAMP_NS + DT_NS, born_uv=born_uv, born_uv_cur=born_uv_cur)
+    return estimate(cfg, ctx, select_model(kf.uv, ctx.uv_cur, kf.camera.K, cfg), MotionMemory())
+
+
+def test_tracks_born_where_the_background_was_found_again_show_where_it_is(general_scene) -> None:
+    """Still features clustered in one corner (a share the config here lets pass) do not make the camera
+    static: their spread is 1 cell of 16. Tracks born since the keyframe in the other cells, still since
+    they were found, show the still background there: static. The same newborns moving (a camera that
+    started to move) do not."""
+    cfg = dataclasses.replace(CFG, static_min_fraction=0.02)
+    xs, ys = np.meshgrid(np.arange(4) * 160 + 80.0, np.arange(4) * 120 + 60.0)
+    born = np.column_stack([xs.ravel(), ys.ravel()])
+    still = _static_with_newborns(general_scene, cfg, born, born + 0.2)
+    assert still.motion is not None and still.motion.state is TrackingState.STATIC
+    np.testing.assert_array_equal(still.motion.t_cur_kf, np.zeros(3))
+    assert 0.02 <= still.static_score < 0.1  # the share is the keyframe's tracks' alone
+    moving = _static_with_newborns(general_scene, cfg, born, born + np.array([6.0, 2.0]))
+    assert moving.motion is None or moving.motion.state is not TrackingState.STATIC
+    none = _static_with_newborns(general_scene, cfg, born[:0], born[:0])
+    assert none.motion is None or none.motion.state is not TrackingState.STATIC

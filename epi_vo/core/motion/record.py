@@ -68,6 +68,11 @@ class MotionContext:
     # (``covariance.tracked_since_keyframe``'s ``one_image``); False: matched to the keyframe (ORB).
     tracked: bool = False
     stamp_ns: int = 0  # this frame's stamp (a new map's baseline grows with the time since the keyframe)
+    # Tracks born since the keyframe (no keyframe row): (M, 2) undistorted pixels where each would have been
+    # at the keyframe had it moved since at the image velocity it showed since it was found, and where it is
+    # now. Only the "no camera motion" hypothesis reads them (``static_camera``).
+    born_uv: F64 | None = None
+    born_uv_cur: F64 | None = None
 
 
 @dataclass(frozen=True)

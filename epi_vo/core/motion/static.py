@@ -8,6 +8,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from epi_vo.core import covariance as covm
+from epi_vo.core import geometry as geo
 from epi_vo.core.config import VoConfig
 from epi_vo.core.decisions import Decision, note
 from epi_vo.core.frame import Model, TrackingState
@@ -45,7 +46,16 @@ def static_camera(cfg: VoConfig, ctx: MotionContext, sel: ModelSelection, est: M
     if has_map(cfg, ctx.kf) or fraction < needed:
         return est
     K = ctx.kf.camera
-    spread = grid_spread(ctx.uv_cur, still, K.width, K.height)
+    # Where the still background is, the tracks born since the keyframe where others died say too: a mover
+    # crossing the view occludes the keyframe's tracks one cell after the other, and the background behind
+    # it has not gone. Their motion since they were found is taken back to the keyframe at the image
+    # velocity it shows (``MotionContext.born_uv``): a camera that started moving is not judged on a shorter
+    # interval than its keyframe's tracks are. (They do not vote in the share above.)
+    uv_all, still_all = ctx.uv_cur, still
+    if ctx.born_uv is not None and ctx.born_uv_cur is not None and ctx.born_uv.shape[0]:
+        _, still_born = geo.score_static(ctx.born_uv, ctx.born_uv_cur, cfg.score_sigma_px)
+        uv_all, still_all = np.vstack([ctx.uv_cur, ctx.born_uv_cur]), np.concatenate([still, still_born])
+    spread = grid_spread(uv_all, still_all, K.width, K.height)
     if spread < cfg.static_min_spread:
         return est
     moved = ~still
