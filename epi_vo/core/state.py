@@ -112,6 +112,7 @@ class TrackState:
     mover_ids: I64 = field(default_factory=_no_rows)  # sorted ids of tracks judged to move on their own
     measured: Measured = field(default_factory=Measured)
     last_pos_w: F64 = field(default_factory=_zeros3)  # position of the last frame with a pose
+    held_since_ns: int | None = None  # stamp from which the position is held without a map (None: a map)
     last_relative: LastRelative | None = None
     tracked_noise: TrackedNoise = field(default_factory=TrackedNoise)
     fx: float = 1.0  # the focal length (px) of the last frame's CameraInfo
