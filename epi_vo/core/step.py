@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 from epi_vo.core import covariance as covm
 from epi_vo.core import features as fe
 from epi_vo.core import motion as mo
+from epi_vo.core.calibration_cov import CalibrationError
 from epi_vo.core.camera import CameraModel
 from epi_vo.core.config import Frontend, VoConfig
 from epi_vo.core.decisions import Decision, Note, note
@@ -45,6 +46,7 @@ from epi_vo.core.workers import Ahead, Workers
 _log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
 
 
 @dataclass(frozen=True)
@@ -133,7 +135,6 @@ def process(state: TrackState, frame: Frame, env: StepEnv) -> tuple[TrackState, 
     state, skipped = check_stamp(state, stamp_ns, env.cfg)
     if skipped is not None:
         return state, skipped
-    state = dataclasses.replace(state, fx=float(frame.camera.K[0, 0]))
     t_start = time.perf_counter()
     try:
         gray, camera = downscale(frame.gray, frame.camera, env.cfg.max_image_width)
@@ -274,6 +275,7 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
                                                        (stamp_ns - kf.stamp_ns) * 1e-9,
                                                        (kf.stamp_ns - state.held_since_ns) * 1e-9)
     state, step_cov = _step_covariance(state, cfg, kf, motion, T_w_c[:3, 3] - state.last_pos_w, noise_ratio)
+    state = dataclasses.replace(state, calib=_calibration(state, kf, motion, rows, xn_cur, camera))
     state = dataclasses.replace(state, fail_count=0, T_w_c=T_w_c, cov_w_c=cov_w_c, last_pos_w=T_w_c[:3, 3].copy(),
                                 T_cur_kf_prev=T_cur_kf, tracks=Tracks(rows, pts_cur, state.tracks.gray))
     if motion.state is TrackingState.TRACKING:
@@ -297,6 +299,19 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
     # covariance, which a re-anchored reference keyframe and the map after it take, stays the estimate's.
     return publish(state, cfg, stamp_ns, motion.state, True, kfo.is_keyframe, observed, notes, timings, t_start,
                    step_covariance=step_cov, unknown=motion.state is TrackingState.INITIALIZING)
+
+
+def _calibration(state: TrackState, kf: Keyframe, motion: mo.Motion, rows: I64, xn_cur: F64,
+                 camera: CameraModel) -> CalibrationError:
+    """The calibration error's sensitivity after this pose: its own two-view part from the inliers when it
+    moved relative to the keyframe (``calibration_cov``)."""
+    if not state.calib.declared:
+        return state.calib
+    moved = motion.state is TrackingState.TRACKING
+    inl = motion.inliers
+    return state.calib.tracked(kf.index, kf.T_w_kf, motion.R_cur_kf, motion.t_cur_kf,
+                               kf.xn[rows[inl]] if moved else None, xn_cur[inl] if moved else None,
+                               float(camera.K[0, 0]))
 
 
 def _held_from(state: TrackState, stamp_ns: int) -> TrackState:
