@@ -255,9 +255,19 @@ class VoConfig:
     scale_drift_per_keyframe: float = _knob(
         0.01, "relative scale drift of the map per keyframe (1 sigma, a random walk): the scale filter's process "
         "noise, and in VO units the position covariance's scale term, grown coherently along the path", 0.0, 1.0)
+    # The calibration's uncertainty (1 sigma): a CameraInfo is a measurement, off on a real camera by about
+    # what the scenario distribution draws (docs/distribution.md: principal point up to 4 px, focal length up
+    # to 1.5 %, an undeclared k1 up to 0.05; these defaults are about their RMS). 0 declares it exact.
     principal_point_sigma_px: float = _knob(
-        0.0, "uncertainty of the calibration's principal point (1 sigma, px of CameraInfo): a constant offset of "
-        "every step's direction, grown coherently along the path in the position covariance (0: exact)", 0.0, 100.0)
+        2.0, "uncertainty of the calibration's principal point (1 sigma, px of CameraInfo, each axis): its effect "
+        "on every pose, grown coherently along the path in the pose covariance (0: exact)", 0.0, 100.0)
+    focal_length_rel_sigma: float = _knob(
+        0.01, "uncertainty of the calibration's focal length (1 sigma, relative): its effect on every pose, grown "
+        "coherently along the path in the pose covariance (0: exact)", 0.0, 0.5)
+    radial_distortion_k1_sigma: float = _knob(
+        0.025, "radial distortion the calibration may leave undeclared (1 sigma of k1, normalised image "
+        "coordinates): its effect on every pose, grown coherently along the path in the pose covariance "
+        "(0: the lens model taken as exact)", 0.0, 1.0)
     lost_position_variance: float = _knob(1.0e4, "position variance reported when no pose can be justified",
                                           1.0, 1.0e12)
     lost_rotation_variance: float = _knob(1.0e2, "rotation variance (rad^2) reported when no pose can be justified "

@@ -98,3 +98,13 @@ class Handover:
         cov[:3, :3] += np.eye(3) * pos_var
         cov[3:, 3:] += np.eye(3) * bounded_motion_var(turn_rate, *self.turn_limits, gap_s, math.pi)
         return cov
+
+
+def held_motion_var(baseline: float, baseline_s: float, held_s: float) -> float:
+    """Per-axis position variance of the motion while a position was held without a map for ``held_s``
+    seconds before the new map's reference keyframe: the new map's first baseline (``baseline`` map units
+    in ``baseline_s`` seconds) gives the speed, and as for a hand-over in VO units that speed over the time
+    is one standard deviation. Zero when nothing was held or no time passed."""
+    if held_s <= 0.0 or baseline_s <= 0.0 or not math.isfinite(baseline):
+        return 0.0
+    return (baseline / baseline_s * held_s) ** 2

@@ -177,8 +177,7 @@ def maybe_keyframe(state: TrackState, cfg: VoConfig, orb: cv2.ORB | None, solver
         d = state.T_w_c[:3, 3] - kf.T_w_kf[:3, 3]
         map_scale, scale_cov = state.map_scale.keyframe_cov(state.scale, motion.new_map is not None, d)
         cov[:3, :3] += scale_cov
-        state = dataclasses.replace(state, map_scale=map_scale,
-                                    offset=state.offset.with_step(d, kf.T_w_kf[:3, :3], state.fx))
+        state = dataclasses.replace(state, map_scale=map_scale)
     ids_tracked = kf.ids[rows] if kf.ids is not None else None
     state = set_keyframe(state, cfg, orb, gray, camera, stamp_ns, cov, pts_cur, X_cur, orb_cur, ids_tracked)
     out = dataclasses.replace(out, is_keyframe=True, points_w=points_w, jumped=jumped)
@@ -218,7 +217,7 @@ def metric_step(state: TrackState, motion: mo.Motion, kf: Keyframe, X_cur: F64, 
     T_w_c[:3, 3] = origin + d
     state = dataclasses.replace(state, window=state.window.cleared(), T_w_c=T_w_c,
                                 cov_w_c=state.map_scale.metric_covariance(state.scale, state.cov_w_c, factor, d),
-                                offset=state.offset.rescaled(factor))
+                                calib=state.calib.rescaled(factor))
     return state, X_cur * factor, t, step_scale, True
 
 

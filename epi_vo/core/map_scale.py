@@ -1,4 +1,4 @@
-"""The map's scale and the calibration's direction offset in the pose covariance (numpy only).
+"""The map's scale in the pose covariance (numpy only).
 
 A monocular map knows its translation up to one scale. How uncertain that scale is, and how its error
 moves the published position, depends on whether a scale source established metres:
@@ -11,11 +11,10 @@ moves the published position, depends on whether a scale source established metr
   rescaling of what the map accumulated in VO units when metres are established (``metric_covariance``);
   the source's systematic error scales the whole path about the map's origin (``systematic``).
 
-The calibration's principal point error turns every step's direction alike; ``DirectionOffset`` carries
-that coherent part (``principal_point_sigma_px``; 0, an exact calibration, by default).
+The calibration's error, which also grows coherently along the path, is ``calibration_cov``'s.
 
-The tracking state holds one ``MapScaleCovariance`` and one ``DirectionOffset`` (frozen values, replaced
-as keyframes come); each map's start is given by ``with_origin``.
+The tracking state holds one ``MapScaleCovariance`` (a frozen value, replaced as keyframes come); each
+map's start is given by ``with_origin``.
 """
 
 from __future__ import annotations
@@ -27,7 +26,6 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from epi_vo.core.geometry import skew
 from epi_vo.core.scale import ScaleSource
 
 F64 = NDArray[np.float64]
@@ -104,45 +102,3 @@ class MapScaleCovariance:
         there, not as a random walk."""
         d = p_w - self.origin_w
         return np.outer(d, d) * scale.systematic_rel**2
-
-
-def _zeros32() -> F64:
-    return np.zeros((3, 2))
-
-
-@dataclass(frozen=True)
-class DirectionOffset:
-    """The calibration's constant offset of the steps' directions, in the pose covariance.
-
-    A principal point off by (dx, dy) px turns every bearing, and with them every step's direction in the
-    camera frame, by about (dy, -dx) / fx rad about the camera's x and y axes. The same turn at every step
-    adds up along the path (the camera crabs), while E's covariance takes each step's errors as
-    independent. Its position error is J phi, phi the two angles (1 sigma ``sigma_px`` / fx each) and J the
-    sum over the steps d (odometry frame) of -[d]x R_w_c[:, :2]: it grows with the path, coherently, as the
-    scale source's systematic error does (``MapScaleCovariance.systematic``). The rotation is not affected
-    (to first order). Frozen: a step returns the offset after it."""
-
-    sigma_px: float
-    J: F64 = field(default_factory=_zeros32)  # sum over the keyframe steps so far, with sigma / fx in it
-
-    def _step(self, d: F64, R_w_c: F64, fx: float) -> F64:
-        return -skew(d) @ R_w_c[:, :2] * (self.sigma_px / fx)
-
-    def with_step(self, d: F64, R_w_c: F64, fx: float) -> DirectionOffset:
-        """After a keyframe step ``d`` (odometry frame) taken from a keyframe with orientation ``R_w_c`` (a
-        non-finite one is not taken: the published covariance stays finite)."""
-        if self.sigma_px > 0.0 and np.all(np.isfinite(d)) and np.all(np.isfinite(R_w_c)):
-            return dataclasses.replace(self, J=self.J + self._step(d, R_w_c, fx))
-        return self
-
-    def rescaled(self, factor: float) -> DirectionOffset:
-        """The path was scaled by ``factor`` (metric scale established)."""
-        return dataclasses.replace(self, J=self.J * factor)
-
-    def cov(self, d: F64, R_w_c: F64, fx: float) -> F64:
-        """Position covariance of the offset at a pose ``d`` past the keyframe (orientation ``R_w_c``)."""
-        if self.sigma_px <= 0.0:
-            return np.zeros((3, 3))
-        finite = np.all(np.isfinite(d)) and np.all(np.isfinite(R_w_c))
-        J = self.J + self._step(d, R_w_c, fx) if finite else self.J
-        return J @ J.T

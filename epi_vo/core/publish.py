@@ -3,7 +3,7 @@
 ``Observed`` gathers what the stages measured this frame (each value from the stage that measured it);
 ``publish`` books the frame in the tracking state, guards the held pose, composes the published pose and
 covariance (the held position's 'unknown' variance, the scale source's systematic error, the calibration's
-direction offset) and renders the notes to the ``reason``.
+error) and renders the notes to the ``reason``.
 """
 
 from __future__ import annotations
@@ -105,8 +105,8 @@ def publish(state: TrackState, cfg: VoConfig, stamp_ns: int, tracking: TrackingS
         notes = (*notes, note(Decision.METRIC_SCALE_PENDING))
     elif state.scale.established:
         cov[:3, :3] += state.map_scale.systematic(state.scale, T_out[:3, 3])
-    if (kf := state.kf) is not None:
-        cov[:3, :3] += state.offset.cov(T_out[:3, 3] - kf.T_w_kf[:3, 3], kf.T_w_kf[:3, :3], state.fx)
+    cov += state.calib.cov()
+    kf = state.kf
     cov = covm.floored(cov)
     timings = {**timings, "total": (time.perf_counter() - t_start) * 1e3}
     o = observed

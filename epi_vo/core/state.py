@@ -3,7 +3,7 @@
 ``epi_vo.core.step`` takes a ``TrackState`` and a frame and returns the state after the frame (and the
 frame's record); nothing else persists between frames. Its parts are frozen values too: the keyframe and
 its map (``Keyframe``), the scale source (``scale``), the windowed map (``window``), the motion stage's
-memory (``motion``), the covariance's scale and calibration terms (``map_scale``, ``offset``), the
+memory (``motion``), the covariance's scale and calibration terms (``map_scale``, ``calib``), the
 hand-over to a new map (``handover``). Arrays held here are never changed in place: a new state holds
 new arrays.
 """
@@ -16,11 +16,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from epi_vo.core import scale as sc
+from epi_vo.core.calibration_cov import CalibrationError
 from epi_vo.core.config import VoConfig
 from epi_vo.core.decisions import Note
 from epi_vo.core.handover import Handover
 from epi_vo.core.keyframe import Keyframe
-from epi_vo.core.map_scale import DirectionOffset, MapScaleCovariance
+from epi_vo.core.map_scale import MapScaleCovariance
 from epi_vo.core.motion import MotionMemory
 from epi_vo.core.patches import PatchTemplates, patch_templates
 from epi_vo.core.wheel_odometry import WheelOdometry
@@ -107,7 +108,7 @@ class TrackState:
     scale: sc.ScaleSource
     handover: Handover
     map_scale: MapScaleCovariance
-    offset: DirectionOffset
+    calib: CalibrationError
     window: WindowedMap
     patches: PatchTemplates | None  # KLT tracks refined against their first image (None: off)
     index: int = 0  # the next frame's index (every frame gets one, skipped ones too)
@@ -124,9 +125,9 @@ class TrackState:
     mover_ids: I64 = field(default_factory=_no_rows)  # sorted ids of tracks judged to move on their own
     measured: Measured = field(default_factory=Measured)
     last_pos_w: F64 = field(default_factory=_zeros3)  # position of the last frame with a pose
+    held_since_ns: int | None = None  # stamp from which the position is held without a map (None: a map)
     last_relative: LastRelative | None = None
     tracked_noise: TrackedNoise = field(default_factory=TrackedNoise)
-    fx: float = 1.0  # the focal length (px) of the last frame's CameraInfo
     motion: MotionMemory = field(default_factory=MotionMemory)
     wheel: WheelOdometry = field(default_factory=WheelOdometry)
 
@@ -135,6 +136,7 @@ def initial_state(cfg: VoConfig) -> TrackState:
     """The state before the first frame: no keyframe, the origin, the scale source's start."""
     return TrackState(scale=sc.source_from_config(cfg), handover=Handover.from_config(cfg),
                       map_scale=MapScaleCovariance(cfg.scale_drift_per_keyframe),
-                      offset=DirectionOffset(cfg.principal_point_sigma_px),
+                      calib=CalibrationError((cfg.focal_length_rel_sigma, cfg.principal_point_sigma_px,
+                                              cfg.principal_point_sigma_px, cfg.radial_distortion_k1_sigma)),
                       window=WindowedMap.create(cfg.ba_window_keyframes, cfg.ba_every_keyframes, cfg.pixel_noise_px),
                       patches=patch_templates(cfg))

@@ -30,10 +30,12 @@ from epi_vo.core import covariance as covm
 from epi_vo.core import features as fe
 from epi_vo.core import geometry as geo
 from epi_vo.core import motion as mo
+from epi_vo.core.calibration_cov import CalibrationError
 from epi_vo.core.camera import CameraModel
 from epi_vo.core.config import Frontend, VoConfig
 from epi_vo.core.decisions import Decision, Note, note
 from epi_vo.core.frame import MAX_STAMP_NS, FrameResult, Matches, TrackingState, clamp_stamp_ns
+from epi_vo.core.handover import held_motion_var
 from epi_vo.core.keyframe import Keyframe
 from epi_vo.core.keyframing import book_movers, maybe_keyframe, movers_among, new_reference
 from epi_vo.core.odometry import rotate_covariance
@@ -45,6 +47,7 @@ from epi_vo.core.workers import Ahead, Workers
 _log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
 
 
 @dataclass(frozen=True)
@@ -133,7 +136,6 @@ def process(state: TrackState, frame: Frame, env: StepEnv) -> tuple[TrackState, 
     state, skipped = check_stamp(state, stamp_ns, env.cfg)
     if skipped is not None:
         return state, skipped
-    state = dataclasses.replace(state, fx=float(frame.camera.K[0, 0]))
     t_start = time.perf_counter()
     try:
         gray, camera = downscale(frame.gray, frame.camera, env.cfg.max_image_width)
@@ -162,7 +164,8 @@ def _tracked(state: TrackState, frame: Frame, env: StepEnv, t_start: float) -> t
     if state.kf is None:
         first = state.index == 0
         t0 = time.perf_counter()
-        state = new_reference(state, env.cfg, env.orb, frame.gray, frame.camera, frame.stamp_ns)
+        state = _held_from(new_reference(state, env.cfg, env.orb, frame.gray, frame.camera, frame.stamp_ns),
+                           frame.stamp_ns)
         notes = (*notes, note(Decision.FIRST_FRAME if first else Decision.NEW_REFERENCE))
         return publish(state, env.cfg, frame.stamp_ns, TrackingState.INITIALIZING, True, True, Observed(), notes,
                        {"frontend": _ms(t0)}, t_start, unknown=not first)
@@ -258,8 +261,8 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
         state, restart_now, failed = _on_failure(dataclasses.replace(state, last_relative=None), cfg, n_tracked)
         notes = (*notes, failed)
         if restart_now:
-            state = dataclasses.replace(new_reference(state, cfg, env.orb, gray, camera, stamp_ns, orb_cur),
-                                        fail_count=0)
+            state = dataclasses.replace(_held_from(new_reference(state, cfg, env.orb, gray, camera, stamp_ns, orb_cur),
+                                                   stamp_ns), fail_count=0)
         else:
             state = dataclasses.replace(state, tracks=tracks_now)
         timings["mapping"] = _ms(t0)
@@ -271,16 +274,19 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
     T_w_c = kf.T_w_kf @ invert_T(T_cur_kf)
     cov_w_c = covm.compose(kf.cov_w_kf, kf.T_w_kf, motion.cov_rel if motion.cov_pose is None else motion.cov_pose,
                            motion.t_cur_kf, motion.R_cur_kf)
+    if motion.new_map is not None and state.held_since_ns is not None:
+        # The map starts at its reference keyframe's position, held since ``held_since_ns``: the camera's
+        # motion over that time was measured by nothing (``handover.held_motion_var``).
+        cov_w_c[:3, :3] += np.eye(3) * held_motion_var(float(np.linalg.norm(motion.t_cur_kf)),
+                                                       (stamp_ns - kf.stamp_ns) * 1e-9,
+                                                       (kf.stamp_ns - state.held_since_ns) * 1e-9)
     state, step_cov = _step_covariance(state, cfg, kf, motion, T_w_c[:3, 3] - state.last_pos_w, noise_ratio)
+    state = dataclasses.replace(state, calib=_calibration(state, kf, motion, rows, xn_cur, camera))
     state = dataclasses.replace(state, fail_count=0, T_w_c=T_w_c, cov_w_c=cov_w_c, last_pos_w=T_w_c[:3, 3].copy(),
                                 T_cur_kf_prev=T_cur_kf, tracks=tracks_now)
     if motion.state is TrackingState.TRACKING:
-        state = dataclasses.replace(state, handover=state.handover.booked(stamp_ns, state.T_w_c, state.cov_w_c))
-    if motion.state is TrackingState.INITIALIZING:
-        # Unknown scale: the position is not justified by anything yet.
-        held = state.cov_w_c.copy()
-        held[:3, :3] += np.eye(3) * cfg.lost_position_variance
-        state = dataclasses.replace(state, cov_w_c=held)
+        state = dataclasses.replace(state, handover=state.handover.booked(stamp_ns, state.T_w_c, state.cov_w_c),
+                                    held_since_ns=None)
     state, kfo = maybe_keyframe(state, cfg, env.orb, env.workers.solver, motion, kf, rows, pts_cur, xn_cur, gray,
                                 camera, stamp_ns, orb_cur, est.n_inliers, est.median_parallax_deg, est.n_triangulated)
     if motion.state is TrackingState.STATIC and not kfo.is_keyframe and env.orb is None:
@@ -299,8 +305,28 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
     observed = dataclasses.replace(observed, correction=kfo.correction)
     state = dataclasses.replace(state, tracks=dataclasses.replace(state.tracks, gray=gray))
     step_cov = _unmeasured_step(state, cfg, step_cov, motion.state, kfo.jumped)
+    # Initialising, the position is held (unknown scale): what is published says so, while the state's
+    # covariance, which a re-anchored reference keyframe and the map after it take, stays the estimate's.
     return publish(state, cfg, stamp_ns, motion.state, True, kfo.is_keyframe, observed, notes, timings, t_start,
-                   step_covariance=step_cov)
+                   step_covariance=step_cov, unknown=motion.state is TrackingState.INITIALIZING)
+
+
+def _calibration(state: TrackState, kf: Keyframe, motion: mo.Motion, rows: I64, xn_cur: F64,
+                 camera: CameraModel) -> CalibrationError:
+    """The calibration error's sensitivity after this pose: its own two-view part from the inliers when it
+    moved relative to the keyframe (``calibration_cov``)."""
+    if not state.calib.declared:
+        return state.calib
+    moved = motion.state is TrackingState.TRACKING
+    inl = motion.inliers
+    return state.calib.tracked(kf.index, kf.T_w_kf, motion.R_cur_kf, motion.t_cur_kf,
+                               kf.xn[rows[inl]] if moved else None, xn_cur[inl] if moved else None,
+                               float(camera.K[0, 0]))
+
+
+def _held_from(state: TrackState, stamp_ns: int) -> TrackState:
+    """A new reference keyframe without a map: the position is held from here, unless it already was."""
+    return state if state.held_since_ns is not None else dataclasses.replace(state, held_since_ns=stamp_ns)
 
 
 def _newborn_tracked(tracks: Tracks, gray: NDArray[np.uint8], cfg: VoConfig, gain: float

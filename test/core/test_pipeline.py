@@ -7,6 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 from bag_frames import decoded_frames, run_frames
+from exact_calibration import exact
 
 from epi_vo.core.camera import CameraModel
 from epi_vo.core.config import VoConfig
@@ -130,8 +131,9 @@ def test_pixel_noise_scales_the_covariance_and_nothing_else(frames: list[tuple[i
     by four (the rotation's entirely; the position keeps its scale-drift part). With
     ``twist_noise_fb_factor`` 0 every tracked frame counts a whole ``pixel_noise_px`` (by default the
     tracks' measured noise, which ``pixel_noise_px`` only caps)."""
-    a = run_frames(VoPipeline(dataclasses.replace(VoConfig(), pixel_noise_px=0.8, twist_noise_fb_factor=0.0)), frames)
-    b = run_frames(VoPipeline(dataclasses.replace(VoConfig(), pixel_noise_px=0.4, twist_noise_fb_factor=0.0)), frames)
+    # The calibration's term (a real camera's, not the image noise's) is declared exact here.
+    a = run_frames(VoPipeline(exact(pixel_noise_px=0.8, twist_noise_fb_factor=0.0)), frames)
+    b = run_frames(VoPipeline(exact(pixel_noise_px=0.4, twist_noise_fb_factor=0.0)), frames)
     assert [(r.state, r.model, r.is_keyframe) for r in a] == [(r.state, r.model, r.is_keyframe) for r in b]
     for ra, rb in zip(a, b, strict=True):
         np.testing.assert_array_equal(ra.T_w_c, rb.T_w_c)

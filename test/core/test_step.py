@@ -72,7 +72,7 @@ def test_the_state_is_one_frozen_value(frames: Frames) -> None:
     assert {"T_w_c", "cov_w_c", "kf", "scale", "window", "motion", "wheel", "handover"} <= set(frozen_fields)
     assert all(dataclasses.is_dataclass(getattr(pipe.state, name)) and
                type(getattr(pipe.state, name)).__dataclass_params__.frozen
-               for name in ("scale", "window", "motion", "wheel", "handover", "map_scale", "offset", "tracks"))
+               for name in ("scale", "window", "motion", "wheel", "handover", "map_scale", "calib", "tracks"))
 
 
 def test_a_reject_and_a_restart_are_values_too(frames: Frames) -> None:

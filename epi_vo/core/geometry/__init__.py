@@ -65,6 +65,8 @@ from epi_vo.core.geometry.pose import (
 )
 from epi_vo.core.geometry.triangulation import ScaleEstimate, Triangulation, scale_from_points, triangulate
 from epi_vo.core.geometry.uncertainty import (
+    CALIBRATION_TERMS,
+    calibration_sensitivity,
     essential_pose_covariance,
     fuse,
     map_information,
@@ -76,6 +78,7 @@ from epi_vo.core.geometry.uncertainty import (
 )
 
 __all__ = [
+    "CALIBRATION_TERMS",
     "CHI2_1DOF",
     "CHI2_2DOF",
     "F64",
@@ -89,6 +92,7 @@ __all__ = [
     "Triangulation",
     "agrees_with_plane",
     "as_float64",
+    "calibration_sensitivity",
     "epipolar_distances_sq",
     "essential_from_pose",
     "essential_pose_covariance",

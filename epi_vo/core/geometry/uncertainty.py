@@ -269,3 +269,66 @@ def pose_undetermined(cov: F64 | None, t: F64, max_rotation_sigma_deg: float, ma
     if rot_sigma > max_rotation_sigma_deg or dir_sigma > max_direction_sigma_deg:
         return rot_sigma, dir_sigma
     return None
+
+
+# Calibration errors a CameraInfo may carry, in the order of ``calibration_sensitivity``'s columns: the focal
+# length (relative), the principal point's x and y (px) and an undeclared radial distortion k1 (normalised).
+CALIBRATION_TERMS = ("focal_rel", "cx_px", "cy_px", "k1")
+
+
+def calibration_sensitivity(R_cur_kf: F64, t_dir: F64, xn_kf: F64, xn_cur: F64, scale: float, fx: float
+                            ) -> F64 | None:
+    """(6, 4) first-order change of the two-view pose (camera centre, rotation; conventions as
+    ``essential_pose_covariance``) per unit error of the calibration (``CALIBRATION_TERMS``).
+
+    The rays the pose is fitted to are the pixels through the calibration: with the true focal length
+    ``fx (1 + e)``, principal point off by ``(dx, dy)`` px and an undeclared radial ``k1``, the true
+    normalised point of ``x`` is ``x (1 - e - k1 |x|^2) - (dx, dy) / fx`` to first order, the same error in
+    both views. The pose minimising the Sampson distances moves by ``-(J^T J)^-1 J^T J_c`` (implicit
+    function theorem; ``J`` over the pose's five parameters, ``J_c`` over the calibration's), which is
+    large exactly where rotation and direction of travel are coupled (a narrow view, a plane). The
+    scale is held (a calibration error does not change the map's units). None when the five parameters
+    are not observable from these points (as ``essential_pose_covariance``)."""
+    n = xn_kf.shape[0]
+    if n < 6 or not scale > 0 or not fx > 0:
+        return None
+    R_kf_cur = R_cur_kf.T
+    d = -R_kf_cur @ t_dir
+    d /= np.linalg.norm(d)
+    B = tangent_basis(d)
+    h = FD_STEP
+    R_kf_st = _rotation_steps(R_kf_cur, 6, 1)
+    c_st = np.repeat(d[None], 6, axis=0)
+    for j in range(2):
+        c_st[4 + j] = d + h * B[:, j]
+    c_st /= np.linalg.norm(c_st, axis=1, keepdims=True)
+    R_st = np.transpose(R_kf_st, (0, 2, 1))
+    t_st = -np.einsum("kij,kj->ki", R_st, c_st)
+    E_st = np.einsum("kij,kjl->kil", _skew_stack(t_st), R_st)
+    rows = _subsample(n, MAX_POINTS)
+    x_kf, x_cur = xn_kf[rows], xn_cur[rows]
+    one = np.ones(rows.size)
+    r = _sampson(E_st, np.column_stack([x_kf, one]), np.column_stack([x_cur, one]))
+    J = ((r[1:] - r[0]) / h).T  # (m, 5)
+    JtJ = J.T @ J
+    if not np.all(np.isfinite(JtJ)):
+        return None
+    eig, V = np.linalg.eigh(JtJ)
+    if not eig[0] > 1e-12 * eig[-1]:
+        return None
+
+    # The rays moved by a small step of each calibration error (rows: error k's copy of the m points), both
+    # views alike, and their Sampson distances under the estimate: the derivatives J_c in one evaluation.
+    pp = np.zeros((4, 1, 2))
+    pp[1, 0, 0] = pp[2, 0, 1] = -1.0 / fx
+
+    def moved(x: F64) -> F64:
+        dx = np.stack([-x, np.broadcast_to(pp[1], x.shape), np.broadcast_to(pp[2], x.shape),
+                       -x * np.sum(x * x, axis=1, keepdims=True)])
+        return np.column_stack([(x[None] + h * dx).reshape(-1, 2), np.ones(4 * x.shape[0])])
+
+    rc = _sampson(E_st[:1], moved(x_kf), moved(x_cur))[0].reshape(4, -1)
+    Jc = ((rc - r[0]) / h).T  # (m, 4)
+    dtheta = -np.einsum("ik,k,jk->ij", V, 1.0 / eig, V) @ (J.T @ Jc)  # (5, 4): phi (3), beta (2)
+    S = np.vstack([scale * B @ dtheta[3:5], dtheta[:3]])
+    return S if np.all(np.isfinite(S)) else None
