@@ -80,5 +80,5 @@ class CalibrationError:
         """6x6 covariance of the last pose from the calibration's errors."""
         if not self.declared:
             return np.zeros((6, 6))
-        G = self.G_cur * np.asarray(self.sigmas)
-        return G @ G.T
+        G = self.G_cur * np.asarray(self.sigmas, dtype=np.float64)
+        return np.asarray(G @ G.T, dtype=np.float64)

@@ -346,7 +346,7 @@ def _at_keyframe(born_uv: F64, born_uv_cur: F64, born_stamp_ns: NDArray[np.int64
     it was found (``MotionContext.born_uv``): still ones stay where they were found."""
     since_found = np.maximum(stamp_ns - born_stamp_ns, 1).astype(np.float64)
     stretch = np.maximum(stamp_ns - kf_stamp_ns, 1) / since_found
-    return born_uv_cur + (born_uv - born_uv_cur) * stretch[:, None]
+    return np.asarray(born_uv_cur + (born_uv - born_uv_cur) * stretch[:, None], dtype=np.float64)
 
 
 def _replenished(state: TrackState, cfg: VoConfig, gray: NDArray[np.uint8], camera: CameraModel, stamp_ns: int,
