@@ -100,11 +100,56 @@ class Handover:
         return cov
 
 
-def held_motion_var(baseline: float, baseline_s: float, held_s: float) -> float:
-    """Per-axis position variance of the motion while a position was held without a map for ``held_s``
-    seconds before the new map's reference keyframe: the new map's first baseline (``baseline`` map units
-    in ``baseline_s`` seconds) gives the speed, and as for a hand-over in VO units that speed over the time
-    is one standard deviation. Zero when nothing was held or no time passed."""
-    if held_s <= 0.0 or baseline_s <= 0.0 or not math.isfinite(baseline):
-        return 0.0
-    return (baseline / baseline_s * held_s) ** 2
+@dataclass(frozen=True)
+class HeldStart:
+    """The position held without a map since ``since_ns`` (initialising, after a restart), and what the
+    images measured of the camera's motion meanwhile, in parallax: the median parallax of the tracks
+    against the reference keyframe (rotation taken out) grows with the camera's displacement over the
+    scene's depth. Each reference given up while held books the parallax last measured against it; the
+    time after that frame, until the next reference, is blind: there the motion is taken at the speeds
+    measured on either side (the last parallax rate before, the new map's first speed after), changing
+    evenly in between (constant acceleration)."""
+
+    since_ns: int
+    ref_ns: int  # the current reference keyframe's stamp
+    parallax_deg: float = 0.0  # booked: measured against the references given up
+    blind_s: float = 0.0  # booked: time with no frame measured against a reference
+    blind_deg: float = 0.0  # booked: the parallax rate before each blind time, times that time
+    seen_deg: float = 0.0  # the last parallax measured against the current reference
+    seen_ns: int | None = None  # and its frame's stamp (None: nothing measured against it yet)
+    rate_deg_s: float = 0.0  # the last parallax rate measured (deg / s)
+
+    @staticmethod
+    def at(stamp_ns: int) -> HeldStart:
+        return HeldStart(int(stamp_ns), int(stamp_ns))
+
+    def seen(self, stamp_ns: int, parallax_deg: float) -> HeldStart:
+        """A frame measured against the current reference with this median parallax."""
+        if not math.isfinite(parallax_deg) or stamp_ns <= self.ref_ns:
+            return self
+        return dataclasses.replace(self, seen_deg=float(parallax_deg), seen_ns=int(stamp_ns),
+                                   rate_deg_s=float(parallax_deg) / ((stamp_ns - self.ref_ns) * 1e-9))
+
+    def reanchored(self, stamp_ns: int) -> HeldStart:
+        """The reference moves to the frame at ``stamp_ns``: what was seen against the old one is booked,
+        and the time since the last frame measured against it is blind."""
+        last = self.ref_ns if self.seen_ns is None else self.seen_ns
+        blind = max(stamp_ns - last, 0) * 1e-9
+        return HeldStart(self.since_ns, int(stamp_ns), self.parallax_deg + self.seen_deg, self.blind_s + blind,
+                         self.blind_deg + self.rate_deg_s * blind, rate_deg_s=self.rate_deg_s)
+
+    def motion_var(self, baseline: float, baseline_s: float, parallax_deg: float) -> float:
+        """Per-axis position variance of the motion while held, for a new map whose first baseline is
+        ``baseline`` map units in ``baseline_s`` seconds at ``parallax_deg`` median parallax: the new map's
+        baseline per degree of parallax turns what was seen into map units (the same scene), the blind time
+        moves at the mean of the speeds before and after it, and the displacement ``d``, known in norm
+        only, is spread over the axes (``d^2 / 3``). Without the new map's parallax, its first speed over
+        the whole held time is one standard deviation (the hand-over in VO units)."""
+        if baseline_s <= 0.0 or not math.isfinite(baseline):
+            return 0.0
+        speed = baseline / baseline_s
+        if not (math.isfinite(parallax_deg) and parallax_deg > 0.0):
+            return (speed * max((self.ref_ns - self.since_ns) * 1e-9, 0.0)) ** 2
+        per_deg = baseline / parallax_deg
+        d = per_deg * (self.parallax_deg + 0.5 * self.blind_deg) + 0.5 * speed * self.blind_s
+        return d * d / 3.0

@@ -19,7 +19,7 @@ from epi_vo.core import scale as sc
 from epi_vo.core.calibration_cov import CalibrationError
 from epi_vo.core.config import VoConfig
 from epi_vo.core.decisions import Note
-from epi_vo.core.handover import Handover
+from epi_vo.core.handover import Handover, HeldStart
 from epi_vo.core.keyframe import Keyframe
 from epi_vo.core.map_scale import MapScaleCovariance
 from epi_vo.core.motion import MotionMemory
@@ -125,7 +125,7 @@ class TrackState:
     mover_ids: I64 = field(default_factory=_no_rows)  # sorted ids of tracks judged to move on their own
     measured: Measured = field(default_factory=Measured)
     last_pos_w: F64 = field(default_factory=_zeros3)  # position of the last frame with a pose
-    held_since_ns: int | None = None  # stamp from which the position is held without a map (None: a map)
+    held: HeldStart | None = None  # the position held without a map, and what was seen meanwhile (None: a map)
     last_relative: LastRelative | None = None
     tracked_noise: TrackedNoise = field(default_factory=TrackedNoise)
     motion: MotionMemory = field(default_factory=MotionMemory)

@@ -35,7 +35,7 @@ from epi_vo.core.camera import CameraModel
 from epi_vo.core.config import Frontend, VoConfig
 from epi_vo.core.decisions import Decision, Note, note
 from epi_vo.core.frame import MAX_STAMP_NS, FrameResult, Matches, TrackingState, clamp_stamp_ns
-from epi_vo.core.handover import held_motion_var
+from epi_vo.core.handover import HeldStart
 from epi_vo.core.keyframe import Keyframe
 from epi_vo.core.keyframing import book_movers, maybe_keyframe, movers_among, new_reference
 from epi_vo.core.odometry import rotate_covariance
@@ -274,21 +274,25 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
     T_w_c = kf.T_w_kf @ invert_T(T_cur_kf)
     cov_w_c = covm.compose(kf.cov_w_kf, kf.T_w_kf, motion.cov_rel if motion.cov_pose is None else motion.cov_pose,
                            motion.t_cur_kf, motion.R_cur_kf)
-    if motion.new_map is not None and state.held_since_ns is not None:
-        # The map starts at its reference keyframe's position, held since ``held_since_ns``: the camera's
-        # motion over that time was measured by nothing (``handover.held_motion_var``).
-        cov_w_c[:3, :3] += np.eye(3) * held_motion_var(float(np.linalg.norm(motion.t_cur_kf)),
-                                                       (stamp_ns - kf.stamp_ns) * 1e-9,
-                                                       (kf.stamp_ns - state.held_since_ns) * 1e-9)
+    if motion.new_map is not None and state.held is not None:
+        # The map starts at its reference keyframe's position, held since ``state.held.since_ns``: the
+        # camera's motion over that time is what the frames tracked meanwhile saw (``handover.HeldStart``).
+        cov_w_c[:3, :3] += np.eye(3) * state.held.motion_var(float(np.linalg.norm(motion.t_cur_kf)),
+                                                             (stamp_ns - kf.stamp_ns) * 1e-9,
+                                                             est.median_parallax_deg)
     state, step_cov = _step_covariance(state, cfg, kf, motion, T_w_c[:3, 3] - state.last_pos_w, noise_ratio)
     state = dataclasses.replace(state, calib=_calibration(state, kf, motion, rows, xn_cur, camera))
     state = dataclasses.replace(state, fail_count=0, T_w_c=T_w_c, cov_w_c=cov_w_c, last_pos_w=T_w_c[:3, 3].copy(),
                                 T_cur_kf_prev=T_cur_kf, tracks=tracks_now)
     if motion.state is TrackingState.TRACKING:
         state = dataclasses.replace(state, handover=state.handover.booked(stamp_ns, state.T_w_c, state.cov_w_c),
-                                    held_since_ns=None)
+                                    held=None)
     state, kfo = maybe_keyframe(state, cfg, env.orb, env.workers.solver, motion, kf, rows, pts_cur, xn_cur, gray,
                                 camera, stamp_ns, orb_cur, est.n_inliers, est.median_parallax_deg, est.n_triangulated)
+    if state.held is not None:
+        # Still held: this frame measured the motion against the reference; a new reference books it.
+        held = state.held.seen(stamp_ns, est.median_parallax_deg)
+        state = dataclasses.replace(state, held=held.reanchored(stamp_ns) if kfo.is_keyframe else held)
     if motion.state is TrackingState.STATIC and not kfo.is_keyframe and env.orb is None:
         born_still = geo.score_static(born_uv_kf, born_uv_cur, cfg.score_sigma_px)[1]
         state = _replenished(state, cfg, gray, camera, stamp_ns,
@@ -325,8 +329,10 @@ def _calibration(state: TrackState, kf: Keyframe, motion: mo.Motion, rows: I64, 
 
 
 def _held_from(state: TrackState, stamp_ns: int) -> TrackState:
-    """A new reference keyframe without a map: the position is held from here, unless it already was."""
-    return state if state.held_since_ns is not None else dataclasses.replace(state, held_since_ns=stamp_ns)
+    """A new reference keyframe without a map: the position is held from here, unless it already was (then
+    the old reference's parallax and the time since it was last measured are booked)."""
+    held = HeldStart.at(stamp_ns) if state.held is None else state.held.reanchored(stamp_ns)
+    return dataclasses.replace(state, held=held)
 
 
 def _newborn_tracked(tracks: Tracks, gray: NDArray[np.uint8], cfg: VoConfig, gain: float

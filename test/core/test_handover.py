@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from epi_vo.core.config import VoConfig
-from epi_vo.core.handover import Handover, bounded_motion_var
+from epi_vo.core.handover import Handover, HeldStart, bounded_motion_var
 from epi_vo.core.transforms import make_T
 
 
@@ -43,3 +43,29 @@ def test_the_handover_grows_with_the_gap_and_the_platform() -> None:
     # In VO units a speed in metres has no length: the last speed over the gap is one sigma.
     vo = h.covariance(100_000_000 + 10**9, metric=False)
     assert vo is not None and vo[0, 0] - 1e-4 == pytest.approx(0.4**2)
+
+
+S = 1_000_000_000  # ns per second
+
+
+def test_a_held_start_takes_the_motion_its_frames_measured_not_the_first_speed_over_the_time() -> None:
+    # Held from 10 s; the reference's tracks showed 1 deg of parallax at 10.5 s, where the reference moved
+    # on (that frame measured: nothing blind). The new map moves 1 unit in 0.25 s at 2 deg: 0.5 deg per unit,
+    # so the held motion is 0.5 units, spread over the axes. Its first speed over the 0.5 s would say 2.
+    held = HeldStart.at(10 * S).seen(10 * S + S // 2, 1.0).reanchored(10 * S + S // 2)
+    assert held.motion_var(1.0, 0.25, 2.0) == pytest.approx(0.5**2 / 3.0)
+    # Nothing held (the map from its first reference): nothing added.
+    assert HeldStart.at(10 * S).motion_var(1.0, 0.25, 2.0) == 0.0
+    # Without the new map's parallax the first speed over the held time stays the one standard deviation.
+    assert held.motion_var(1.0, 0.25, math.nan) == pytest.approx(2.0**2)
+
+
+def test_the_blind_time_of_a_held_start_moves_at_the_speeds_on_either_side() -> None:
+    # 0.2 deg at 0.2 s (1 deg/s), then nothing tracked until a new reference at 0.4 s, and again until one
+    # at 0.6 s. The new map: 1 unit in 0.1 s (10 units/s) at 2 deg (0.5 units per degree). Measured:
+    # 0.5 * 0.2 = 0.1; blind 0.4 s from 0.5 units/s to 10: 0.4 * (0.5 + 10) / 2 = 2.1.
+    held = HeldStart.at(0).seen(S // 5, 0.2).reanchored(2 * S // 5).reanchored(3 * S // 5)
+    assert held.blind_s == pytest.approx(0.4)
+    assert held.motion_var(1.0, 0.1, 2.0) == pytest.approx((0.1 + 2.1) ** 2 / 3.0)
+    # A parallax not measured (NaN) leaves what was seen as it was.
+    assert HeldStart.at(0).seen(S, math.nan) == HeldStart.at(0)
