@@ -28,7 +28,9 @@ _LK_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 10, 0.03)
 
 
-def _cell_index(pts: F32, width: int, height: int, rows: int, cols: int) -> NDArray[np.int64]:
+def cell_index(pts: F32, width: int, height: int, rows: int, cols: int) -> NDArray[np.int64]:
+    """The bucketing grid's cell (row-major, ``rows`` x ``cols`` over a ``width`` x ``height`` image) of each
+    raw pixel (N, 2)."""
     c = np.clip((pts[:, 0] * cols / width).astype(np.int64), 0, cols - 1)
     r = np.clip((pts[:, 1] * rows / height).astype(np.int64), 0, rows - 1)
     return r * cols + c
@@ -44,10 +46,10 @@ def bucket_select(pts: F32, scores: NDArray[np.float64] | None, existing: F32, w
     """
     n_cells = cfg.grid_rows * cfg.grid_cols
     quota = -(-cfg.max_features // n_cells)  # ceil
-    counts = np.bincount(_cell_index(existing, width, height, cfg.grid_rows, cfg.grid_cols),
+    counts = np.bincount(cell_index(existing, width, height, cfg.grid_rows, cfg.grid_cols),
                          minlength=n_cells) if existing.shape[0] else np.zeros(n_cells, np.int64)
     order = np.argsort(-scores, kind="stable") if scores is not None else np.arange(pts.shape[0])
-    cells = _cell_index(pts, width, height, cfg.grid_rows, cfg.grid_cols)
+    cells = cell_index(pts, width, height, cfg.grid_rows, cfg.grid_cols)
     keep = np.zeros(pts.shape[0], dtype=bool)
     budget = cfg.max_features - existing.shape[0]
     for i in order:

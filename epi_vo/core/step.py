@@ -372,7 +372,7 @@ def _replenished(state: TrackState, cfg: VoConfig, gray: NDArray[np.uint8], came
         still_cells |= tracks.still_cells
     refill = still_cells & ~_cells(existing, cfg, w, h)
     new = fe.detect_corners(gray, existing, cfg) if refill.any() else np.zeros((0, 2), np.float32)
-    new = new[refill[_cell_of(new, cfg, w, h)]]
+    new = new[refill[fe.cell_index(new, w, h, cfg.grid_rows, cfg.grid_cols)]]
     born_uv = np.vstack([tracks.born_uv, camera.to_pixels(camera.normalize(new))])
     born_pts = np.vstack([tracks.born_pts, new]).astype(np.float32)
     born_stamp_ns = np.concatenate([tracks.born_stamp_ns, np.full(new.shape[0], stamp_ns, np.int64)])
@@ -380,17 +380,10 @@ def _replenished(state: TrackState, cfg: VoConfig, gray: NDArray[np.uint8], came
                                                                  born_stamp_ns=born_stamp_ns, still_cells=still_cells))
 
 
-def _cell_of(pts: NDArray[np.float32], cfg: VoConfig, width: int, height: int) -> NDArray[np.int64]:
-    """The bucketing grid's cell (row-major) of each raw pixel (N, 2)."""
-    c = np.clip((pts[:, 0] * cfg.grid_cols / width).astype(np.int64), 0, cfg.grid_cols - 1)
-    r = np.clip((pts[:, 1] * cfg.grid_rows / height).astype(np.int64), 0, cfg.grid_rows - 1)
-    return r * cfg.grid_cols + c
-
-
 def _cells(pts: NDArray[np.float32], cfg: VoConfig, width: int, height: int) -> NDArray[np.bool_]:
     """The bucketing grid's cells holding any of ``pts``."""
     held = np.zeros(cfg.grid_rows * cfg.grid_cols, bool)
-    held[_cell_of(pts, cfg, width, height)] = True
+    held[fe.cell_index(pts, width, height, cfg.grid_rows, cfg.grid_cols)] = True
     return held
 
 
