@@ -85,6 +85,25 @@ def _point_scales(R_cur_kf: F64, t: F64, X_kf: F64, b: F64) -> tuple[F64, F64]:
     return -np.einsum("...ni,...ni->...n", a, c) / np.maximum(a2, 1e-300), a2
 
 
+def _pose_steps(R_cur_kf: F64, t_dir: F64) -> tuple[F64, F64, F64, F64]:
+    """The two-view pose and each of its five parameters (rotation phi, 3; direction beta in the tangent
+    basis ``B``, 2) one ``FD_STEP`` forward, as stacks for forward differences: the unit direction of the
+    camera centre ``d``, ``B``, ``R_cur_kf`` (6, 3, 3) and ``t_cur_kf`` (6, 3). The step is so small that
+    exp(phi) = I + [phi]x holds to ~1e-12."""
+    R_kf_cur = R_cur_kf.T
+    d = -R_kf_cur @ t_dir
+    d /= np.linalg.norm(d)
+    B = tangent_basis(d)
+    R_kf_st = _rotation_steps(R_kf_cur, 6, 1)
+    c_st = np.repeat(d[None], 6, axis=0)
+    for j in range(2):
+        c_st[4 + j] = d + FD_STEP * B[:, j]
+    c_st /= np.linalg.norm(c_st, axis=1, keepdims=True)
+    R_st = np.transpose(R_kf_st, (0, 2, 1))
+    t_st = -np.einsum("kij,kj->ki", R_st, c_st)
+    return d, B, R_st, t_st
+
+
 def essential_pose_covariance(R_cur_kf: F64, t_dir: F64, xn_kf: F64, xn_cur: F64, sigma_n: float,
                               scale: float, scale_rel_var: float,
                               map_points: tuple[F64, F64] | None = None) -> F64 | None:
@@ -100,20 +119,8 @@ def essential_pose_covariance(R_cur_kf: F64, t_dir: F64, xn_kf: F64, xn_cur: F64
     n = xn_kf.shape[0]
     if n < 6 or not scale > 0:
         return None
-    R_kf_cur = R_cur_kf.T
-    d = -R_kf_cur @ t_dir
-    d /= np.linalg.norm(d)
-    B = tangent_basis(d)
-    # Six poses: the estimate and each parameter one step forward (forward differences, as stacks).
-    # The step is so small that exp(phi) = I + [phi]x holds to ~1e-12.
+    d, B, R_st, t_st = _pose_steps(R_cur_kf, t_dir)
     h = FD_STEP
-    R_kf_st = _rotation_steps(R_kf_cur, 6, 1)
-    c_st = np.repeat(d[None], 6, axis=0)
-    for j in range(2):
-        c_st[4 + j] = d + h * B[:, j]
-    c_st /= np.linalg.norm(c_st, axis=1, keepdims=True)
-    R_st = np.transpose(R_kf_st, (0, 2, 1))  # R_cur_kf
-    t_st = -np.einsum("kij,kj->ki", R_st, c_st)
     rows = _subsample(n, MAX_POINTS)
     h_kf = np.column_stack([xn_kf[rows], np.ones(rows.size)])
     h_cur = np.column_stack([xn_cur[rows], np.ones(rows.size)])
@@ -292,18 +299,8 @@ def calibration_sensitivity(R_cur_kf: F64, t_dir: F64, xn_kf: F64, xn_cur: F64, 
     n = xn_kf.shape[0]
     if n < 6 or not scale > 0 or not fx > 0:
         return None
-    R_kf_cur = R_cur_kf.T
-    d = -R_kf_cur @ t_dir
-    d /= np.linalg.norm(d)
-    B = tangent_basis(d)
+    _, B, R_st, t_st = _pose_steps(R_cur_kf, t_dir)
     h = FD_STEP
-    R_kf_st = _rotation_steps(R_kf_cur, 6, 1)
-    c_st = np.repeat(d[None], 6, axis=0)
-    for j in range(2):
-        c_st[4 + j] = d + h * B[:, j]
-    c_st /= np.linalg.norm(c_st, axis=1, keepdims=True)
-    R_st = np.transpose(R_kf_st, (0, 2, 1))
-    t_st = -np.einsum("kij,kj->ki", R_st, c_st)
     E_st = np.einsum("kij,kjl->kil", _skew_stack(t_st), R_st)
     rows = _subsample(n, MAX_POINTS)
     x_kf, x_cur = xn_kf[rows], xn_cur[rows]
