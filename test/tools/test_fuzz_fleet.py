@@ -27,6 +27,7 @@ Runtime: 8 derandomized examples by default (about a minute on 2 cores); ``--fuz
 
 from __future__ import annotations
 
+import atexit
 import csv
 import dataclasses
 import hashlib
@@ -54,6 +55,7 @@ OUTPUTS = ("apart", "root", "inside", "bag_dir", "collide")
 def _sources() -> tuple[Path, Path]:
     """A 4-frame bag directory and the output directory of its replay (made once per session)."""
     base = Path(tempfile.mkdtemp(prefix="epi_vo_fuzz_fleet_src_"))
+    atexit.register(shutil.rmtree, base, ignore_errors=True)
     bag = copy_frames(BAGS / "planar" / "bag", base / "tiny", 4)
     out = base / "replayed"
     subprocess.run([sys.executable, "-m", "epi_vo.cli", "replay", str(bag), "-o", str(out), "--no-progress"],
