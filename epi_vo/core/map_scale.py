@@ -6,7 +6,8 @@ moves the published position, depends on whether a scale source established metr
 * VO units: the map's log-scale is a random walk of ``scale_drift_per_keyframe`` per keyframe. One scale
   error moves every later step alike, so the position error it causes grows coherently along the path:
   the scale variance and its covariance with the position are carried, as an EKF augmented with the scale
-  would (``keyframe_cov``).
+  would (``keyframe_cov``). A map rebuilt after a loss takes its baseline from the last speed, so its scale
+  against the first map's is known only to ``NEW_MAP_REL_STD``: its log-scale starts with that variance.
 * Metric: the scale filter's relative standard deviation times each keyframe step (along it), and, once, the
   rescaling of what the map accumulated in VO units when metres are established (``metric_covariance``);
   the source's systematic error scales the whole path about the map's origin (``systematic``).
@@ -26,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from epi_vo.core.scale import ScaleSource
+from epi_vo.core.scale import NEW_MAP_REL_STD, ScaleSource
 
 F64 = NDArray[np.float64]
 
@@ -49,6 +50,7 @@ class MapScaleCovariance:
     origin_cov: F64 = field(default_factory=_zeros6)  # and the pose covariance it started from
     var: float = 0.0  # VO units: the map's log-scale variance ...
     cov_ps: F64 = field(default_factory=_zeros3)  # ... and its covariance with the position
+    mapped: bool = False  # a map was made before the current one (VO units: the current one was rebuilt)
 
     @property
     def q(self) -> float:
@@ -76,12 +78,17 @@ class MapScaleCovariance:
         scale error, and the value after the step. Metric: the scale filter's relative standard deviation
         times the step, along the step (a scale error lengthens a step, it does not turn it). VO units:
         var_p += d d^T var_s + c d^T + d c^T, c += d var_s, var_s += q; on a new map the first baseline's
-        length (E's covariance along it) is the map's scale error itself."""
+        length (E's covariance along it) is the map's scale error itself. A rebuilt map's units are the old
+        ones carried by the last speed (``NEW_MAP_REL_STD``): its first baseline and every later step are
+        that uncertain against the first map's units, which the judge's one Sim(3) scale measures in."""
         q = self.q
         if scale.established:
-            return self, np.outer(d, d) * scale.filter.rel_std ** 2
+            return dataclasses.replace(self, mapped=True), np.outer(d, d) * scale.filter.rel_std ** 2
         if new_map:
-            return dataclasses.replace(self, var=q, cov_ps=d * q), np.zeros((3, 3))
+            if not self.mapped:
+                return dataclasses.replace(self, var=q, cov_ps=d * q, mapped=True), np.zeros((3, 3))
+            vs = NEW_MAP_REL_STD**2
+            return dataclasses.replace(self, var=vs + q, cov_ps=d * vs), np.outer(d, d) * vs
         vs, c = self.var, self.cov_ps
         after = dataclasses.replace(self, cov_ps=c + d * vs, var=vs + q)
         return after, np.outer(d, d) * vs + np.outer(c, d) + np.outer(d, c)

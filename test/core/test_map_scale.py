@@ -45,3 +45,19 @@ def test_a_keyframe_step_returns_the_map_scale_after_it_and_leaves_the_one_befor
     np.testing.assert_array_equal(cov, cov_again)
     assert after.var == again.var == 2 * q and np.array_equal(after.cov_ps, 2 * q * d)
     np.testing.assert_allclose(cov, 3 * q * np.outer(d, d))  # d d^T var_s + c d^T + d c^T
+
+
+def test_a_rebuilt_maps_units_are_only_as_sure_as_the_speed_that_carried_them() -> None:
+    """After a loss the new map's baseline comes from the last speed: its units against the first map's are
+    known to ``NEW_MAP_REL_STD``. Its first baseline and every later step carry that one error coherently:
+    after two steps d1, d2 the position's variance along the path is that of (d1 + d2) s, s ~ N(0, rel^2),
+    not the drift per keyframe's. The first map's baseline is the unit itself (nothing added)."""
+    rel2 = sc.NEW_MAP_REL_STD**2
+    vo = sc.VoUnitsScale(filter=sc.ScaleFilter(0.0))
+    d0, d1, d2 = np.array([1.0, 0.0, 0.0]), np.array([0.2, 0.0, 1.0]), np.array([0.0, 0.1, 0.8])
+    first, cov0 = MapScaleCovariance(0.0).keyframe_cov(vo, True, d0)
+    assert np.all(cov0 == 0.0) and first.var == 0.0
+    rebuilt, cov1 = first.keyframe_cov(vo, True, d1)
+    assert rebuilt.var == pytest.approx(rel2)
+    _, cov2 = rebuilt.keyframe_cov(vo, False, d2)
+    np.testing.assert_allclose(cov1 + cov2, rel2 * np.outer(d1 + d2, d1 + d2), rtol=1e-12)
