@@ -6,7 +6,11 @@ moves the published position, depends on whether a scale source established metr
 * VO units: the map's log-scale is a random walk of ``scale_drift_per_keyframe`` per keyframe. One scale
   error moves every later step alike, so the position error it causes grows coherently along the path:
   the scale variance and its covariance with the position are carried, as an EKF augmented with the scale
-  would (``keyframe_cov``).
+  would (``keyframe_cov``). Each keyframe's new points are triangulated with its step's length, so the
+  map's next steps are measured in units that carry that length's error: the step's own relative length
+  variance (``length_rel_var``) joins the log-scale at the keyframe. A map rebuilt after a loss takes its
+  baseline from the last speed, so its scale against the first map's is known only to
+  ``NEW_MAP_REL_STD``: its log-scale starts with that variance.
 * Metric: the scale filter's relative standard deviation times each keyframe step (along it), and, once, the
   rescaling of what the map accumulated in VO units when metres are established (``metric_covariance``);
   the source's systematic error scales the whole path about the map's origin (``systematic``).
@@ -26,9 +30,19 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from epi_vo.core.scale import ScaleSource
+from epi_vo.core.scale import NEW_MAP_REL_STD, ScaleSource
 
 F64 = NDArray[np.float64]
+
+
+def length_rel_var(c: F64, cov: F64) -> float:
+    """Relative variance of the length of a step ``c`` (3,) under its pose covariance ``cov`` (its 3x3
+    position block in the same frame): ``c^T P c / |c|^4``; 0 for no step."""
+    n2 = float(c @ c)
+    if not n2 > 0.0:
+        return 0.0
+    v = float(c @ cov[:3, :3] @ c) / (n2 * n2)
+    return v if math.isfinite(v) and v > 0.0 else 0.0
 
 
 def _zeros3() -> F64:
@@ -49,6 +63,7 @@ class MapScaleCovariance:
     origin_cov: F64 = field(default_factory=_zeros6)  # and the pose covariance it started from
     var: float = 0.0  # VO units: the map's log-scale variance ...
     cov_ps: F64 = field(default_factory=_zeros3)  # ... and its covariance with the position
+    mapped: bool = False  # a map was made before the current one (VO units: the current one was rebuilt)
 
     @property
     def q(self) -> float:
@@ -71,19 +86,31 @@ class MapScaleCovariance:
             return scale.rel_std
         return math.sqrt(self.q)
 
-    def keyframe_cov(self, scale: ScaleSource, new_map: bool, d: F64) -> tuple[MapScaleCovariance, F64]:
+    def keyframe_cov(self, scale: ScaleSource, new_map: bool, d: F64, step_rel_var: float = 0.0
+                     ) -> tuple[MapScaleCovariance, F64]:
         """The position covariance a keyframe step ``d`` (odometry frame, map units) adds through the map's
         scale error, and the value after the step. Metric: the scale filter's relative standard deviation
         times the step, along the step (a scale error lengthens a step, it does not turn it). VO units:
-        var_p += d d^T var_s + c d^T + d c^T, c += d var_s, var_s += q; on a new map the first baseline's
-        length (E's covariance along it) is the map's scale error itself."""
+        var_p += d d^T var_s + c d^T + d c^T, c += d (var_s + r), var_s += q + r, with ``r``
+        (``step_rel_var``) the step's own relative length variance: the new keyframe's points, and so the
+        next steps' units, take it on, and the step's position already holds it (hence its covariance with
+        the scale). On a new map the first baseline's length (E's covariance along it) is the map's scale
+        error itself. A rebuilt map's units are the old ones carried by the last speed
+        (``NEW_MAP_REL_STD``): its first baseline and every later step are that uncertain against the
+        first map's units, which the judge's one Sim(3) scale measures in."""
         q = self.q
         if scale.established:
-            return self, np.outer(d, d) * scale.filter.rel_std ** 2
+            return dataclasses.replace(self, mapped=True), np.outer(d, d) * scale.filter.rel_std ** 2
         if new_map:
-            return dataclasses.replace(self, var=q, cov_ps=d * q), np.zeros((3, 3))
+            if not self.mapped:
+                return dataclasses.replace(self, var=q, cov_ps=d * q, mapped=True), np.zeros((3, 3))
+            vs = NEW_MAP_REL_STD**2
+            return dataclasses.replace(self, var=vs + q, cov_ps=d * vs), np.outer(d, d) * vs
         vs, c = self.var, self.cov_ps
-        after = dataclasses.replace(self, cov_ps=c + d * vs, var=vs + q)
+        # A step known worse than the hand-over's speed carries units no worse than a rebuilt map's: past
+        # that, a first-order log-scale says nothing more (and a step of almost no length would claim any).
+        r = min(step_rel_var, NEW_MAP_REL_STD**2)
+        after = dataclasses.replace(self, cov_ps=c + d * (vs + r), var=vs + q + r)
         return after, np.outer(d, d) * vs + np.outer(c, d) + np.outer(d, c)
 
     def metric_covariance(self, scale: ScaleSource, cov_w_c: F64, factor: float, d: F64) -> F64:

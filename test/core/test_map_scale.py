@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from epi_vo.core import scale as sc
-from epi_vo.core.map_scale import MapScaleCovariance
+from epi_vo.core.map_scale import MapScaleCovariance, length_rel_var
 
 
 def _established_floor(rel_std: float) -> sc.GroundPlaneScale:
@@ -45,3 +45,49 @@ def test_a_keyframe_step_returns_the_map_scale_after_it_and_leaves_the_one_befor
     np.testing.assert_array_equal(cov, cov_again)
     assert after.var == again.var == 2 * q and np.array_equal(after.cov_ps, 2 * q * d)
     np.testing.assert_allclose(cov, 3 * q * np.outer(d, d))  # d d^T var_s + c d^T + d c^T
+
+
+def test_a_rebuilt_maps_units_are_only_as_sure_as_the_speed_that_carried_them() -> None:
+    """After a loss the new map's baseline comes from the last speed: its units against the first map's are
+    known to ``NEW_MAP_REL_STD``. Its first baseline and every later step carry that one error coherently:
+    after two steps d1, d2 the position's variance along the path is that of (d1 + d2) s, s ~ N(0, rel^2),
+    not the drift per keyframe's. The first map's baseline is the unit itself (nothing added)."""
+    rel2 = sc.NEW_MAP_REL_STD**2
+    vo = sc.VoUnitsScale(filter=sc.ScaleFilter(0.0))
+    d0, d1, d2 = np.array([1.0, 0.0, 0.0]), np.array([0.2, 0.0, 1.0]), np.array([0.0, 0.1, 0.8])
+    first, cov0 = MapScaleCovariance(0.0).keyframe_cov(vo, True, d0)
+    assert np.all(cov0 == 0.0) and first.var == 0.0
+    rebuilt, cov1 = first.keyframe_cov(vo, True, d1)
+    assert rebuilt.var == pytest.approx(rel2)
+    _, cov2 = rebuilt.keyframe_cov(vo, False, d2)
+    np.testing.assert_allclose(cov1 + cov2, rel2 * np.outer(d1 + d2, d1 + d2), rtol=1e-12)
+
+
+def test_the_next_steps_are_measured_in_units_that_carry_the_keyframe_steps_length_error() -> None:
+    """Monte Carlo: a keyframe step d1 whose length is off by e ~ N(0, r) (its own covariance holds that),
+    then a step d2 measured against the points triangulated with it, so scaled by (1 + e) too: the position
+    after both is off by e (d1 + d2). The step's own r d1 d1^T plus what the next keyframe step adds through
+    the scale is that error's covariance (the drift per keyframe 0 here); without the term the next step
+    would be as sure as if the units were exact."""
+    r = 0.05**2
+    vo = sc.VoUnitsScale(filter=sc.ScaleFilter(0.0))
+    d0, d1, d2 = np.array([1.0, 0.0, 0.0]), np.array([0.3, 0.0, 1.0]), np.array([0.1, -0.2, 0.9])
+    first, _ = MapScaleCovariance(0.0).keyframe_cov(vo, True, d0)
+    after, cov1 = first.keyframe_cov(vo, False, d1, length_rel_var(d1, r * np.outer(d1, d1)))
+    assert after.var == pytest.approx(r) and np.all(cov1 == 0.0)
+    _, cov2 = after.keyframe_cov(vo, False, d2)
+    e = np.random.default_rng(5).normal(0.0, np.sqrt(r), 20000)
+    errors = e[:, None] * (d1 + d2)[None, :]
+    total = r * np.outer(d1, d1) + cov2
+    np.testing.assert_allclose(total, r * np.outer(d1 + d2, d1 + d2), rtol=1e-12)
+    np.testing.assert_allclose(np.cov(errors.T), total, atol=0.03 * r * (d1 + d2) @ (d1 + d2))
+
+
+def test_a_step_of_almost_no_length_gives_the_units_no_more_doubt_than_a_rebuilt_map() -> None:
+    """A keyframe step whose length its own covariance hardly knows (a relative variance of 9: 300 %)
+    carries at most a rebuilt map's ``NEW_MAP_REL_STD`` into the units: past that a first-order
+    log-scale says nothing more, and it would blow the position covariance up by orders at once."""
+    vo = sc.VoUnitsScale(filter=sc.ScaleFilter(0.0))
+    first, _ = MapScaleCovariance(0.0).keyframe_cov(vo, True, np.array([1.0, 0.0, 0.0]))
+    after, _ = first.keyframe_cov(vo, False, np.array([0.0, 0.0, 0.01]), 9.0)
+    assert after.var == pytest.approx(sc.NEW_MAP_REL_STD**2)

@@ -119,7 +119,9 @@ def test_covariance_recovers_after_each_reset(frames: list[tuple[int, np.ndarray
         back = [r for r in rs if r.state is TrackingState.TRACKING]
         assert back, [r.reason for r in rs]
         recovered.append(float(np.max(np.diag(back[0].covariance)[:3])))
-    assert all(v < 1.0 for v in recovered), recovered  # VO units^2: the map's, not the 1e4 'unknown'
+    # VO units^2: the map's, not the 1e4 'unknown'. Each rebuilt map's first baseline carries its units'
+    # uncertainty against the first map's (map_scale: NEW_MAP_REL_STD along it), so it grows a little.
+    assert all(v < 10.0 for v in recovered), recovered
     # No restart adds up: the third is within a small factor of the first (not 3e4 vs 1e4).
     assert recovered[2] < 10.0 * max(recovered[0], base), (base, recovered)
 
