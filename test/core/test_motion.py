@@ -1120,3 +1120,22 @@ def test_tracks_born_where_the_background_was_found_again_show_where_it_is(gener
     assert moving.motion is None or moving.motion.state is not TrackingState.STATIC
     none = _static_with_newborns(general_scene, cfg, born[:0], born[:0])
     assert none.motion is None or none.motion.state is not TrackingState.STATIC
+
+
+def test_tracks_born_on_a_mover_say_nothing_of_where_the_background_is(general_scene) -> None:
+    """A still camera whose keyframe tracks left are those in the left quarter of the image (the rest
+    occluded by an object crossing it), all still; tracks born since the keyframe in the cells the object
+    took were found on it and move with it. They do not count against the background's spread: static.
+    (Counted as occupied cells, the 4 still cells of 16 would fall under static_min_spread.)"""
+    s = general_scene
+    rows = np.flatnonzero(s.uv_ref_obs[:, 0] < 160.0)
+    kf = _keyframe(s, _no_map(s))
+    rng = np.random.default_rng(0)
+    uv = kf.uv[rows] + rng.normal(0.0, 0.05, (rows.size, 2))
+    xn_cur = kf.camera.normalize(uv)
+    xs, ys = np.meshgrid(np.arange(1, 4) * 160 + 80.0, np.arange(4) * 120 + 60.0)
+    born = np.column_stack([xs.ravel(), ys.ravel()])
+    ctx = MotionContext(kf, rows, xn_cur, kf.camera.to_pixels(xn_cur), np.eye(4), lambda dt: 1.0,
+                        stamp_ns=KF_STAMP_NS + DT_NS, born_uv=born, born_uv_cur=born + np.array([6.0, 2.0]))
+    est = estimate(CFG, ctx, select_model(kf.uv[rows], ctx.uv_cur, kf.camera.K, CFG), MotionMemory())
+    assert est.motion is not None and est.motion.state is TrackingState.STATIC

@@ -50,11 +50,14 @@ def static_camera(cfg: VoConfig, ctx: MotionContext, sel: ModelSelection, est: M
     # crossing the view occludes the keyframe's tracks one cell after the other, and the background behind
     # it has not gone. Their motion since they were found is taken back to the keyframe at the image
     # velocity it shows (``MotionContext.born_uv``): a camera that started moving is not judged on a shorter
-    # interval than its keyframe's tracks are. (They do not vote in the share above.)
+    # interval than its keyframe's tracks are. (They do not vote in the share above.) Those that moved were
+    # found on whatever took the background's cells (a mover, or the view of a camera that started moving):
+    # they say nothing of where the background is, and the keyframe's tracks already say whether it moved.
     uv_all, still_all = ctx.uv_cur, still
     if ctx.born_uv is not None and ctx.born_uv_cur is not None and ctx.born_uv.shape[0]:
         _, still_born = geo.score_static(ctx.born_uv, ctx.born_uv_cur, cfg.score_sigma_px)
-        uv_all, still_all = np.vstack([ctx.uv_cur, ctx.born_uv_cur]), np.concatenate([still, still_born])
+        uv_all = np.vstack([ctx.uv_cur, ctx.born_uv_cur[still_born]])
+        still_all = np.concatenate([still, np.ones(int(np.count_nonzero(still_born)), bool)])
     spread = grid_spread(uv_all, still_all, K.width, K.height)
     if spread < cfg.static_min_spread:
         return est
