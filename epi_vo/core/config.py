@@ -159,10 +159,11 @@ class VoConfig:
     # --- degeneracy, parallax and triangulation gates ----------------------------------------
     init_min_parallax_deg: float = _knob(0.5, "median parallax needed to initialise the map (deg)", 0.01, 45.0)
     init_max_rotation_sigma_deg: float = _knob(
-        0.25, "a first pose from E whose covariance has a larger rotation standard deviation is not determined by "
-        "its points (a small baseline seen over part of the image): the map waits for baseline (deg)", 0.001, 180.0)
+        180.0, "before a first map, where a plane nearly won: E's motion is taken for one the plane does not allow "
+        "(an object crossing it) only when its covariance's rotation standard deviation is below this (deg; "
+        "180: whenever E has a covariance)", 0.001, 180.0)
     init_max_direction_sigma_deg: float = _knob(
-        8.0, "the same for the standard deviation of E's direction of travel (deg)", 0.01, 180.0)
+        180.0, "the same for the standard deviation of E's direction of travel (deg)", 0.01, 180.0)
     kf_min_parallax_deg: float = _knob(1.0, "median parallax that makes a new keyframe (deg)", 0.01, 45.0)
     e_pose_min_parallax_deg: float = _knob(
         0.5, "above this median parallax the pose comes from E (scaled by the map), below from the map", 0.0, 45.0)

@@ -120,12 +120,12 @@ def detect_corners(gray: NDArray[np.uint8], existing: F32, cfg: VoConfig) -> F32
 # measured on the tracks themselves (the median ratio of 5x5 patch means at both ends, over the leading
 # EXPOSURE_MAX_TRACKS rows; from the image means when fewer than EXPOSURE_MIN_TRACKS survived). When it
 # moves the mean grey level by EXPOSURE_MIN_LEVELS or more, the current image is scaled onto the previous
-# one and tracked again; the second attempt is taken unless it keeps fewer of those tracks. When the tracks
-# that survived show no change but the whole image's mean grey level moved by EXPOSURE_MIN_LEVELS, that is
-# the guess tracked again (a large step keeps mostly the patches it changed least). Without an
-# exposure change the estimate still moves by a few levels (under 5: each patch's view changes): the
-# threshold is about twice that noise. The track counts bound the median's noise from below and its cost
-# from above.
+# one and tracked again; the second attempt is taken unless it keeps fewer of those tracks. When the whole
+# image's mean grey level moved by EXPOSURE_MIN_LEVELS, its ratio is tracked again too (a large step keeps
+# mostly the patches it changed least, which show none of it or a part), and the guess keeping the most
+# tracks is taken. Without an exposure change the estimate still moves by a few levels (under 5: each patch's
+# view changes): the threshold is about twice that noise. The track counts bound the median's noise from
+# below and its cost from above.
 EXPOSURE_MIN_LEVELS = 10.0
 EXPOSURE_MIN_TRACKS = 20
 EXPOSURE_MAX_TRACKS = 100
@@ -176,17 +176,20 @@ def track_klt(gray_prev: NDArray[np.uint8], gray_cur: NDArray[np.uint8], pts_pre
     p1, ok, fb = _klt_both_ways(gray_prev, gray_cur, pts_prev, cfg)
     lead = slice(0, EXPOSURE_MAX_TRACKS)
     lead_ok = ok[lead]
-    measured = exposure_change(gray_prev, gray_cur, pts_prev[lead][lead_ok], p1[lead][lead_ok])
-    if measured is None:
-        # The tracks a large step lets through at all are those whose grey levels it moved least (dark or
-        # flat patches): they may say "no change" while the whole image says one. Its means are then the guess.
-        measured = _whole_image_change(gray_prev, gray_cur)
-    if measured is not None:
+    # The tracks a large step lets through at all are those whose grey levels it moved least (dark or flat
+    # patches): they may say "no change", or a part of it, while the whole image says the whole step. Both
+    # guesses are tried; the one that keeps the most tracks is taken.
+    guesses = [g for g in (exposure_change(gray_prev, gray_cur, pts_prev[lead][lead_ok], p1[lead][lead_ok]),
+                           _whole_image_change(gray_prev, gray_cur)) if g is not None]
+    best = KltTracks(p1, ok, 1.0, fb)
+    n_best = int(np.count_nonzero(lead_ok))
+    for measured in dict.fromkeys(guesses):
         mapped = cast(NDArray[np.uint8], cv2.convertScaleAbs(gray_cur, alpha=measured, beta=0.0))
         p1_m, ok_m, fb_m = _klt_both_ways(gray_prev, mapped, pts_prev, cfg)
-        if np.count_nonzero(ok_m[lead]) >= np.count_nonzero(lead_ok):
-            return KltTracks(p1_m, ok_m, measured, fb_m)
-    return KltTracks(p1, ok, 1.0, fb)
+        n_m = int(np.count_nonzero(ok_m[lead]))
+        if n_m >= n_best:
+            best, n_best = KltTracks(p1_m, ok_m, measured, fb_m), n_m
+    return best
 
 
 def _patch_means(gray: NDArray[np.uint8], pts: F32, r: int = 2) -> NDArray[np.float64]:

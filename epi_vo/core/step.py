@@ -197,7 +197,7 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
     if state.patches is not None and kf.ids is not None:
         patches, pts_cur, n_refined = state.patches.refined(gray, pts_cur, kf.ids[rows])
         state = dataclasses.replace(state, patches=patches)
-    tracks_now = Tracks(rows, pts_cur, state.tracks.gray, born_uv, born_pts, born_stamp_ns)
+    tracks_now = Tracks(rows, pts_cur, state.tracks.gray, born_uv, born_pts, born_stamp_ns, state.tracks.still_cells)
     # This frame's image noise as a share of pixel_noise_px: its twist's, and one step of its pose's.
     noise_ratio = covm.twist_noise_ratio(track_noise, cfg.twist_noise_fb_factor, cfg.twist_noise_floor_px,
                                          cfg.pixel_noise_px)

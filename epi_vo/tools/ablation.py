@@ -39,8 +39,6 @@ class Rule:
 
 RULES: tuple[Rule, ...] = (
     Rule("init_min_parallax_deg", 0.01, "the first map waits for parallax"),
-    Rule("init_max_rotation_sigma_deg", 180.0, "the first map waits until E's rotation is determined"),
-    Rule("init_max_direction_sigma_deg", 180.0, "the first map waits until E's direction is determined"),
     Rule("static_min_spread", 0.0, "a still camera's still features cover the image"),
     Rule("e_map_max_rotation_diff_deg", 45.0, "E far from the map's pose: the map decides (a mover took E)"),
     Rule("plane_e_min_parallax_deg", 0.0, "with a plane, the pose from E only above this parallax"),

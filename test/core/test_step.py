@@ -86,7 +86,7 @@ def test_a_reject_and_a_restart_are_values_too(frames: Frames) -> None:
     assert state.fail_count == 0 and after.index == state.index + 1
 
 
-def _still_camera_with_a_mover() -> list[FrameResult]:
+def _still_camera_with_a_mover_frames(n: int = 80) -> Frames:
     """A still camera (640x480) over a textured background; a textured block 350 px wide and as high as the
     image crosses it left to right at 6 px a frame, occluding the background's tracks one after the other;
     the exposure steps up 20 % half-way."""
@@ -101,9 +101,8 @@ def _still_camera_with_a_mover() -> list[FrameResult]:
     background, block = texture(480, 640, 2.0), texture(480, 350, 1.5)
     K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
     camera = CameraModel.create(640, 480, K, [])
-    vo = VoPipeline(VoConfig())
-    results = []
-    for i in range(80):
+    frames = []
+    for i in range(n):
         img = background.copy()
         x = -350 + 6 * i
         a, b = max(x, 0), min(x + 350, 640)
@@ -111,8 +110,34 @@ def _still_camera_with_a_mover() -> list[FrameResult]:
             img[:, a:b] = block[:, a - x:b - x]
         gain = 1.0 if i < 40 else 1.2
         gray = np.clip(np.round(img * gain + rng.normal(0.0, 1.5, img.shape)), 0, 255).astype(np.uint8)
-        results.append(vo.process(gray, camera, 1_000_000_000 + i * 66_666_667))
-    return results
+        frames.append((1_000_000_000 + i * 66_666_667, gray, camera))
+    return frames
+
+
+def _still_camera_with_a_mover() -> list[FrameResult]:
+    vo = VoPipeline(VoConfig())
+    return [vo.process(gray, camera, stamp) for stamp, gray, camera in _still_camera_with_a_mover_frames()]
+
+
+def test_a_still_cameras_tracks_are_found_again_where_a_mover_ended_them() -> None:
+    """The block occludes the keyframe's background tracks one cell after the other as it crosses. The cells
+    that held a still track since the keyframe and hold none now are refilled with newborn tracks
+    (``step._replenished``: the cells are remembered from frame to frame until the next keyframe); here they
+    are found on the block that took those cells, and move with it."""
+    cfg = VoConfig()
+    env = sp.StepEnv.of(cfg, InLine())
+    state = initial_state(cfg)
+    born = []
+    for i, (stamp, gray, camera) in enumerate(_still_camera_with_a_mover_frames(30)):
+        state, r = sp.process(state, sp.Frame(gray, camera, stamp), env)
+        assert i == 0 or (r.state is TrackingState.STATIC and not r.is_keyframe)
+        born.append(state.tracks.born_pts.shape[0])
+        edge = -350 + 6 * i  # the block spans x = edge .. edge + 350 px
+        on_block = state.tracks.born_pts[:, 0] < edge + 350 + 10
+        assert np.all(on_block)
+        found_at = state.tracks.born_uv[:, 0]
+        assert np.all(state.tracks.born_pts[:, 0] >= found_at)  # they moved right with it, never left
+    assert max(born) >= 20
 
 
 def test_a_still_camera_with_an_exposure_step_and_a_mover_does_not_move() -> None:

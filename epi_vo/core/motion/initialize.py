@@ -1,7 +1,9 @@
 """The first map: triangulated between the keyframe and this frame through the gates, once there is enough
-parallax and the pose is determined by its points; its baseline's length is the scale stage's."""
+parallax; its baseline's length is the scale stage's."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numpy.typing import NDArray
@@ -46,19 +48,17 @@ def initialize(cfg: VoConfig, ctx: MotionContext, R: F64, t_dir: F64, inl: NDArr
     # uncertainty): its direction and the rotation have E's covariance; its length is as well known as the
     # scale carried from one keyframe to the next (scale_drift_per_keyframe). On a plane (initialised from
     # H) E's residuals do not constrain the pose (degenerate): the isotropic form, with the rotation from
-    # the inliers' count.
+    # the inliers' count. The map is not refused for E's marginal rotation or direction sigma: a sideways
+    # or orbiting camera trades the two along the bas-relief ambiguity at any parallax, and the depths the
+    # pose puts into the map barely feel it; what a still camera's moving object would make a map of is
+    # booked as a mover by the "no camera motion" hypothesis (``static.background_stood_still``).
     baseline = float(np.linalg.norm(t))
     cov = None if planar else geo.essential_pose_covariance(
         R, t_dir, xn_kf[inl], xn_cur[inl], cfg.pixel_noise_px / K[0, 0], baseline, cfg.scale_drift_per_keyframe**2)
-    if not planar:
-        undetermined = geo.pose_undetermined(cov, t, cfg.init_max_rotation_sigma_deg, cfg.init_max_direction_sigma_deg)
-        if undetermined is not None:
-            if cov is not None and np.all(np.isfinite(cov)):
-                held = hold.cov_rel.copy()
-                held[3:, 3:] += cov[3:, 3:]  # the held orientation is E's, with E's uncertainty
-                hold = Motion(hold.state, hold.R_cur_kf, hold.t_cur_kf, held, hold.inliers)
-            return est.noted(note(Decision.INIT_DEFERRED, rotation_sigma_deg=undetermined[0],
-                                  direction_sigma_deg=undetermined[1]), hold)
+    if not planar and (cov is None or not np.all(np.isfinite(cov))):
+        # E's pose has no covariance (its points show no parallax to fit it on): nothing to start a map from.
+        return est.noted(note(Decision.INIT_DEFERRED, rotation_sigma_deg=math.nan, direction_sigma_deg=math.nan),
+                         hold)
     est = est.noted(note(how, n=n_good))
     if cov is None or not np.all(np.isfinite(cov)):
         cov = covm.block((cfg.scale_drift_per_keyframe * baseline) ** 2, rot_cov)

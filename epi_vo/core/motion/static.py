@@ -50,11 +50,14 @@ def static_camera(cfg: VoConfig, ctx: MotionContext, sel: ModelSelection, est: M
     # crossing the view occludes the keyframe's tracks one cell after the other, and the background behind
     # it has not gone. Their motion since they were found is taken back to the keyframe at the image
     # velocity it shows (``MotionContext.born_uv``): a camera that started moving is not judged on a shorter
-    # interval than its keyframe's tracks are. (They do not vote in the share above.)
+    # interval than its keyframe's tracks are. (They do not vote in the share above.) Those that moved were
+    # found on whatever took the background's cells (a mover, or the view of a camera that started moving):
+    # they say nothing of where the background is, and the keyframe's tracks already say whether it moved.
     uv_all, still_all = ctx.uv_cur, still
     if ctx.born_uv is not None and ctx.born_uv_cur is not None and ctx.born_uv.shape[0]:
         _, still_born = geo.score_static(ctx.born_uv, ctx.born_uv_cur, cfg.score_sigma_px)
-        uv_all, still_all = np.vstack([ctx.uv_cur, ctx.born_uv_cur]), np.concatenate([still, still_born])
+        uv_all = np.vstack([ctx.uv_cur, ctx.born_uv_cur[still_born]])
+        still_all = np.concatenate([still, np.ones(int(np.count_nonzero(still_born)), bool)])
     spread = grid_spread(uv_all, still_all, K.width, K.height)
     if spread < cfg.static_min_spread:
         return est
@@ -67,12 +70,27 @@ def static_camera(cfg: VoConfig, ctx: MotionContext, sel: ModelSelection, est: M
         hi = np.percentile(ctx.uv_cur[moved], 95, axis=0)
         region = (int(lo[0]), int(lo[1]), int(np.ceil(hi[0])), int(np.ceil(hi[1])))
     rot_cov = covm.rotation_var(cfg.pixel_noise_px, K.K[0, 0], max(n_still, 1))
-    motion = Motion(TrackingState.STATIC, np.eye(3), np.zeros(3), covm.block(1e-6, rot_cov), still)
+    motion = Motion(TrackingState.STATIC, np.eye(3), np.zeros(3), covm.block(1e-6, rot_cov), still,
+                    moving=moved if n_moving and background_stood_still(cfg, ctx, still) else None)
     est = est.but(memory=dataclasses.replace(est.memory, static=True),
                   n_moving=n_moving, n_inliers=n_still, median_parallax_deg=0.0, moving_region=region,
                   model=Model.STATIC)
     return est.noted(note(Decision.CAMERA_STATIC, fraction=fraction, spread=spread, n_moving=n_moving, region=region),
                      motion)
+
+
+def background_stood_still(cfg: VoConfig, ctx: MotionContext, still: NDArray[np.bool_]) -> bool:
+    """The tracks that did not move stayed where they were, within the least noise tracks have
+    (``twist_noise_floor_px``, their median displacement since the keyframe): a still camera's background.
+    What moved meanwhile moved on its own, and is booked as a mover (``Motion.moving``): it stays out of the
+    "no camera motion" share, E, H and a map while it is tracked. An object crossing a still camera may hold
+    most of the tracks and the cells (after a keyframe made while it was in view, or an exposure step that
+    ended the background's tracks); E explains it, and the background with it as points at infinity (with no
+    rotation a track that did not move fits any translation). A camera that starts to move is judged still
+    for a frame or two while its slowest tracks creep (0.5-1.7 px on the distribution's starts, 0.05-0.2 on
+    its still cameras): it books nothing."""
+    d = np.linalg.norm(ctx.uv_cur[still] - ctx.kf.uv[ctx.rows][still], axis=1)
+    return d.size > 0 and float(np.median(d)) <= cfg.twist_noise_floor_px
 
 
 def grid_spread(uv: F64, mask: NDArray[np.bool_], width: int, height: int, cells: int = GRID_CELLS) -> float:
