@@ -59,23 +59,29 @@ def _true_rays(xn: F64, log_ratio: float, k1: float) -> F64:
     ``cv2.undistortPoints`` does)."""
     x_d = xn * math.exp(-log_ratio)
     x = x_d
+    if k1 == 0.0:  # no distortion to undo: each step would divide by exactly 1
+        return homogeneous(x)
     for _ in range(UNDISTORT_STEPS):
         x = x_d / (1.0 + k1 * np.einsum("ij,ij->i", x, x))[:, None]
     return homogeneous(x)
 
 
-def _camera_rays(p: F64, xn_ref: F64, xn_cur: F64) -> tuple[F64, F64]:
-    """The reference points' rays and the current points' unit rays under the camera ``(p[3], p[4])`` (k1
-    ``p[4]``, 0 without it): what ``_residuals`` needs besides the rotation."""
+def _camera_rays(p: F64, xn_both: F64) -> tuple[F64, F64]:
+    """The true camera's rays under the camera terms ``(p[3], p[4])`` (k1 ``p[4]``, 0 without it) of
+    ``xn_both`` (the reference's points, then as many of the current image's, undone in one pass): the
+    reference's as they are, the current image's as unit vectors. They do not depend on the rotation
+    ``p[:3]``, so the rotation's columns of the Jacobian share them."""
     k1 = float(p[4]) if p.size > 4 else 0.0
-    b_cur = _true_rays(xn_cur, p[3], k1)
-    return _true_rays(xn_ref, p[3], k1), b_cur / np.linalg.norm(b_cur, axis=1)[:, None]
+    rays = _true_rays(xn_both, p[3], k1)
+    n = rays.shape[0] // 2
+    b_cur = rays[n:]
+    return rays[:n], b_cur / np.linalg.norm(b_cur, axis=1)[:, None]
 
 
 def _residuals(p: F64, R0: F64, rays: tuple[F64, F64]) -> F64:
     """The difference of the unit rays (rad, to first order the parallax) of the current points and the
-    reference points turned by the rotation ``exp(p[:3]) R0``, the rays under the camera ``(p[3], p[4])``
-    (``_camera_rays``). Both images' noise enters alike: a transfer into one image would take the other's
+    reference points turned by the rotation ``exp(p[:3]) R0``, the ``rays`` those of the camera ``(p[3],
+    p[4])`` (``_camera_rays``). Both images' noise enters alike: a transfer into one image would take the other's
     points as exact and bias the camera's terms (which scale both) towards explaining its noise."""
     R = np.asarray(cv2.Rodrigues(p[:3])[0], np.float64) @ R0
     b_ref = rays[0] @ R.T
@@ -102,16 +108,16 @@ def rotation_under_camera_error(R0: F64, ratio0: float, xn_ref: F64, xn_cur: F64
     prior = prior[:n_par]
     p = np.zeros(n_par)
     p[3] = math.log(ratio0)
+    xn_both = np.vstack((xn_ref, xn_cur))
     for _ in range(CAMERA_FIT_STEPS):
-        rays = _camera_rays(p, xn_ref, xn_cur)
+        rays = _camera_rays(p, xn_both)
         r = _residuals(p, R0, rays)
         J = np.empty((r.size, n_par))
         for j in range(n_par):
             dp = np.zeros(n_par)
             dp[j] = JACOBIAN_STEP
-            # A step of the rotation leaves the camera, and so its rays, as they are.
-            J[:, j] = (_residuals(p + dp, R0, rays if j < 3 else _camera_rays(p + dp, xn_ref, xn_cur)) - r
-                       ) / JACOBIAN_STEP
+            p_j = p + dp
+            J[:, j] = (_residuals(p_j, R0, rays if j < 3 else _camera_rays(p_j, xn_both)) - r) / JACOBIAN_STEP
         A = w * np.einsum("ki,kj->ij", J, J) + np.diag(prior)  # einsum, not BLAS: no worker threads left spinning
         g = w * np.einsum("ki,k->i", J, r) + prior * p
         if not np.all(np.isfinite(A)) or np.linalg.cond(A) > 1e12:
