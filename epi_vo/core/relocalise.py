@@ -2,11 +2,13 @@
 keyframes' map points, so that a loss continues the same map, trajectory and scale instead of starting a
 new map with a new unit.
 
-Each recent keyframe is kept with its image (``Recent``). A lost frame tracks the keyframe's map points
-from that image into its own (KLT started from the whole image's motion, forward-backward checked:
-``features.track_klt``), and the camera's pose is fitted to them (``geometry.refine_pose_pnp``: a robust
-start from minimal poses, then Levenberg-Marquardt at the map's reprojection gate). The pose is taken when
-at least ``min_inliers`` map points hold it: the number below which no frame gives a pose.
+Each recent keyframe is kept with its image, and so is the last frame tracked against the current keyframe
+with where it saw the keyframe's map points (``Recent``: a view of a keyframe's points). A lost frame tracks
+the map points from the nearest such view in time into its own (KLT started from the whole image's motion,
+forward-backward checked: ``features.track_klt``), and the camera's pose is fitted to them
+(``geometry.refine_pose_pnp``: a robust start from minimal poses, then Levenberg-Marquardt at the map's
+reprojection gate). The pose is taken when at least ``min_inliers`` map points hold it: the number below
+which no frame gives a pose.
 """
 
 from __future__ import annotations
@@ -30,10 +32,23 @@ I64 = NDArray[np.int64]
 
 @dataclass(frozen=True)
 class Recent:
-    """A keyframe of the current map and the image it was made from (never changed in place)."""
+    """A view of the map points of keyframe ``kf`` in an image ``gray`` (the keyframe's own, or a frame
+    tracked against it): the keyframe's rows with depth and where they are in that image (raw pixels).
+    Never changed in place."""
 
     kf: Keyframe
     gray: NDArray[np.uint8]
+    rows: I64
+    pts: F32
+
+
+def view(kf: Keyframe, gray: NDArray[np.uint8], rows: I64, pts: F32, cfg: VoConfig) -> Recent | None:
+    """The keyframe's map points among ``rows`` seen at ``pts`` in ``gray``; None with fewer than
+    ``min_inliers`` of them (nothing a pose could be found from)."""
+    depth = np.isfinite(kf.X_kf[rows, 0])
+    if np.count_nonzero(depth) < cfg.min_inliers:
+        return None
+    return Recent(kf, gray, rows[depth], pts[depth])
 
 
 @dataclass(frozen=True)
@@ -67,18 +82,20 @@ class Relocalised:
                             self.T_cur_kf[:3, :3])
 
 
-def remembered(recent: tuple[Recent, ...], kf: Keyframe, gray: NDArray[np.uint8], keep: int) -> tuple[Recent, ...]:
-    """The recent keyframes after ``kf`` (made from ``gray``) joined them: the last ``keep``; a keyframe
-    without map points is nothing to re-localise against."""
-    if keep <= 0 or kf.n_map_points == 0:
+def remembered(recent: tuple[Recent, ...], kf: Keyframe, gray: NDArray[np.uint8], cfg: VoConfig
+               ) -> tuple[Recent, ...]:
+    """The recent keyframes after ``kf`` (made from ``gray``) joined them: the last
+    ``relocalise_keyframes``."""
+    own = view(kf, gray, np.arange(kf.n_features, dtype=np.int64), kf.pts, cfg)
+    if cfg.relocalise_keyframes <= 0 or own is None:
         return recent
-    return (*recent, Recent(kf, gray))[-keep:]
+    return (*recent, own)[-cfg.relocalise_keyframes:]
 
 
-def relocalise(recent: tuple[Recent, ...], gray: NDArray[np.uint8], camera: CameraModel, cfg: VoConfig
+def relocalise(views: tuple[Recent, ...], gray: NDArray[np.uint8], camera: CameraModel, cfg: VoConfig
                ) -> Relocalised | None:
-    """The pose of this image against the most recent keyframe whose map points find it (None: none)."""
-    for r in reversed(recent):
+    """The pose of this image from the most recent of ``views`` whose map points find it (None: none)."""
+    for r in reversed(views):
         if not r.kf.camera.same_as(camera) or r.gray.shape != gray.shape:
             continue
         found = _against(r, gray, camera, cfg)
@@ -89,11 +106,8 @@ def relocalise(recent: tuple[Recent, ...], gray: NDArray[np.uint8], camera: Came
 
 def _against(r: Recent, gray: NDArray[np.uint8], camera: CameraModel, cfg: VoConfig) -> Relocalised | None:
     kf = r.kf
-    rows = np.flatnonzero(np.isfinite(kf.X_kf[:, 0])).astype(np.int64)
-    if rows.shape[0] < cfg.min_inliers:
-        return None
-    klt = fe.track_klt(r.gray, gray, kf.pts[rows], cfg)
-    rows, pts = rows[klt.ok], klt.pts[klt.ok]
+    klt = fe.track_klt(r.gray, gray, r.pts, cfg)
+    rows, pts = r.rows[klt.ok], klt.pts[klt.ok]
     if rows.shape[0] < cfg.min_inliers:
         return None
     X = kf.X_kf[rows]

@@ -38,7 +38,14 @@ from epi_vo.core.decisions import Decision, Note, note
 from epi_vo.core.frame import MAX_STAMP_NS, FrameResult, Matches, TrackingState, clamp_stamp_ns
 from epi_vo.core.handover import HeldStart
 from epi_vo.core.keyframe import Keyframe
-from epi_vo.core.keyframing import book_movers, maybe_keyframe, movers_among, new_reference, set_keyframe
+from epi_vo.core.keyframing import (
+    KeyframeOutcome,
+    book_movers,
+    maybe_keyframe,
+    movers_among,
+    new_reference,
+    set_keyframe,
+)
 from epi_vo.core.odometry import rotate_covariance
 from epi_vo.core.publish import Observed, publish
 from epi_vo.core.state import LastRelative, TrackedNoise, Tracks, TrackState
@@ -80,7 +87,7 @@ def _ms(t0: float) -> float:
 
 def restart(state: TrackState, why: Note) -> TrackState:
     """Tracking restarts from the held pose at the next processed frame, which says ``why``."""
-    return dataclasses.replace(state, kf=None, pending=why, recent=())
+    return dataclasses.replace(state, kf=None, pending=why, recent=(), last_seen=None)
 
 
 def skip(state: TrackState, stamp_ns: int, why: Note, problem: str, cfg: VoConfig) -> tuple[TrackState, FrameResult]:
@@ -257,11 +264,13 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
                         matches=Matches(kf.pts[rows].astype(np.float64), pts_cur.astype(np.float64), kf.uv[rows],
                                         uv_cur, inl, F, H, movers.moving))
 
-    if state.recent and env.orb is None and (motion is None or state.held is not None):
-        # Lost against the reference (or a new map not yet made after a loss): the recent keyframes' map
-        # points may find this frame again, and the same map, trajectory and scale continue.
+    views = state.recent if state.last_seen is None else (*state.recent, state.last_seen)
+    if views and env.orb is None and (motion is None or state.held is not None):
+        # Lost against the reference (or a new map not yet made after a loss): the map points of the last
+        # tracked frame and of the recent keyframes may find this frame again, and the same map, trajectory
+        # and scale continue.
         t0 = time.perf_counter()
-        found = rl.relocalise(state.recent, gray, camera, cfg)
+        found = rl.relocalise(views, gray, camera, cfg)
         timings["relocalise"] = _ms(t0)
         if found is not None:
             return _relocalised(state, env, frame, found, observed, notes, timings, t_start)
@@ -306,10 +315,7 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
         born_still = geo.score_static(born_uv_kf, born_uv_cur, cfg.score_sigma_px)[1]
         state = _replenished(state, cfg, gray, camera, stamp_ns,
                              np.vstack([pts_cur[motion.inliers], born_pts[born_still]]).astype(np.float32))
-    recent = () if motion.new_map is not None or kfo.jumped else state.recent  # another unit: not this map's
-    if kfo.is_keyframe and motion.state is TrackingState.TRACKING:
-        recent = rl.remembered(recent, state.kf, gray, cfg.relocalise_keyframes) if state.kf is not None else recent
-    state = dataclasses.replace(state, recent=recent)
+    state = _remembered(state, cfg, motion, kf, kfo, gray, rows, pts_cur)
     timings.update(kfo.timings)
     timings["mapping"] = _ms(t0)
     notes = notes + kfo.notes
@@ -328,6 +334,22 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
                    step_covariance=step_cov, unknown=motion.state is TrackingState.INITIALIZING)
 
 
+def _remembered(state: TrackState, cfg: VoConfig, motion: mo.Motion, kf: Keyframe, kfo: KeyframeOutcome,
+                gray: NDArray[np.uint8], rows: I64, pts_cur: NDArray[np.float32]) -> TrackState:
+    """The views a lost frame may be found again from after this frame with a pose: a tracking keyframe
+    joins the recent ones, a tracking frame that is none is the last one seen (its inliers). A new map or
+    one now in metres has another unit: the old views go."""
+    recent, last_seen = state.recent, state.last_seen
+    if motion.new_map is not None or kfo.jumped:
+        recent, last_seen = (), None
+    if motion.state is TrackingState.TRACKING:
+        if kfo.is_keyframe and state.kf is not None:
+            recent, last_seen = rl.remembered(recent, state.kf, gray, cfg), None
+        elif not kfo.is_keyframe:
+            last_seen = rl.view(kf, gray, rows[motion.inliers], pts_cur[motion.inliers], cfg)
+    return dataclasses.replace(state, recent=recent, last_seen=last_seen)
+
+
 def _relocalised(state: TrackState, env: StepEnv, frame: Frame, found: rl.Relocalised, observed: Observed,
                  notes: tuple[Note, ...], timings: dict[str, float], t_start: float) -> tuple[TrackState, FrameResult]:
     """This frame found again against a recent keyframe: it becomes a keyframe at that pose, holding the
@@ -343,8 +365,7 @@ def _relocalised(state: TrackState, env: StepEnv, frame: Frame, found: rl.Reloca
     state = set_keyframe(state, cfg, env.orb, frame.gray, frame.camera, frame.stamp_ns, cov, found.pts, found.X_cur,
                          None, ids)
     assert state.kf is not None
-    state = dataclasses.replace(state, recent=rl.remembered(state.recent, state.kf, frame.gray,
-                                                            cfg.relocalise_keyframes))
+    state = dataclasses.replace(state, recent=rl.remembered(state.recent, state.kf, frame.gray, cfg), last_seen=None)
     notes = (*notes, note(Decision.RELOCALISED, kf=kf.index, n=found.n))
     observed = dataclasses.replace(observed, n_inliers=found.n)
     return publish(state, cfg, frame.stamp_ns, TrackingState.TRACKING, True, True, observed, notes, timings, t_start,
