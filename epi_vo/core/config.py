@@ -204,6 +204,9 @@ class VoConfig:
 
     # --- tracking lost -------------------------------------------------------------------------
     lost_after_frames: int = _knob(3, "consecutive frames without a pose before tracking is declared lost", 1, 1000)
+    relocalise_keyframes: int = _knob(
+        3, "recent keyframes (with their images) a lost frame is found again against before a new map is started "
+        "(core/relocalise.py): the same map, trajectory and scale continue; 0: never", 1, 20, off=0)
     # What the platform can do bounds the motion a pose held through a loss may have missed (core/handover.py).
     max_speed_mps: float = _knob(
         20.0, "the platform's largest plausible speed (m/s): a map restarted after a loss covers in its position "

@@ -31,6 +31,7 @@ class Decision(enum.Enum):
     NEW_REFERENCE = "new_reference"  # a restart's frame became the reference keyframe, no map yet
     NO_POSE = "no_pose"  # no pose this frame (``failures`` of ``limit``), pose held
     TRACKING_LOST = "tracking_lost"  # ``failures`` frames without a pose: restart from the held pose
+    RELOCALISED = "relocalised"  # found again against keyframe ``kf`` (``n`` map points): same map
     POSE_NOT_FINITE = "pose_not_finite"  # defect guard: the held pose was reset to the origin
     COVARIANCE_NOT_FINITE = "covariance_not_finite"  # defect guard: the held covariance was reset
     # --- features -----------------------------------------------------------------------------------

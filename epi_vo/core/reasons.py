@@ -81,6 +81,7 @@ _TEXT: dict[Decision, str | Callable[[Details], str]] = {
     Decision.NO_POSE: "no pose this frame ({failures}/{limit}); pose held",
     Decision.TRACKING_LOST: "tracking lost after {failures} frame(s) without a pose: re-initializing from the last "
                             "pose",
+    Decision.RELOCALISED: "re-localised against keyframe {kf}: {n} points; the same map and scale continue",
     Decision.POSE_NOT_FINITE: "internal: the held pose was not finite; reset to the origin",
     Decision.COVARIANCE_NOT_FINITE: "internal: the held covariance was not finite; reset to the 'unknown' covariance",
     Decision.EXPOSURE_CHANGED: "exposure changed: the image was scaled by {gain:.2f} to track it",

@@ -4,7 +4,8 @@
 frame's record); nothing else persists between frames. Its parts are frozen values too: the keyframe and
 its map (``Keyframe``), the scale source (``scale``), the windowed map (``window``), the motion stage's
 memory (``motion``), the covariance's scale and calibration terms (``map_scale``, ``calib``), the
-hand-over to a new map (``handover``). Arrays held here are never changed in place: a new state holds
+hand-over to a new map (``handover``), the recent keyframes and the last tracked frame a lost frame is
+found again against (``recent``, ``last_seen``). Arrays held here are never changed in place: a new state holds
 new arrays.
 """
 
@@ -24,6 +25,7 @@ from epi_vo.core.keyframe import Keyframe
 from epi_vo.core.map_scale import MapScaleCovariance
 from epi_vo.core.motion import MotionMemory
 from epi_vo.core.patches import PatchTemplates, patch_templates
+from epi_vo.core.relocalise import Recent
 from epi_vo.core.wheel_odometry import WheelOdometry
 from epi_vo.core.window import WindowedMap
 
@@ -130,6 +132,8 @@ class TrackState:
     tracked_noise: TrackedNoise = field(default_factory=TrackedNoise)
     motion: MotionMemory = field(default_factory=MotionMemory)
     wheel: WheelOdometry = field(default_factory=WheelOdometry)
+    recent: tuple[Recent, ...] = ()  # the current map's recent keyframes and images (re-localisation)
+    last_seen: Recent | None = None  # the last frame tracked against the keyframe, as a view of its map points
 
 
 def initial_state(cfg: VoConfig) -> TrackState:

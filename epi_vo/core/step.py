@@ -30,6 +30,7 @@ from epi_vo.core import covariance as covm
 from epi_vo.core import features as fe
 from epi_vo.core import geometry as geo
 from epi_vo.core import motion as mo
+from epi_vo.core import relocalise as rl
 from epi_vo.core.calibration_cov import CalibrationError
 from epi_vo.core.camera import CameraModel
 from epi_vo.core.config import Frontend, VoConfig
@@ -37,7 +38,14 @@ from epi_vo.core.decisions import Decision, Note, note
 from epi_vo.core.frame import MAX_STAMP_NS, FrameResult, Matches, TrackingState, clamp_stamp_ns
 from epi_vo.core.handover import HeldStart
 from epi_vo.core.keyframe import Keyframe
-from epi_vo.core.keyframing import book_movers, maybe_keyframe, movers_among, new_reference
+from epi_vo.core.keyframing import (
+    KeyframeOutcome,
+    book_movers,
+    maybe_keyframe,
+    movers_among,
+    new_reference,
+    set_keyframe,
+)
 from epi_vo.core.odometry import rotate_covariance
 from epi_vo.core.publish import Observed, publish
 from epi_vo.core.state import LastRelative, TrackedNoise, Tracks, TrackState
@@ -79,7 +87,7 @@ def _ms(t0: float) -> float:
 
 def restart(state: TrackState, why: Note) -> TrackState:
     """Tracking restarts from the held pose at the next processed frame, which says ``why``."""
-    return dataclasses.replace(state, kf=None, pending=why)
+    return dataclasses.replace(state, kf=None, pending=why, recent=(), last_seen=None)
 
 
 def skip(state: TrackState, stamp_ns: int, why: Note, problem: str, cfg: VoConfig) -> tuple[TrackState, FrameResult]:
@@ -256,6 +264,16 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
                         matches=Matches(kf.pts[rows].astype(np.float64), pts_cur.astype(np.float64), kf.uv[rows],
                                         uv_cur, inl, F, H, movers.moving))
 
+    views = state.recent if state.last_seen is None else (*state.recent, state.last_seen)
+    if views and env.orb is None and (motion is None or state.held is not None):
+        # Lost against the reference (or a new map not yet made after a loss): the map points of the last
+        # tracked frame and of the recent keyframes may find this frame again, and the same map, trajectory
+        # and scale continue.
+        t0 = time.perf_counter()
+        found = rl.relocalise(views, gray, camera, cfg)
+        timings["relocalise"] = _ms(t0)
+        if found is not None:
+            return _relocalised(state, env, frame, found, observed, notes, timings, t_start)
     t0 = time.perf_counter()
     if motion is None:
         state, restart_now, failed = _on_failure(dataclasses.replace(state, last_relative=None), cfg, n_tracked)
@@ -297,6 +315,7 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
         born_still = geo.score_static(born_uv_kf, born_uv_cur, cfg.score_sigma_px)[1]
         state = _replenished(state, cfg, gray, camera, stamp_ns,
                              np.vstack([pts_cur[motion.inliers], born_pts[born_still]]).astype(np.float32))
+    state = _remembered(state, cfg, motion, kf, kfo, gray, rows, pts_cur)
     timings.update(kfo.timings)
     timings["mapping"] = _ms(t0)
     notes = notes + kfo.notes
@@ -313,6 +332,44 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
     # covariance, which a re-anchored reference keyframe and the map after it take, stays the estimate's.
     return publish(state, cfg, stamp_ns, motion.state, True, kfo.is_keyframe, observed, notes, timings, t_start,
                    step_covariance=step_cov, unknown=motion.state is TrackingState.INITIALIZING)
+
+
+def _remembered(state: TrackState, cfg: VoConfig, motion: mo.Motion, kf: Keyframe, kfo: KeyframeOutcome,
+                gray: NDArray[np.uint8], rows: I64, pts_cur: NDArray[np.float32]) -> TrackState:
+    """The views a lost frame may be found again from after this frame with a pose: a tracking keyframe
+    joins the recent ones, a tracking frame that is none is the last one seen (its inliers). A new map or
+    one now in metres has another unit: the old views go."""
+    recent, last_seen = state.recent, state.last_seen
+    if motion.new_map is not None or kfo.jumped:
+        recent, last_seen = (), None
+    if motion.state is TrackingState.TRACKING:
+        if kfo.is_keyframe and state.kf is not None:
+            recent, last_seen = rl.remembered(recent, state.kf, gray, cfg), None
+        elif not kfo.is_keyframe:
+            last_seen = rl.view(kf, gray, rows[motion.inliers], pts_cur[motion.inliers], cfg)
+    return dataclasses.replace(state, recent=recent, last_seen=last_seen)
+
+
+def _relocalised(state: TrackState, env: StepEnv, frame: Frame, found: rl.Relocalised, observed: Observed,
+                 notes: tuple[Note, ...], timings: dict[str, float], t_start: float) -> tuple[TrackState, FrameResult]:
+    """This frame found again against a recent keyframe: it becomes a keyframe at that pose, holding the
+    map points that found it (in its own camera frame), so the map, its scale and the trajectory go on. Its
+    covariance is the keyframe's and the fit's; the step from the last pose (across the loss) is not
+    measured."""
+    cfg, kf = env.cfg, found.kf
+    T_w_c, cov = found.T_w_c, covm.floored(found.cov_w_c)
+    state = dataclasses.replace(state, T_w_c=T_w_c, cov_w_c=cov, last_pos_w=T_w_c[:3, 3].copy(), fail_count=0,
+                                held=None, last_relative=None,
+                                handover=state.handover.booked(frame.stamp_ns, T_w_c, cov))
+    ids = kf.ids[found.rows] if kf.ids is not None else None
+    state = set_keyframe(state, cfg, env.orb, frame.gray, frame.camera, frame.stamp_ns, cov, found.pts, found.X_cur,
+                         None, ids)
+    assert state.kf is not None
+    state = dataclasses.replace(state, recent=rl.remembered(state.recent, state.kf, frame.gray, cfg), last_seen=None)
+    notes = (*notes, note(Decision.RELOCALISED, kf=kf.index, n=found.n))
+    observed = dataclasses.replace(observed, n_inliers=found.n)
+    return publish(state, cfg, frame.stamp_ns, TrackingState.TRACKING, True, True, observed, notes, timings, t_start,
+                   step_covariance=covm.block(cfg.lost_position_variance, cfg.lost_rotation_variance))
 
 
 def _calibration(state: TrackState, kf: Keyframe, motion: mo.Motion, rows: I64, xn_cur: F64,

@@ -14,7 +14,7 @@ DETAILS = dict(text="operator reset", seconds=4.9331, problem="bad image", note=
                gain=1.6, n=12, need=25, movers=3, region=(1, 2, 30, 40), spread=0.25, fraction=0.75, n_moving=5,
                rh=0.5, parallax=0.3, angle=2.0, rotation=1.0, direction=20.0, off=12, n_e=100, stat=30.0, moved=0.02,
                turned=1.0, ratio=0.95, parallax_focal=0.05, max_wait=10, best=0.4, runner=2.9, views=2, waited=2,
-               rotation_sigma_deg=0.5, direction_sigma_deg=18.7, plane=False)
+               rotation_sigma_deg=0.5, direction_sigma_deg=18.7, plane=False, kf=7)
 
 
 @pytest.mark.parametrize("decision", list(Decision))
@@ -27,6 +27,8 @@ def test_known_sentences() -> None:
     assert sentence(note(Decision.TIME_JUMPED_BACK, seconds=4.9331)) == (
         "time jumped backwards by 4.933 s: tracking restarted from the last pose")
     assert sentence(note(Decision.TOO_FEW_TRACKED, n=12, need=25, movers=0)) == "too few tracked features (12 < 25)"
+    assert sentence(note(Decision.RELOCALISED, kf=27, n=116)) == (
+        "re-localised against keyframe 27: 116 points; the same map and scale continue")
     assert sentence(note(Decision.TOO_FEW_TRACKED, n=12, need=25, movers=3)) == (
         "too few tracked features (12 < 25, 3 on moving objects)")
     assert sentence(note(Decision.INIT_DEFERRED, rotation_sigma_deg=math.nan, direction_sigma_deg=math.nan)) == (
