@@ -884,53 +884,6 @@ def test_a_scene_with_many_points_off_h_plane_initialises_from_e() -> None:
     assert _dir_err_deg(m.t_cur_kf, s.t_cur_ref) < 3.0
 
 
-def _wall_with_overlay(seed: int, n_still: int, side_m: float) -> Any:
-    """160 points on a wall 4 m ahead turned 25 deg about y, the camera ``side_m`` to the side, 1-2 cm up and
-    ahead, turned 0.2 deg (0.3 px noise), and ``n_still`` features of a timestamp burnt into the image's
-    bottom rows (0.05 px noise): fixed to the image, as if at infinity along their rays."""
-    from conftest import SCENE_K, TwoViewScene
-    from scipy.spatial.transform import Rotation
-
-    rng = np.random.default_rng(seed)
-    K = SCENE_K.copy()
-    th = math.radians(25.0)
-    n, d = np.array([math.sin(th), 0.0, -math.cos(th)]), 4.0 * math.cos(th)  # the wall: n . X = -d
-    uv = np.column_stack([rng.uniform(10, 629, 160), rng.uniform(10, 440, 160)])
-    rays = np.linalg.solve(K, np.c_[uv, np.ones(160)].T).T
-    X = rays * (-d / (rays @ n))[:, None]
-    R = Rotation.from_euler("y", 0.2, degrees=True).as_matrix()
-    t = np.array([-side_m, 0.01, 0.02])
-
-    def project(P: np.ndarray) -> np.ndarray:
-        p = P @ K.T
-        return p[:, :2] / p[:, 2:3]
-
-    uv_ref, uv_cur = project(X), project(X @ R.T + t)
-    strip = np.column_stack([rng.uniform(200.0, 440.0, n_still), rng.uniform(452.0, 472.0, n_still)])
-    far = np.linalg.solve(K, np.c_[strip, np.ones(n_still)].T).T * 1e6
-    H = K @ (R - np.outer(t, n) / d) @ np.linalg.inv(K)
-    return TwoViewScene("planar", K, R, t, np.vstack([X, far]), np.vstack([uv_ref, strip]),
-                        np.vstack([uv_cur, strip]), np.vstack([uv_ref + rng.normal(0, 0.3, uv_ref.shape), strip]),
-                        np.vstack([uv_cur + rng.normal(0, 0.3, uv_cur.shape),
-                                   strip + rng.normal(0, 0.05, strip.shape)]),
-                        np.zeros(160 + n_still, bool), n, d, H)
-
-
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_features_fixed_to_the_image_do_not_make_a_plane_no_plane(seed: int) -> None:
-    """A timestamp burnt into the image: its 22 features stay put while the wall's move 7-10 px. A still
-    point lies on its own epipolar line under a translation with a small rotation, so E takes them and H
-    does not: 22 of E's inliers "off H's plane", which called the wall no plane and started the map from
-    E. They have no parallax and say nothing of depth off the plane: the map starts from H's decomposition."""
-    scene = _wall_with_overlay(seed, 22, 0.10)
-    m, st, _ = _estimate(scene, _no_map(scene))
-    assert m is not None and m.state is TrackingState.TRACKING and m.new_map is not None
-    assert Decision.NOT_A_PLANE not in _decisions(st)
-    assert st.model is Model.HOMOGRAPHY and Decision.MAP_FROM_HOMOGRAPHY in _decisions(st)
-    assert _rot_err_deg(m, scene) < 0.15
-    assert _dir_err_deg(m.t_cur_kf, scene.t_cur_ref) < 3.5
-
-
 def test_planar_initialisation_waits_when_e_disagrees_with_h_and_no_solution_near_e_holds_points() -> None:
     """E (7 inliers off the floor) agrees with one of H's decompositions, but with little parallax that
     one passes few points through the triangulation gates; the other wins the count and is 3.4 deg off.

@@ -103,13 +103,7 @@ def _first_map_from_plane(cfg: VoConfig, ctx: MotionContext, sel: ModelSelection
     K = kf.camera.K
     zero = np.zeros(3)
     R_off = None
-    # A feature that stayed where it was in the image while the plane's points moved has no parallax: it is
-    # fixed to the image (an overlay, a mark on the lens) or at infinity, and fits E's epipolar lines
-    # whenever the rotation is small (a still point is on its own epipolar line under a pure translation).
-    # It says nothing of depth off the plane, nor which decomposition the motion is.
-    moved = np.linalg.norm(ctx.uv_cur - kf.uv[ctx.rows], axis=1) > cfg.ransac_threshold_px
-    off = None if sel.inliers_e is None else sel.inliers_e & ~in_h & moved
-    off_plane = 0 if off is None else int(np.count_nonzero(off))
+    off_plane = 0 if sel.inliers_e is None else int(np.count_nonzero(sel.inliers_e & ~in_h))
     many_off = sel.E is not None and sel.inliers_e is not None and off_plane >= max(
         NOT_A_PLANE_OFF[0], NOT_A_PLANE_OFF[1] * np.count_nonzero(sel.inliers_e))
     if not e_moves and many_off:
@@ -120,10 +114,11 @@ def _first_map_from_plane(cfg: VoConfig, ctx: MotionContext, sel: ModelSelection
         est = est.but(model=Model.ESSENTIAL).noted(note(Decision.NOT_A_PLANE, off=off_plane,
                                                         n_e=int(np.count_nonzero(sel.inliers_e))))
         return from_essential(cfg, ctx, sel.E, sel.inliers_e, est, sel.rh)
-    if not e_moves and off is not None and off_plane >= MIN_OFF_PLANE_FOR_E_HINT:
+    if not e_moves and sel.inliers_e is not None and off_plane >= MIN_OFF_PLANE_FOR_E_HINT:
         # The points off H's plane (E's inliers that H rejects) say which of H's decompositions is the
         # motion when they tell them apart (``geometry.solution_off_plane``). Not E's own rotation: E fitted
         # to a plane and a few points off it is near-degenerate and can take the wrong solution.
+        off = sel.inliers_e & ~in_h
         chosen = geo.solution_off_plane(
             geo.homography_solutions(H, K, xn_kf, xn_cur, in_h, cfg.max_reprojection_error_px,
                                      cfg.min_triangulation_angle_deg),
