@@ -158,12 +158,6 @@ class VoConfig:
 
     # --- degeneracy, parallax and triangulation gates ----------------------------------------
     init_min_parallax_deg: float = _knob(0.5, "median parallax needed to initialise the map (deg)", 0.01, 45.0)
-    init_max_rotation_sigma_deg: float = _knob(
-        180.0, "before a first map, where a plane nearly won: E's motion is taken for one the plane does not allow "
-        "(an object crossing it) only when its covariance's rotation standard deviation is below this (deg; "
-        "180: whenever E has a covariance)", 0.001, 180.0)
-    init_max_direction_sigma_deg: float = _knob(
-        180.0, "the same for the standard deviation of E's direction of travel (deg)", 0.01, 180.0)
     kf_min_parallax_deg: float = _knob(1.0, "median parallax that makes a new keyframe (deg)", 0.01, 45.0)
     e_pose_min_parallax_deg: float = _knob(
         0.5, "above this median parallax the pose comes from E (scaled by the map), below from the map", 0.0, 45.0)
@@ -380,6 +374,10 @@ def is_parameter_name(name: object) -> bool:
 REMOVED_PARAMETERS: dict[str, str] = {
     "rotation_only_parallax_deg": "removed: pure rotation is chosen by GRIC against the homography; "
                                   "delete the key",
+    "init_max_rotation_sigma_deg": "removed: a first map is not refused for E's rotation sigma (a still "
+                                   "camera's moving object is booked as a mover instead); delete the key",
+    "init_max_direction_sigma_deg": "removed: a first map is not refused for E's direction sigma (a still "
+                                    "camera's moving object is booked as a mover instead); delete the key",
 }
 
 

@@ -183,6 +183,9 @@ def test_from_dict_a_removed_parameter_says_what_replaced_it() -> None:
     with pytest.raises(ConfigError, match=r"unknown parameters: rotation_only_parallax_deg \(removed: pure "
                                           r"rotation is chosen by GRIC"):
         from_dict({"rotation_only_parallax_deg": 0.3})
+    with pytest.raises(ConfigError, match=r"init_max_direction_sigma_deg \(removed: a first map is not refused "
+                                          r"for E's direction sigma.*init_max_rotation_sigma_deg \(removed"):
+        from_dict({"init_max_rotation_sigma_deg": 0.25, "init_max_direction_sigma_deg": 8.0})
 
 
 def test_from_dict_widens_ints_to_floats() -> None:

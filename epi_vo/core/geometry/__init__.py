@@ -74,7 +74,6 @@ from epi_vo.core.geometry.uncertainty import (
     map_information,
     map_normal_equations,
     map_step,
-    pose_undetermined,
     reprojection_rms,
     sampson_rms,
 )
@@ -119,7 +118,6 @@ __all__ = [
     "polish_homography",
     "polished_by_opencv",
     "pose_from_homography",
-    "pose_undetermined",
     "ray_angles",
     "ray_depths",
     "recover_pose",

@@ -256,28 +256,6 @@ def fuse(cov: F64, info: F64) -> F64 | None:
     return fused if np.all(np.isfinite(fused)) and np.all(np.diag(fused) > 0) else None
 
 
-def pose_undetermined(cov: F64 | None, t: F64, max_rotation_sigma_deg: float, max_direction_sigma_deg: float
-                      ) -> tuple[float, float] | None:
-    """Why a first pose from E is not determined by its points (None when it is): its covariance's largest
-    rotation standard deviation above ``max_rotation_sigma_deg`` (``init_max_rotation_sigma_deg``) or the
-    direction of travel's above ``max_direction_sigma_deg``. This is the bas-relief ambiguity of a small
-    baseline seen over part of the image: a cart on 40 % of the view at 0.77 deg of parallax gave 0.52 and
-    18.7 deg, a map started 1 deg off and a run that ended at 5.5 % ATE;
-    the largest on a good initialisation of any bundled bag or KITTI, from any start frame, were 0.08 and
-    2.3 deg. Returns (rotation sigma, direction sigma) in degrees; no covariance (no parallax at all):
-    undetermined, (NaN, NaN)."""
-    if cov is None or not np.all(np.isfinite(cov)):
-        return math.nan, math.nan
-    rot_sigma = math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(cov[3:, 3:])[-1]), 0.0)))
-    d = t / max(float(np.linalg.norm(t)), 1e-300)
-    across = np.eye(3) - np.outer(d, d)
-    dir_var = float(np.linalg.eigvalsh(across @ cov[:3, :3] @ across)[-1]) / max(float(t @ t), 1e-300)
-    dir_sigma = math.degrees(math.sqrt(max(dir_var, 0.0)))
-    if rot_sigma > max_rotation_sigma_deg or dir_sigma > max_direction_sigma_deg:
-        return rot_sigma, dir_sigma
-    return None
-
-
 # Calibration errors a CameraInfo may carry, in the order of ``calibration_sensitivity``'s columns: the focal
 # length (relative), the principal point's x and y (px) and an undeclared radial distortion k1 (normalised).
 CALIBRATION_TERMS = ("focal_rel", "cx_px", "cy_px", "k1")

@@ -34,16 +34,15 @@ NOT_A_PLANE_OFF = (10, 0.1)
 def e_moves_off_plane(cfg: VoConfig, ctx: MotionContext, sel: ModelSelection, est: MotionEstimate
                       ) -> tuple[MotionEstimate, bool]:
     """Before a first map: E's motion is none H's plane allows (``geo.agrees_with_plane``): part of its
-    consensus moves (an object crossing a floor); the plane is taken as static. Only an E its points
-    determine (``geo.pose_undetermined``) can disagree: a still camera's blurred frames give an E off the
-    plane by as little as its own uncertainty."""
+    consensus moves (an object crossing a floor); the plane is taken as static. Only an E with a pose
+    covariance (parallax its points show) can disagree."""
     assert sel.E is not None and sel.inliers_e is not None and sel.H is not None and sel.inliers_h is not None
     kf = ctx.kf
     K = kf.camera.K
     R, t, inl = geo.recover_pose(sel.E, kf.uv[ctx.rows], ctx.uv_cur, K, sel.inliers_e)
     cov = geo.essential_pose_covariance(R, t, kf.xn[ctx.rows][inl], ctx.xn_cur[inl], cfg.pixel_noise_px / K[0, 0],
                                         1.0, cfg.scale_drift_per_keyframe**2)
-    if geo.pose_undetermined(cov, t, cfg.init_max_rotation_sigma_deg, cfg.init_max_direction_sigma_deg) is not None:
+    if cov is None or not np.all(np.isfinite(cov)):
         return est, False
     sols = geo.homography_solutions(sel.H, K, kf.xn[ctx.rows], ctx.xn_cur, sel.inliers_h,
                                     cfg.max_reprojection_error_px, cfg.min_triangulation_angle_deg)

@@ -74,9 +74,9 @@ def plane_by_views(cfg: VoConfig, ctx: MotionContext, H: F64, in_h: NDArray[np.b
             None, spread
     normals, waited = pending.normals, pending.waited
     # Each solution against the first view's plane it is nearest to, in the normals' own uncertainty.
-    near = [min(range(len(normals)), key=lambda j, s=s, c=c: geo.normal_drift_sq(s.normal, c, normals[j],
-                                                                                   pending.covs[j]))
-            for s, c in zip(valid, covs, strict=True)]
+    drifts = [[geo.normal_drift_sq(s.normal, c, n, nc) for n, nc in zip(normals, pending.covs, strict=True)]
+              for s, c in zip(valid, covs, strict=True)]
+    near = [min(range(len(d)), key=d.__getitem__) for d in drifts]
     chi = [geo.normal_drift_sq(s.normal, c, normals[j], pending.covs[j])
            for s, c, j in zip(valid, covs, near, strict=True)]
     deg = [math.degrees(math.acos(min(1.0, abs(float(s.normal @ normals[j])))))
@@ -104,7 +104,7 @@ def _normal_covariances(K: F64, H: F64, xn_kf: F64, xn_cur: F64, valid: list[geo
     """Each valid solution's normal's covariance (3, 3) from H's fit to its inliers ``xn_kf`` -> ``xn_cur``
     at the noise their residuals show; a normal whose uncertainty cannot be had is taken as unknown (any
     drift is within it), so it never decides a pick."""
-    H_n = np.linalg.solve(K, H @ K)
+    H_n = np.asarray(np.linalg.solve(K, H @ K), np.float64)
     fit = geo.homography_covariance(H_n, xn_kf, xn_cur)
     out = []
     for s in valid:
