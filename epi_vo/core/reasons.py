@@ -124,12 +124,11 @@ _TEXT: dict[Decision, str | Callable[[Details], str]] = {
                                                "held",
     Decision.PLANE_WAIT_FIRST: "planar scene: {n} decompositions of H fit; waiting for a view that tells the plane "
                                "apart (1/{max_wait}), pose held",
-    Decision.PLANE_WAIT: "planar scene: {n} decompositions of H fit ({best:.1f} / {runner:.1f} deg, "
-                         "{best_sigma:.1f} / {runner_sigma:.1f} sigma from the first view's planes); waiting for a "
-                         "view that tells the plane apart ({waited}/{max_wait}), pose held",
-    Decision.PLANE_KEPT_NORMAL: "planar scene: the plane kept its normal over {views} views ({best:.1f} deg, "
-                                "{best_sigma:.1f} sigma; the other solution moved {runner:.1f} deg, "
-                                "{runner_sigma:.1f} sigma)",
+    Decision.PLANE_WAIT: "planar scene: {n} decompositions of H fit ({best:.1f} / {runner:.1f} deg from the first "
+                         "view's planes); waiting for a view that tells the plane apart ({waited}/{max_wait}), pose "
+                         "held",
+    Decision.PLANE_KEPT_NORMAL: "planar scene: the plane kept its normal over {views} views ({best:.1f} deg; the other "
+                                "solution moved {runner:.1f} deg)",
     Decision.PLANE_WAIT_GAVE_UP: "planar scene: no view told H's decompositions apart in {max_wait} frames; taking the "
                                  "one most points pass the gates",
     Decision.INIT_LOW_PARALLAX: "low parallax ({parallax:.2f} deg < {need}): waiting for baseline, position held",

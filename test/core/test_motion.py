@@ -758,10 +758,10 @@ def _floor_scene(n_floor: int, n_off: int, seed: int, step: float, far: float, b
 
 
 def _floor_views(n_floor: int, n_off: int, seed: int, moves: list[tuple[float, float, float]], far: float,
-                 box_m: float = 0.2, noise_px: float = 0.3) -> list[Any]:
+                 box_m: float = 0.2) -> list[Any]:
     """The floor scene of ``_floor_scene`` seen from one reference (the keyframe, its noisy observations
     shared) and one current camera per move ``(ahead_m, left_m, yaw_deg)`` from the reference (yaw: a
-    turn about the floor's normal); image noise ``noise_px`` per axis."""
+    turn about the floor's normal)."""
     from conftest import SCENE_K, TwoViewScene
     from scipy.spatial.transform import Rotation
 
@@ -790,7 +790,7 @@ def _floor_views(n_floor: int, n_off: int, seed: int, moves: list[tuple[float, f
 
     X = np.vstack([on_floor(n_floor, 0.0), on_floor(n_off, box_m)])
     uv_ref = project(X)
-    uv_ref_obs = uv_ref + rng.normal(0, noise_px, uv_ref.shape)
+    uv_ref_obs = uv_ref + rng.normal(0, 0.3, uv_ref.shape)
     scenes = []
     for ahead, side, yaw in moves:
         R = Rotation.from_rotvec(math.radians(yaw) * n_up).as_matrix()
@@ -798,8 +798,7 @@ def _floor_views(n_floor: int, n_off: int, seed: int, moves: list[tuple[float, f
         uv_cur = project(X @ R.T + t)
         H = K @ (R + np.outer(t, n_up) / h) @ np.linalg.inv(K)
         scenes.append(TwoViewScene("floor", K, R, t, X, uv_ref, uv_cur, uv_ref_obs,
-                                   uv_cur + rng.normal(0, noise_px, uv_cur.shape), np.zeros(X.shape[0], bool), n_up, h,
-                                   H))
+                                   uv_cur + rng.normal(0, 0.3, uv_cur.shape), np.zeros(X.shape[0], bool), n_up, h, H))
     return scenes
 
 
@@ -943,24 +942,6 @@ def test_a_pure_floor_seen_straight_ahead_is_told_apart_as_parallax_grows() -> N
             return
         assert m.state is TrackingState.INITIALIZING
     raise AssertionError("no view picked the plane")
-
-
-@pytest.mark.parametrize("seed", [0, 1, 2, 3])
-def test_with_a_sharp_camera_the_plane_is_told_apart_once_the_other_normal_moved_beyond_its_noise(seed: int) -> None:
-    """At 0.05 px of image noise the normals are fixed to a tenth of a degree: the other solution's plane
-    turning by under a degree one view later is beyond what that noise explains, and the true plane is picked
-    there (a fixed 1.5 deg agreement waited two or more views longer)."""
-    views = _floor_views(110, 0, seed=seed, moves=[(0.05, 0.0, 0.0), (0.06, 0.0, 0.0)], far=6.0, noise_px=0.05)
-    stage = _Stage()
-    m1, _, _ = _estimate(views[0], _no_map(views[0]), stage=stage)
-    assert m1 is not None and m1.state is TrackingState.INITIALIZING
-    m2, st2, _ = _estimate(views[1], _no_map(views[1]), stage=stage)
-    assert m2 is not None and m2.state is TrackingState.TRACKING and m2.new_map is not None
-    kept = [n for n in st2.notes if n.decision is Decision.PLANE_KEPT_NORMAL]
-    assert len(kept) == 1 and kept[0]["views"] == 2
-    assert kept[0]["runner"] < 1.5 and kept[0]["runner_sigma"] > 3.0 and kept[0]["best_sigma"] < 3.0
-    assert _rot_err_deg(m2, views[1]) < 0.1
-    assert _dir_err_deg(m2.t_cur_kf, views[1].t_cur_ref) < 3.0
 
 
 def test_a_planar_initialisation_no_view_tells_apart_falls_back_to_the_count_after_the_wait() -> None:

@@ -78,12 +78,10 @@ class MotionContext:
 @dataclass(frozen=True)
 class PlaneViews:
     """An ambiguous planar initialisation: the keyframe, its valid solutions' plane normals at the first
-    view with their covariances (3, 3; ``geometry.normal_covariance``), and the frames waited since
-    (``plane_views``)."""
+    view, and the frames waited since (``plane_views``)."""
 
     kf_stamp_ns: int
     normals: tuple[F64, ...]
-    covs: tuple[F64, ...]
     waited: int
 
 
