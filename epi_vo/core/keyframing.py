@@ -142,7 +142,13 @@ def book_movers(state: TrackState, kf: Keyframe, rows: I64, uv_cur: F64, exclude
         lo, hi = uv_cur[moving].min(axis=0), uv_cur[moving].max(axis=0)
         region = (int(lo[0]), int(lo[1]), int(np.ceil(hi[0])), int(np.ceil(hi[1])))
         notes = (note(Decision.MOVERS_IN_VIEW, n=n, region=region),)
-    return state, Movers(moving, n_moving + n, region, notes)
+    # A still camera's count (``n_moving``) holds the tracks it booked this frame: counted once; its region
+    # (where what it saw move this frame is) is taken over the movers booked before too.
+    total = n_moving + int(np.count_nonzero(excluded)) if n_moving else n
+    if n_moving and np.any(excluded):
+        lo, hi = np.percentile(uv_cur[moving], 5, axis=0), np.percentile(uv_cur[moving], 95, axis=0)
+        region = (int(lo[0]), int(lo[1]), int(np.ceil(hi[0])), int(np.ceil(hi[1])))
+    return state, Movers(moving, total, region, notes)
 
 
 def maybe_keyframe(state: TrackState, cfg: VoConfig, orb: cv2.ORB | None, solver: WindowSolver, motion: mo.Motion,

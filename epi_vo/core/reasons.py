@@ -28,8 +28,8 @@ def _region(d: Details) -> str:
 def _static(d: Details) -> str:
     what = "nothing moved"
     if d["n_moving"]:
-        what = (f"{d['n_moving']} features ({1 - d['fraction']:.0%}) moved in {_region(d)}: another object's "
-                "motion, ignored")
+        where = f" in {_region(d)}" if d.get("region") is not None else ""
+        what = f"{d['n_moving']} features ({1 - d['fraction']:.0%}) moved{where}: another object's motion, ignored"
     return (f"camera static: {d['fraction']:.0%} of tracked features did not move, spread over {d['spread']:.0%} "
             f"of the image; {what}; pose held")
 

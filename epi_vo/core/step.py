@@ -240,7 +240,7 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
         timings["models"] = _ms(t0)
         ctx = mo.MotionContext(kf, rows_u, xn_u, uv_u, state.T_cur_kf_prev, state.scale.initial_baseline,
                                _noise_since(state, kf, cfg), cfg.frontend is Frontend.KLT, stamp_ns,
-                               born_uv=born_uv_kf, born_uv_cur=born_uv_cur)
+                               born_uv=born_uv_kf, born_uv_cur=born_uv_cur, n_booked=n_tracked - n_use)
         est = mo.estimate(cfg, ctx, sel, state.motion)
         state = dataclasses.replace(state, motion=est.memory)
         notes = notes + est.notes

@@ -73,6 +73,9 @@ class MotionContext:
     # now. Only the "no camera motion" hypothesis reads them (``static_camera``).
     born_uv: F64 | None = None
     born_uv_cur: F64 | None = None
+    # Tracks booked as movers and left out of ``rows``: tracked features no hypothesis of the camera's own
+    # motion explains (the "no camera motion" share is of every tracked feature).
+    n_booked: int = 0
 
 
 @dataclass(frozen=True)

@@ -40,7 +40,10 @@ def static_camera(cfg: VoConfig, ctx: MotionContext, sel: ModelSelection, est: M
     if still is None or n == 0:
         return est
     fraction = float(np.count_nonzero(still)) / n
-    est = est.but(static_score=fraction)
+    # The record's share is of every tracked feature; the decision's of those not booked as movers (a mover
+    # booked while the camera stood still must not talk it out of being still).
+    share = float(np.count_nonzero(still)) / (n + ctx.n_booked)
+    est = est.but(static_score=share)
     # Entering needs the majority; staying needs STATIC_KEEP of it.
     needed = cfg.static_min_fraction * (STATIC_KEEP if was_static else 1.0)
     if has_map(cfg, ctx.kf) or fraction < needed:
@@ -75,8 +78,8 @@ def static_camera(cfg: VoConfig, ctx: MotionContext, sel: ModelSelection, est: M
     est = est.but(memory=dataclasses.replace(est.memory, static=True),
                   n_moving=n_moving, n_inliers=n_still, median_parallax_deg=0.0, moving_region=region,
                   model=Model.STATIC)
-    return est.noted(note(Decision.CAMERA_STATIC, fraction=fraction, spread=spread, n_moving=n_moving, region=region),
-                     motion)
+    return est.noted(note(Decision.CAMERA_STATIC, fraction=share, spread=spread, n_moving=n_moving + ctx.n_booked,
+                          region=region), motion)
 
 
 def background_stood_still(cfg: VoConfig, ctx: MotionContext, still: NDArray[np.bool_]) -> bool:
