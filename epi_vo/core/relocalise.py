@@ -24,6 +24,7 @@ from epi_vo.core import geometry as geo
 from epi_vo.core.camera import CameraModel
 from epi_vo.core.config import VoConfig
 from epi_vo.core.keyframe import Keyframe
+from epi_vo.core.transforms import invert_T, make_T
 
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
@@ -70,10 +71,7 @@ class Relocalised:
 
     @property
     def T_w_c(self) -> F64:
-        T_kf_cur = np.eye(4)
-        R, t = self.T_cur_kf[:3, :3], self.T_cur_kf[:3, 3]
-        T_kf_cur[:3, :3], T_kf_cur[:3, 3] = R.T, -R.T @ t
-        return np.asarray(self.kf.T_w_kf @ T_kf_cur, dtype=np.float64)
+        return np.asarray(self.kf.T_w_kf @ invert_T(self.T_cur_kf), dtype=np.float64)
 
     @property
     def cov_w_c(self) -> F64:
@@ -120,8 +118,7 @@ def _against(r: Recent, gray: NDArray[np.uint8], camera: CameraModel, cfg: VoCon
     X_cur = X[keep] @ R.T + t
     if np.count_nonzero(keep) < cfg.min_inliers or not np.all(X_cur[:, 2] > 0):
         return None
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, t
+    T = make_T(R, t)
     # The fit's covariance is of (rotation vector, t); the camera's position in the keyframe is c = -R^T t.
     cov_rel = np.zeros((6, 6))
     cov_rel[:3, :3] = R.T @ cov_pnp[3:, 3:] @ R
