@@ -146,8 +146,7 @@ def book_movers(state: TrackState, kf: Keyframe, rows: I64, uv_cur: F64, exclude
     # (where what it saw move this frame is) is taken over the movers booked before too.
     total = n_moving + int(np.count_nonzero(excluded)) if n_moving else n
     if n_moving and np.any(excluded):
-        lo, hi = np.percentile(uv_cur[moving], 5, axis=0), np.percentile(uv_cur[moving], 95, axis=0)
-        region = (int(lo[0]), int(lo[1]), int(np.ceil(hi[0])), int(np.ceil(hi[1])))
+        region = mo.moving_region(uv_cur[moving])
     return state, Movers(moving, total, region, notes)
 
 

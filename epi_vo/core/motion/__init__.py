@@ -29,7 +29,7 @@ from epi_vo.core.motion.record import (
     is_finite,
 )
 from epi_vo.core.motion.stage import estimate
-from epi_vo.core.motion.static import grid_spread
+from epi_vo.core.motion.static import grid_spread, moving_region
 
 __all__ = ["PLANE_MAX_WAIT", "Motion", "MotionContext", "MotionEstimate", "MotionMemory", "PlaneViews", "estimate",
-           "expanded", "grid_spread", "has_map", "is_finite"]
+           "expanded", "grid_spread", "has_map", "is_finite", "moving_region"]

@@ -67,11 +67,7 @@ def static_camera(cfg: VoConfig, ctx: MotionContext, sel: ModelSelection, est: M
     moved = ~still
     n_moving = int(np.count_nonzero(moved))
     n_still = int(np.count_nonzero(still))
-    region = None
-    if n_moving:
-        lo = np.percentile(ctx.uv_cur[moved], 5, axis=0)
-        hi = np.percentile(ctx.uv_cur[moved], 95, axis=0)
-        region = (int(lo[0]), int(lo[1]), int(np.ceil(hi[0])), int(np.ceil(hi[1])))
+    region = moving_region(ctx.uv_cur[moved]) if n_moving else None
     rot_cov = covm.rotation_var(cfg.pixel_noise_px, K.K[0, 0], max(n_still, 1))
     motion = Motion(TrackingState.STATIC, np.eye(3), np.zeros(3), covm.block(1e-6, rot_cov), still,
                     moving=moved if n_moving and background_stood_still(cfg, ctx, still) else None)
@@ -80,6 +76,13 @@ def static_camera(cfg: VoConfig, ctx: MotionContext, sel: ModelSelection, est: M
                   model=Model.STATIC)
     return est.noted(note(Decision.CAMERA_STATIC, fraction=share, spread=spread, n_moving=n_moving + ctx.n_booked,
                           region=region), motion)
+
+
+def moving_region(uv: F64) -> tuple[int, int, int, int]:
+    """The box (x0, y0, x1, y1 px) of the 5-95 percentiles of the moved features ``uv`` (N >= 1, 2): where
+    another object is, without a stray track stretching it over the image."""
+    lo, hi = np.percentile(uv, 5, axis=0), np.percentile(uv, 95, axis=0)
+    return int(lo[0]), int(lo[1]), int(np.ceil(hi[0])), int(np.ceil(hi[1]))
 
 
 def background_stood_still(cfg: VoConfig, ctx: MotionContext, still: NDArray[np.bool_]) -> bool:
