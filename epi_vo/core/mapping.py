@@ -24,7 +24,6 @@ from epi_vo.core.keyframe import Keyframe
 from epi_vo.core.motion import Motion
 
 F64 = NDArray[np.float64]
-THIN_MAP_FACTOR = 2  # a keyframe when fewer map points than this many times min_scale_points are tracked
 
 
 @dataclass(frozen=True)
@@ -52,11 +51,6 @@ def keyframe_map(cfg: VoConfig, motion: Motion, kf: Keyframe, rows: NDArray[np.i
     tracked_ratio = n_tracked / max(kf.n_features, 1)
     too_old = (stamp_ns - kf.stamp_ns) * 1e-9 > cfg.kf_max_interval_s
     weak = tracked_ratio < cfg.kf_min_tracked_ratio or n_inliers < cfg.kf_min_inliers
-    if motion.state is TrackingState.TRACKING and motion.new_map is None and kf.n_map_points >= cfg.min_scale_points:
-        # The map thinning out while tracking: a new keyframe before too few of its points are left to
-        # carry the scale (at low parallax no keyframe would come until tracking was lost).
-        held = np.isfinite(kf.X_kf[rows][:, 0]) & motion.inliers
-        weak = weak or int(np.count_nonzero(held)) < THIN_MAP_FACTOR * cfg.min_scale_points
     parallax = median_parallax_deg >= cfg.kf_min_parallax_deg
     R, t = motion.R_cur_kf, motion.t_cur_kf
     if motion.new_map is not None:

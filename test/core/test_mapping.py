@@ -93,24 +93,6 @@ def test_low_parallax_with_strong_tracking_makes_no_keyframe(general_scene) -> N
     assert st.n_triangulated == 0 and st.reasons == []  # no depth update either
 
 
-@pytest.mark.parametrize(("n_map", "keyframe"), [(2 * CFG.min_scale_points - 1, True),
-                                                  (2 * CFG.min_scale_points, False)])
-def test_a_thinning_map_makes_a_keyframe_before_it_cannot_carry_the_scale(general_scene, n_map: int,
-                                                                          keyframe: bool) -> None:
-    """Strong tracking at low parallax, but only a few of the tracked features have depth (a first map of 55
-    points thinned to 7 loses tracking for a few frames where a keyframe keeps it). Below twice
-    min_scale_points a keyframe is made."""
-    s = general_scene
-    cfg = dataclasses.replace(CFG, kf_min_parallax_deg=5.0)  # the scene's ~3.3 deg are "low"
-    X_kf = np.full((s.n, 3), np.nan)
-    X_kf[:n_map] = np.array(s.X_ref)[:n_map] * MAP_SCALE
-    X, st = _run(s, _truth(s), _keyframe(s, X_kf), cfg=cfg)
-    assert st.n_inliers >= cfg.kf_min_inliers and st.median_parallax_deg < cfg.kf_min_parallax_deg
-    assert (X is not None) is keyframe
-    if keyframe:
-        assert X is not None and np.count_nonzero(np.isfinite(X[:, 0])) > 0.9 * s.n  # depth for the rest
-
-
 @pytest.mark.parametrize("state", [TrackingState.ROTATION_ONLY, TrackingState.INITIALIZING])
 def test_rotation_or_initialising_with_strong_tracking_makes_no_keyframe(rotation_scene, state: TrackingState
                                                                          ) -> None:

@@ -19,10 +19,6 @@ Mask = NDArray[np.bool_]
 
 PNP_MIN_POINTS = 6  # a pose has six unknowns: fewer map points leave the map's own fit unconstrained
 E_MAP_MAX_DIRECTION_DIFF_DEG = 20.0  # E's direction of travel this far from the map's: a mover took E
-# E agrees with the map, no fit of the map's own needed, when it puts this share of the map points within
-# this distance of where they are seen (a pixel: well inside max_reprojection_error_px)
-E_MAP_AGREE_PX = 1.0
-E_MAP_AGREE_FRACTION = 0.8
 # The map's own fit is made to hold its points, so it holds a few more than E's pose whenever the tracks are
 # degraded (motion blur). E stands when it holds this share of the points the fit holds, with a median
 # reprojection error within this factor of the fit's; a mover that took E's consensus leaves E holding
@@ -44,13 +40,12 @@ def map_disagrees(cfg: VoConfig, ctx: MotionContext, X: F64, R_e: F64, t_e: F64,
     if np.count_nonzero(depth) < max(cfg.min_scale_points, PNP_MIN_POINTS):
         return None, None
     K = ctx.kf.camera.K
-    # Cheap first: E puts nearly all map points where seen; near a plane, where E slides along its ridge
-    # and still does, one Gauss-Newton step towards the map's pose turns E by less than half the angle.
-    err_e = geo.reprojection_errors(R_e, t_e, X[depth], ctx.uv_cur[depth], K)
-    if (np.count_nonzero(err_e <= E_MAP_AGREE_PX) >= E_MAP_AGREE_FRACTION * err_e.shape[0]) if not plane else (
-            (step := geo.map_step(R_e, t_e, X[depth], ctx.xn_cur[depth])) is not None
-            and math.degrees(float(np.linalg.norm(step[3:]))) <= 0.5 * cfg.e_map_max_rotation_diff_deg):
+    # Cheap first: one Gauss-Newton step towards the map's pose turns E by less than half the angle (E
+    # may put nearly all map points within a pixel and still be off: near a plane it slides along its ridge).
+    step = geo.map_step(R_e, t_e, X[depth], ctx.xn_cur[depth])
+    if step is not None and math.degrees(float(np.linalg.norm(step[3:]))) <= 0.5 * cfg.e_map_max_rotation_diff_deg:
         return None, None
+    err_e = geo.reprojection_errors(R_e, t_e, X[depth], ctx.uv_cur[depth], K)
     prev = ctx.T_cur_kf_prev
     refined = geo.refine_pose_pnp(X[depth], ctx.uv_cur[depth], K, prev[:3, :3], prev[:3, 3],
                                   cfg.max_reprojection_error_px)
