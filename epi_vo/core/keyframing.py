@@ -190,7 +190,8 @@ def maybe_keyframe(state: TrackState, cfg: VoConfig, orb: cv2.ORB | None, solver
             state.scale, motion.new_map is not None, d, length_rel_var(-motion.R_cur_kf.T @ motion.t_cur_kf, step_cov),
             first)
         cov[:3, :3] += scale_cov
-        state = dataclasses.replace(state, map_scale=map_scale)
+        # This frame is the keyframe: it publishes what the keyframe holds, the step's scale term included.
+        state = dataclasses.replace(state, map_scale=map_scale, cov_w_c=cov.copy())
     ids_tracked = kf.ids[rows] if kf.ids is not None else None
     state = set_keyframe(state, cfg, orb, gray, camera, stamp_ns, cov, pts_cur, X_cur, orb_cur, ids_tracked)
     out = dataclasses.replace(out, is_keyframe=True, points_w=points_w, jumped=jumped)
