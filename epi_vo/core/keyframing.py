@@ -24,7 +24,7 @@ from epi_vo.core.config import VoConfig
 from epi_vo.core.decisions import Decision, Note, note
 from epi_vo.core.frame import TrackingState
 from epi_vo.core.keyframe import Keyframe, make_keyframe
-from epi_vo.core.map_scale import length_rel_var
+from epi_vo.core.map_scale import first_map_rel_var, length_rel_var
 from epi_vo.core.mapping import keyframe_map
 from epi_vo.core.state import Tracks, TrackState
 from epi_vo.core.transforms import invert_T, make_T
@@ -182,10 +182,16 @@ def maybe_keyframe(state: TrackState, cfg: VoConfig, orb: cv2.ORB | None, solver
     if tracking:
         d = state.T_w_c[:3, 3] - kf.T_w_kf[:3, 3]
         step_cov = motion.cov_rel if motion.cov_pose is None else motion.cov_pose
+        first = 0.0
+        if motion.new_map is not None:
+            rot_cov = state.cov_w_c[3:, 3:] + state.calib.cov()[3:, 3:]
+            first = first_map_rel_var(d, rot_cov, median_parallax_deg)
         map_scale, scale_cov = state.map_scale.keyframe_cov(
-            state.scale, motion.new_map is not None, d, length_rel_var(-motion.R_cur_kf.T @ motion.t_cur_kf, step_cov))
+            state.scale, motion.new_map is not None, d, length_rel_var(-motion.R_cur_kf.T @ motion.t_cur_kf, step_cov),
+            first)
         cov[:3, :3] += scale_cov
-        state = dataclasses.replace(state, map_scale=map_scale)
+        # This frame is the keyframe: it publishes what the keyframe holds, the step's scale term included.
+        state = dataclasses.replace(state, map_scale=map_scale, cov_w_c=cov.copy())
     ids_tracked = kf.ids[rows] if kf.ids is not None else None
     state = set_keyframe(state, cfg, orb, gray, camera, stamp_ns, cov, pts_cur, X_cur, orb_cur, ids_tracked)
     out = dataclasses.replace(out, is_keyframe=True, points_w=points_w, jumped=jumped)

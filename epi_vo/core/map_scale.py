@@ -10,7 +10,10 @@ moves the published position, depends on whether a scale source established metr
   map's next steps are measured in units that carry that length's error: the step's own relative length
   variance (``length_rel_var``) joins the log-scale at the keyframe. A map rebuilt after a loss takes its
   baseline from the last speed, so its scale against the first map's is known only to
-  ``NEW_MAP_REL_STD``: its log-scale starts with that variance.
+  ``NEW_MAP_REL_STD``: its log-scale starts with that variance. The first map's own units are as sure as
+  its depths, which a rotation error across the baseline moves alike at low parallax
+  (``first_map_rel_var``). Between keyframes the path since the keyframe carries the same scale term the
+  next keyframe step will book (``since_keyframe``).
 * Metric: the scale filter's relative standard deviation times each keyframe step (along it), and, once, the
   rescaling of what the map accumulated in VO units when metres are established (``metric_covariance``);
   the source's systematic error scales the whole path about the map's origin (``systematic``).
@@ -43,6 +46,23 @@ def length_rel_var(c: F64, cov: F64) -> float:
         return 0.0
     v = float(c @ cov[:3, :3] @ c) / (n2 * n2)
     return v if math.isfinite(v) and v > 0.0 else 0.0
+
+
+def first_map_rel_var(d: F64, rot_cov: F64, parallax_deg: float) -> float:
+    """Relative variance of a first map's units: its points' depths, and so every step measured against
+    them, come from the parallax ``alpha`` between the two views, and a rotation error ``delta`` about an
+    axis across the baseline ``d`` (odometry frame) shifts every point's parallax alike, so every depth by
+    ``delta / alpha``: a coherent error of the map's scale that no number of points averages out (large
+    at low parallax). ``rot_cov``: the rotation's covariance (3x3, odometry frame) at the map's first
+    pose; across the baseline: the mean of its two axes normal to ``d``. Capped at a rebuilt map's."""
+    n = float(np.linalg.norm(d))
+    alpha = math.radians(parallax_deg) if math.isfinite(parallax_deg) else 0.0
+    if not (n > 0.0 and alpha > 0.0 and np.all(np.isfinite(rot_cov))):
+        return 0.0
+    u = d / n
+    across = 0.5 * (float(np.trace(rot_cov)) - float(u @ rot_cov @ u))
+    v = across / (alpha * alpha)
+    return min(v, NEW_MAP_REL_STD**2) if math.isfinite(v) and v > 0.0 else 0.0
 
 
 def _zeros3() -> F64:
@@ -86,8 +106,8 @@ class MapScaleCovariance:
             return scale.rel_std
         return math.sqrt(self.q)
 
-    def keyframe_cov(self, scale: ScaleSource, new_map: bool, d: F64, step_rel_var: float = 0.0
-                     ) -> tuple[MapScaleCovariance, F64]:
+    def keyframe_cov(self, scale: ScaleSource, new_map: bool, d: F64, step_rel_var: float = 0.0,
+                     first_rel_var: float = 0.0) -> tuple[MapScaleCovariance, F64]:
         """The position covariance a keyframe step ``d`` (odometry frame, map units) adds through the map's
         scale error, and the value after the step. Metric: the scale filter's relative standard deviation
         times the step, along the step (a scale error lengthens a step, it does not turn it). VO units:
@@ -103,7 +123,8 @@ class MapScaleCovariance:
             return dataclasses.replace(self, mapped=True), np.outer(d, d) * scale.filter.rel_std ** 2
         if new_map:
             if not self.mapped:
-                return dataclasses.replace(self, var=q, cov_ps=d * q, mapped=True), np.zeros((3, 3))
+                r = first_rel_var
+                return dataclasses.replace(self, var=q + r, cov_ps=d * (q + r), mapped=True), np.outer(d, d) * r
             vs = NEW_MAP_REL_STD**2
             return dataclasses.replace(self, var=vs + q, cov_ps=d * vs), np.outer(d, d) * vs
         vs, c = self.var, self.cov_ps
@@ -112,6 +133,13 @@ class MapScaleCovariance:
         r = min(step_rel_var, NEW_MAP_REL_STD**2)
         after = dataclasses.replace(self, cov_ps=c + d * (vs + r), var=vs + q + r)
         return after, np.outer(d, d) * vs + np.outer(c, d) + np.outer(d, c)
+
+    def since_keyframe(self, s: F64) -> F64:
+        """The position covariance the map's scale error gives the part ``s`` (odometry frame, map units) of
+        the path since the last keyframe: that part is measured in the current map's units as the next
+        keyframe step will be (``keyframe_cov`` books it there), so between keyframes it carries the same
+        ``s s^T var_s + c s^T + s c^T``, without which the covariance would grow only at keyframes."""
+        return np.outer(s, s) * self.var + np.outer(self.cov_ps, s) + np.outer(s, self.cov_ps)
 
     def metric_covariance(self, scale: ScaleSource, cov_w_c: F64, factor: float, d: F64) -> F64:
         """The pose covariance when the map's VO units become metres: what the map added since its origin

@@ -105,8 +105,10 @@ def publish(state: TrackState, cfg: VoConfig, stamp_ns: int, tracking: TrackingS
         notes = (*notes, note(Decision.METRIC_SCALE_PENDING))
     elif state.scale.established:
         cov[:3, :3] += state.map_scale.systematic(state.scale, T_out[:3, 3])
-    cov += state.calib.cov()
     kf = state.kf
+    if has_pose and tracking is TrackingState.TRACKING and kf is not None and not state.scale.established:
+        cov[:3, :3] += state.map_scale.since_keyframe(T_out[:3, 3] - kf.T_w_kf[:3, 3])
+    cov += state.calib.cov()
     cov = covm.floored(cov)
     timings = {**timings, "total": (time.perf_counter() - t_start) * 1e3}
     o = observed

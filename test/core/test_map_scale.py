@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from epi_vo.core import scale as sc
-from epi_vo.core.map_scale import MapScaleCovariance, length_rel_var
+from epi_vo.core.map_scale import MapScaleCovariance, first_map_rel_var, length_rel_var
 
 
 def _established_floor(rel_std: float) -> sc.GroundPlaneScale:
@@ -91,3 +91,59 @@ def test_a_step_of_almost_no_length_gives_the_units_no_more_doubt_than_a_rebuilt
     first, _ = MapScaleCovariance(0.0).keyframe_cov(vo, True, np.array([1.0, 0.0, 0.0]))
     after, _ = first.keyframe_cov(vo, False, np.array([0.0, 0.0, 0.01]), 9.0)
     assert after.var == pytest.approx(sc.NEW_MAP_REL_STD**2)
+
+
+def _rot_y(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def test_a_first_maps_units_carry_the_rotation_error_across_its_baseline_over_the_parallax() -> None:
+    """A sideways first baseline at low parallax: triangulated again with the rotation off by ``delta``
+    about the axis across the baseline, every depth moves alike by about ``delta / alpha`` (a scale error
+    of the whole map); the first map's log-scale variance says as much for a rotation that uncertain."""
+    import cv2
+
+    rng = np.random.default_rng(5)
+    X = np.column_stack([rng.uniform(-2.0, 2.0, 200), rng.uniform(-1.5, 1.5, 200), rng.uniform(9.0, 11.0, 200)])
+    t = np.array([-0.5, 0.0, 0.0])  # camera moved 0.5 along +x: x_cur = X + t
+    xn_ref = X[:, :2] / X[:, 2:]
+    Xc = X + t
+    xn_cur = Xc[:, :2] / Xc[:, 2:]
+    alpha = np.median(np.arccos(np.sum(X * Xc, axis=1) / np.linalg.norm(X, axis=1) / np.linalg.norm(Xc, axis=1)))
+    delta = np.radians(0.1)
+
+    def depths(R: np.ndarray) -> np.ndarray:
+        P1 = np.hstack([np.eye(3), np.zeros((3, 1))])
+        P2 = np.hstack([R, t.reshape(3, 1)])
+        Xh = cv2.triangulatePoints(P1, P2, xn_ref.T, xn_cur.T)
+        return Xh[2] / Xh[3]
+
+    rel = np.median(depths(_rot_y(delta)) / depths(np.eye(3)) - 1.0)
+    assert abs(rel) == pytest.approx(delta / alpha, rel=0.15)
+    v = first_map_rel_var(np.array([1.0, 0.0, 0.0]), np.eye(3) * delta**2, float(np.degrees(alpha)))
+    assert np.sqrt(v) == pytest.approx(abs(rel), rel=0.15)
+    # and a first map built as before takes it: on its baseline and on every later step's units
+    vo = sc.VoUnitsScale(filter=sc.ScaleFilter(0.01))
+    d = np.array([1.0, 0.0, 0.0])
+    m, cov = MapScaleCovariance(0.01).keyframe_cov(vo, True, d, 0.0, v)
+    assert m.var == pytest.approx(0.01**2 + v)
+    assert d @ cov @ d == pytest.approx(v)
+
+
+def test_no_parallax_or_no_baseline_gives_the_first_maps_units_no_doubt_rather_than_any() -> None:
+    assert first_map_rel_var(np.zeros(3), np.eye(3) * 1e-6, 5.0) == 0.0
+    assert first_map_rel_var(np.array([1.0, 0.0, 0.0]), np.eye(3) * 1e-6, 0.0) == 0.0
+    assert first_map_rel_var(np.array([1.0, 0.0, 0.0]), np.eye(3) * 1.0, 0.5) == pytest.approx(0.3**2)
+
+
+def test_between_keyframes_the_path_since_the_keyframe_carries_the_maps_scale_as_the_next_keyframe_will() -> None:
+    """The pose between keyframes takes, for its part of the path since the keyframe, the same scale term
+    the keyframe step books when that frame becomes the next keyframe: the covariance does not jump there."""
+    vo = sc.VoUnitsScale(filter=sc.ScaleFilter(0.01))
+    m, _ = MapScaleCovariance(0.01).keyframe_cov(vo, True, np.array([0.0, 0.0, 1.0]), 0.0, 0.04)
+    m, _ = m.keyframe_cov(vo, False, np.array([0.2, 0.0, 1.0]), 0.01)
+    s = np.array([0.1, 0.3, 0.8])
+    _, at_keyframe = m.keyframe_cov(vo, False, s, 0.02)
+    np.testing.assert_allclose(m.since_keyframe(s), at_keyframe, rtol=1e-12, atol=1e-15)
+    assert s @ m.since_keyframe(s) @ s > (s @ s) ** 2 * m.var  # the covariance with the position adds

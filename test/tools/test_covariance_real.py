@@ -20,7 +20,7 @@ TELLO = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "tello_
 
 
 @pytest.mark.xfail(strict=True, reason="issue 41 open: the held start's motion is now estimated from the parallax "
-                   "its frames saw (about the ground truth's), but the position NEES is 0.70 (docs/covariance.md)")
+                   "its frames saw (about the ground truth's), but the position NEES is 0.62 (docs/covariance.md)")
 def test_the_tello_clips_position_covariance_is_consistent_after_a_held_start() -> None:
     """Before: the pre-map "unknown" 1e4 was carried into the map, position NEES 0.01 (a real error
     divided by 1e4 for the whole run). The map now starts from its estimate plus the motion the held time
