@@ -664,9 +664,8 @@ def test_grid_spread_counts_the_occupied_cells_the_mask_reaches() -> None:
     assert grid_spread(np.zeros((0, 2)), np.zeros(0, bool), 640, 480) == 0.0
 
 
-def test_e_agreeing_with_the_map_needs_no_pose_of_its_own(general_scene, monkeypatch: pytest.MonkeyPatch) -> None:
-    """A clean scene: E's pose with the map's scale puts the map points where they are seen, so the
-    map's own pose (a PnP refinement) is not computed for the check; E's pose is taken."""
+def _count_pnp_fits(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """One entry per call of the map's own pose fit (``geometry.refine_pose_pnp``), which still runs."""
     calls: list[int] = []
     real = geo.refine_pose_pnp
 
@@ -675,6 +674,13 @@ def test_e_agreeing_with_the_map_needs_no_pose_of_its_own(general_scene, monkeyp
         return real(*args, **kwargs)
 
     monkeypatch.setattr(geo, "refine_pose_pnp", counting)
+    return calls
+
+
+def test_e_agreeing_with_the_map_needs_no_pose_of_its_own(general_scene, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A clean scene: E's pose with the map's scale puts the map points where they are seen, so the
+    map's own pose (a PnP refinement) is not computed for the check; E's pose is taken."""
+    calls = _count_pnp_fits(monkeypatch)
     m, st, _ = _estimate(general_scene, _true_map(general_scene))
     assert m is not None and m.state is TrackingState.TRACKING and st.model is Model.ESSENTIAL
     assert calls == [] and m.moving is None
@@ -1049,14 +1055,7 @@ def test_on_a_plane_the_map_overrules_an_e_it_explains_clearly_worse(planar_scen
     import cv2
     from scipy.optimize import least_squares
 
-    fits: list[int] = []
-    fit = geo.refine_pose_pnp
-
-    def counted(*args: Any, **kwargs: Any) -> Any:
-        fits.append(1)
-        return fit(*args, **kwargs)
-
-    monkeypatch.setattr(geo, "refine_pose_pnp", counted)
+    fits = _count_pnp_fits(monkeypatch)
     s = planar_scene
     cam = _camera(s)
     X_true = _true_map(s) @ np.asarray(s.R_cur_ref).T + np.asarray(s.t_cur_ref) * MAP_SCALE
