@@ -127,11 +127,11 @@ def _first_map_from_plane(cfg: VoConfig, ctx: MotionContext, sel: ModelSelection
             est = est.noted(note(Decision.PLANE_PICKED_BY_OFF_POINTS, off=off_plane))
     planar = None
     if R_off is None and est.median_parallax_deg >= cfg.init_min_parallax_deg:
-        est, verdict, planar, spread = plane_by_views(cfg, ctx, H, in_h, est)
+        est, verdict, planar, (R_held, spread) = plane_by_views(cfg, ctx, H, in_h, est)
         if verdict is PlaneVerdict.WAIT:
-            # Neither solution's rotation (nor R_h, which assumes no translation) can be published: the
-            # orientation is held too, its variance covering every valid solution's rotation.
-            return est.gave(Motion(TrackingState.INITIALIZING, np.eye(3), zero,
+            # Not told apart, no solution is the pose (nor R_h, which assumes no translation): the one the
+            # views follow is held, its variance covering every valid solution's rotation.
+            return est.gave(Motion(TrackingState.INITIALIZING, R_held, zero,
                                    covm.block(1e-6, rot_cov + math.radians(spread) ** 2), in_h))
     if planar is None:
         planar = geo.pose_from_homography(H, K, xn_kf, xn_cur, in_h, cfg.max_reprojection_error_px,

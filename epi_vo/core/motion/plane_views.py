@@ -33,7 +33,8 @@ class PlaneVerdict(enum.Enum):
 
 
 def plane_by_views(cfg: VoConfig, ctx: MotionContext, H: F64, in_h: NDArray[np.bool_], est: MotionEstimate
-                   ) -> tuple[MotionEstimate, PlaneVerdict, tuple[F64, F64, geo.Triangulation] | None, float]:
+                   ) -> tuple[MotionEstimate, PlaneVerdict, tuple[F64, F64, geo.Triangulation] | None,
+                              tuple[F64, float]]:
     """A plane whose homography has two physically valid decompositions (both put the points in front of
     both cameras: a floor seen from a camera moving along it), with no point off the plane to tell them
     apart, is told apart by a later view against the same keyframe. The true plane keeps its normal in the
@@ -42,7 +43,10 @@ def plane_by_views(cfg: VoConfig, ctx: MotionContext, H: F64, in_h: NDArray[np.b
     solution sees its points under larger angles.
 
     Returns the estimate with the decision noted and the memory of the views, the verdict, the pose (R, t,
-    triangulation) when ``PICKED``, and the largest rotation angle (deg) among the valid solutions."""
+    triangulation) when ``PICKED``, and the orientation to hold while waiting with its uncertainty (deg): the
+    valid solution nearest the orientation held at the last view (the keyframe's at the first), so that a turn
+    while waiting is followed as the true solution's rotation changes smoothly from view to view, and the
+    largest turn any solution makes (the truth is among them only if the scene is the plane)."""
     kf = ctx.kf
     sols = geo.homography_solutions(H, kf.camera.K, kf.xn[ctx.rows], ctx.xn_cur, in_h,
                                     cfg.max_reprojection_error_px, cfg.min_triangulation_angle_deg)
@@ -53,13 +57,15 @@ def plane_by_views(cfg: VoConfig, ctx: MotionContext, H: F64, in_h: NDArray[np.b
         return est.but(memory=dataclasses.replace(est.memory, plane_views=views))
 
     if len(valid) < 2:
-        return remembering(None), PlaneVerdict.UNAMBIGUOUS, None, 0.0
-    spread = max(rotation_angle_deg(s.R) for s in valid)
+        return remembering(None), PlaneVerdict.UNAMBIGUOUS, None, (np.eye(3), 0.0)
     pending = est.memory.plane_views
+    last = np.eye(3) if pending is None or pending.kf_stamp_ns != kf.stamp_ns else pending.held
+    held = min((s.R for s in valid), key=lambda R: rotation_angle_deg(last.T @ R))
+    hold = (held, max(max(rotation_angle_deg(s.R), rotation_angle_deg(held.T @ s.R)) for s in valid))
     if pending is None or pending.kf_stamp_ns != kf.stamp_ns:
-        est = remembering(PlaneViews(kf.stamp_ns, tuple(s.normal for s in valid), 1))
+        est = remembering(PlaneViews(kf.stamp_ns, tuple(s.normal for s in valid), 1, held))
         return est.noted(note(Decision.PLANE_WAIT_FIRST, n=len(valid), max_wait=PLANE_MAX_WAIT)), PlaneVerdict.WAIT, \
-            None, spread
+            None, hold
     normals, waited = pending.normals, pending.waited
     with np.errstate(invalid="ignore"):
         dist = [min(math.degrees(math.acos(min(1.0, abs(float(s.normal @ n))))) for n in normals) for s in valid]
@@ -68,10 +74,10 @@ def plane_by_views(cfg: VoConfig, ctx: MotionContext, H: F64, in_h: NDArray[np.b
     if best < PLANE_NORMAL_AGREE_DEG and runner >= max(3.0 * best, PLANE_NORMAL_AGREE_DEG):
         s = valid[int(order[0])]
         return est.noted(note(Decision.PLANE_KEPT_NORMAL, views=waited + 1, best=best, runner=runner)), \
-            PlaneVerdict.PICKED, (s.R, s.t, s.tri.expanded(np.flatnonzero(in_h), ctx.xn_cur.shape[0])), spread
+            PlaneVerdict.PICKED, (s.R, s.t, s.tri.expanded(np.flatnonzero(in_h), ctx.xn_cur.shape[0])), hold
     if waited >= PLANE_MAX_WAIT:
         return est.noted(note(Decision.PLANE_WAIT_GAVE_UP, max_wait=PLANE_MAX_WAIT)), PlaneVerdict.FALLBACK, None, \
-            spread
-    est = remembering(PlaneViews(pending.kf_stamp_ns, normals, waited + 1))
+            hold
+    est = remembering(PlaneViews(pending.kf_stamp_ns, normals, waited + 1, held))
     return est.noted(note(Decision.PLANE_WAIT, n=len(valid), best=best, runner=runner, waited=waited + 1,
-                          max_wait=PLANE_MAX_WAIT)), PlaneVerdict.WAIT, None, spread
+                          max_wait=PLANE_MAX_WAIT)), PlaneVerdict.WAIT, None, hold

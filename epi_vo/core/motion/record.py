@@ -81,11 +81,12 @@ class MotionContext:
 @dataclass(frozen=True)
 class PlaneViews:
     """An ambiguous planar initialisation: the keyframe, its valid solutions' plane normals at the first
-    view, and the frames waited since (``plane_views``)."""
+    view, the frames waited since and the orientation held at the last of them (``plane_views``)."""
 
     kf_stamp_ns: int
     normals: tuple[F64, ...]
     waited: int
+    held: F64
 
 
 @dataclass(frozen=True)
