@@ -59,10 +59,11 @@ def plane_by_views(cfg: VoConfig, ctx: MotionContext, H: F64, in_h: NDArray[np.b
     if len(valid) < 2:
         return remembering(None), PlaneVerdict.UNAMBIGUOUS, None, (np.eye(3), 0.0)
     pending = est.memory.plane_views
-    last = np.eye(3) if pending is None or pending.kf_stamp_ns != kf.stamp_ns else pending.held
+    first_view = pending is None or pending.kf_stamp_ns != kf.stamp_ns
+    last = np.eye(3) if first_view or pending is None else pending.held
     held = min((s.R for s in valid), key=lambda R: rotation_angle_deg(last.T @ R))
     hold = (held, max(max(rotation_angle_deg(s.R), rotation_angle_deg(held.T @ s.R)) for s in valid))
-    if pending is None or pending.kf_stamp_ns != kf.stamp_ns:
+    if first_view or pending is None:
         est = remembering(PlaneViews(kf.stamp_ns, tuple(s.normal for s in valid), 1, held))
         return est.noted(note(Decision.PLANE_WAIT_FIRST, n=len(valid), max_wait=PLANE_MAX_WAIT)), PlaneVerdict.WAIT, \
             None, hold
