@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import signal
 import sys
 from collections.abc import Sequence
@@ -108,6 +109,10 @@ def _add_benchmark(sub: argparse._SubParsersAction) -> None:
                         "say which pay on which family (docs/distribution.md)")
     p.add_argument("--no-reference", action="store_true",
                    help="distribution: leave the seed reference pipeline out (faster; for ablations)")
+    p.add_argument("--perturb", nargs="+", type=float, default=[], metavar="REL",
+                   help="distribution: also replay epi_vo on every sequence with camera_info's focal length "
+                        "times 1 + REL per REL (e.g. 0.001 -0.001: a calibration nobody could tell apart) and "
+                        "print each family's run-to-run spread and pooled figures")
     p.add_argument("--record-dir", default=None,
                    help="where the dated record goes (default: docs/benchmarks of the source tree)")
     p.add_argument("--no-record", action="store_true", help="print only: write no dated record")
@@ -312,7 +317,8 @@ def _benchmark(args: argparse.Namespace) -> int:
     record = None if args.no_record else (Path(args.record_dir) if args.record_dir else default_record_dir())
     if args.suite == "bundled":
         for flag, given in (("--set", args.overrides), ("--baseline", args.baseline),
-                            ("--no-reference", args.no_reference), ("--ablate", args.ablate is not None)):
+                            ("--no-reference", args.no_reference), ("--ablate", args.ablate is not None),
+                            ("--perturb", args.perturb)):
             if given:
                 _say(f"epi-vo: error: {flag} is an option of --suite distribution and subset, not of the bundled "
                      "suite")
@@ -325,9 +331,15 @@ def _benchmark(args: argparse.Namespace) -> int:
             _say(f"epi-vo: error: {flag} is an option of the bundled suite, not of --suite {args.suite} (its JSON "
                  "is written beside the dated record)")
             return 2
+    bad = [rel for rel in args.perturb if not (math.isfinite(rel) and rel != 0.0 and abs(rel) < 0.1)]
+    if bad:
+        _say(f"epi-vo: error: --perturb {bad[0]:g}: a focal length change must be finite, non-zero and under "
+             "10 % either way (the spread is meant for changes nobody could tell apart, ~0.001)")
+        return 2
     if args.ablate is not None:
-        if args.overrides or args.baseline:
-            _say("epi-vo: error: --ablate runs its own baseline and overrides: leave --set and --baseline out")
+        if args.overrides or args.baseline or args.perturb:
+            _say("epi-vo: error: --ablate runs its own baseline and overrides: leave --set, --baseline and --perturb "
+                 "out")
             return 2
         from epi_vo.tools.ablation import run_ablation
 
@@ -338,7 +350,8 @@ def _benchmark(args: argparse.Namespace) -> int:
 
     return run_distribution(args.suite, args.params, families=args.families, seeds=args.seeds, jobs=args.jobs,
                             cache=args.cache, data_dir=args.data, real=not args.no_real, record_dir=record,
-                            reference=not args.no_reference, overrides=args.overrides, baseline=args.baseline)
+                            reference=not args.no_reference, overrides=args.overrides, baseline=args.baseline,
+                            perturb=args.perturb)
 
 
 def _one_line(text: str) -> str:

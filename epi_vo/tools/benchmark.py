@@ -50,6 +50,7 @@ from epi_vo.io.trajectory import StampedPoses
 from epi_vo.tools.bench_record import RecordHeader, load_now, write_record
 from epi_vo.tools.evaluation import evaluate_trajectory, metric_poses, replay_dir_nees
 from epi_vo.tools.gt_check import AGREE_EXCESS_PX, GroundTruthCheck, check_ground_truth
+from epi_vo.tools.perturb import scaled_focal
 from epi_vo.tools.reference import ReferencePipeline
 from epi_vo.tools.replay import run_replay
 
@@ -187,14 +188,16 @@ def _metric_after_s(records: list[dict], metric_row: bool) -> float:
 
 
 def bench_epi_vo(name: str, bag: Path, gt_path: Path, cfg: VoConfig, label: str = "epi_vo",
-                 checked: GroundTruthCheck | None = None) -> BenchRow:
+                 checked: GroundTruthCheck | None = None, focal_rel: float = 0.0) -> BenchRow:
     """One epi_vo row; with ``checked`` that found the ground truth contradicted before some frame, also
-    the NEES from that frame on."""
+    the NEES from that frame on; ``focal_rel``: camera_info's focal length scaled by 1 + focal_rel
+    (:func:`epi_vo.tools.perturb.scaled_focal`; 0: as recorded)."""
     gt = tum.read_tum(gt_path)
     moved = _Displacement()
     with tempfile.TemporaryDirectory() as tmp:
         # KLT in line: per-frame times as a live node has them; the replay judges its covariance itself
-        summary = run_replay(bag, tmp, cfg, gt_tum=gt_path, lookahead=False, on_result=moved)
+        summary = run_replay(bag, tmp, cfg, gt_tum=gt_path, lookahead=False, on_result=moved,
+                             camera_info_edit=scaled_focal(focal_rel) if focal_rel else None)
         stamps, positions, quats = tum.read_tum(Path(tmp) / "trajectory.tum")
         records = [json.loads(line) for line in (Path(tmp) / "frames.jsonl").read_text(encoding="utf-8").splitlines()
                    if line.strip()]

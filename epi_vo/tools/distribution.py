@@ -40,6 +40,7 @@ from epi_vo.tools import distribution_table as dt
 from epi_vo.tools.bench_record import RecordHeader, jsonable, load_now, repo_root, write_record
 from epi_vo.tools.benchmark import METRIC_VARIANTS, BenchRow, bench_epi_vo, bench_reference, row_dict
 from epi_vo.tools.distribution_compare import compare, load_baseline
+from epi_vo.tools.distribution_spread import spread, spread_compare, spread_table
 from epi_vo.tools.gt_check import GroundTruthCheck, check_ground_truth
 
 REAL_CLIPS = ("kitti06_0-50", "tello_semicircle_206f")
@@ -83,20 +84,24 @@ class SequenceTask:
     sources: tuple[str, ...]
     cfg: VoConfig
     reference: bool = True
+    focal_rel: float = 0.0  # non-zero: a twin run, epi_vo alone under camera_info's focal times 1 + focal_rel
 
 
 def bench_sequence(task: SequenceTask) -> dt.SequenceResult:
-    """Every pipeline on one rendered sequence."""
+    """Every pipeline on one rendered sequence (a twin run: epi_vo alone, under the perturbed calibration)."""
     bag, gt = task.path / "bag", task.path / "groundtruth_tum.txt"
     name = f"{task.family}-s{task.seed}"
+    size = tuple(int(v) for v in task.info["size"])
+    harsh, static = float(task.info["faults"]["harshness"]), bool(task.info["static_camera"])
+    if task.focal_rel:
+        twin = bench_epi_vo(name, bag, gt, task.cfg, focal_rel=task.focal_rel)
+        return dt.SequenceResult(task.family, task.seed, harsh, (size[0], size[1]), static, (twin,))
     rows = [bench_epi_vo(name, bag, gt, task.cfg)]
     for label, values in metric_variants(task.sources, task.info.get("metric", {})):
         rows.append(bench_epi_vo(name, bag, gt, dataclasses.replace(task.cfg, **values), f"epi_vo[{label}]"))
     if task.reference:
         rows.append(bench_reference(name, bag, gt))
-    size = tuple(int(v) for v in task.info["size"])
-    return dt.SequenceResult(task.family, task.seed, float(task.info["faults"]["harshness"]), (size[0], size[1]),
-                             bool(task.info["static_camera"]), tuple(rows))
+    return dt.SequenceResult(task.family, task.seed, harsh, (size[0], size[1]), static, tuple(rows))
 
 
 @dataclass(frozen=True)
@@ -173,10 +178,13 @@ def run_tasks(tasks: Sequence[SequenceTask | RealTask], jobs: int, progress: Cal
 def run_distribution(suite: str, params: str | None, *, families: Sequence[str] | None = None,
                      seeds: Sequence[int] | None = None, jobs: int = 2, cache: str | None = None,
                      data_dir: str | None = None, real: bool = True, record_dir: Path | None = None,
-                     reference: bool = True, overrides: Sequence[str] = (), baseline: str | None = None) -> int:
+                     reference: bool = True, overrides: Sequence[str] = (), baseline: str | None = None,
+                     perturb: Sequence[float] = ()) -> int:
     """Render (if needed) and judge the distribution (or its subset), print the tables and record them.
     ``overrides`` (``NAME=VALUE``) change the parameters after ``params`` (an ablation switches one rule off
-    so); ``baseline`` is an earlier record's JSON to print the per-family before -> after against."""
+    so); ``baseline`` is an earlier record's JSON to print the per-family before -> after against;
+    ``perturb``: relative focal length changes, each a twin run of epi_vo on every sequence
+    (:mod:`epi_vo.tools.distribution_spread`)."""
     header = RecordHeader.now()
     started = time.perf_counter()
     cfg = with_overrides(load_config(params), overrides)
@@ -196,13 +204,18 @@ def run_distribution(suite: str, params: str | None, *, families: Sequence[str] 
     for s in rendered.sequences:
         fam = gen.FAMILIES[s.family]
         tasks.append(SequenceTask(s.family, s.seed, s.path, s.info, fam.scale_sources, cfg, reference))
+    for rel in perturb:
+        tasks += [SequenceTask(s.family, s.seed, s.path, s.info, (), cfg, False, rel) for s in rendered.sequences]
     clips = real_clips(Path(data_dir) if data_dir else None) if real else []
     tasks += [RealTask(name, bag, gt, cfg, reference) for name, bag, gt in clips]
     bench_started = time.perf_counter()
     print(f"benchmarking {len(rendered.sequences)} sequences and {len(clips)} real clips in {jobs} processes ...",
           file=sys.stderr, flush=True)
     results = run_tasks(tasks, jobs, progress=lambda line: print(line, file=sys.stderr, flush=True))
-    seq_results = [r for r in results if isinstance(r, dt.SequenceResult)]
+    n_main = len(rendered.sequences)
+    seq_results = [r for r in results[:n_main] if isinstance(r, dt.SequenceResult)]
+    twins = [r for r in results[n_main:] if isinstance(r, dt.SequenceResult)]
+    runs = {0.0: seq_results} | {rel: twins[i * n_main:(i + 1) * n_main] for i, rel in enumerate(perturb)}
     real_rows = [row for r in results if isinstance(r, list) for row in r]
     bench_s = time.perf_counter() - bench_started
     stats = dt.family_stats(seq_results)
@@ -232,8 +245,15 @@ def run_distribution(suite: str, params: str | None, *, families: Sequence[str] 
                       for r, s in zip(seq_results, rendered.sequences, strict=True)],
         "real": [row_dict(r) for r in real_rows],
     }
+    if perturb:
+        spread_data = spread(runs)
+        data["spread"] = spread_data
+        body.append("### Run-to-run spread under a calibration nobody could tell apart\n\n"
+                    + spread_table(spread_data))
     if before is not None:
         body.append(f"### Against the baseline {baseline}\n\n" + compare(before, jsonable(data)))
+        if perturb:
+            body.append(spread_compare(before, jsonable(data)))
     body.append(READING)
     printed = "\n\n".join(body)
     print(printed)

@@ -231,7 +231,8 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                on_open: Callable[[int], None] | None = None, lookahead: bool = True,
                rate: float | None = None, map_frame_id: str = "", gt_topic: str | None = None,
                no_gt: bool = False, inputs: Sequence[str | Path] = (),
-               extrinsic: CameraExtrinsic | None = None) -> ReplaySummary:
+               extrinsic: CameraExtrinsic | None = None,
+               camera_info_edit: Callable[[Any], Any] | None = None) -> ReplaySummary:
     """Replay every image of a bag through the pipeline and write the outputs (see module doc).
 
     A frame that cannot be used (undecodable message or image, header stamp that is no ROS time,
@@ -258,7 +259,8 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
     files the run reads (a parameter file), which no output may overwrite either. ``extrinsic``: the camera
     mounting the parameters declare (``camera_xyz`` / ``camera_rpy``), used as vo_node uses it without TF (for
     /vo/odometry, /tf and the floor search); None: the default (camera level at base_link), as the node's
-    defaults give. ``stats.json`` records which (``extrinsic``).
+    defaults give. ``stats.json`` records which (``extrinsic``). ``camera_info_edit``: every CameraInfo passes
+    through it before the pipeline sees it (the benchmark's imperceptibly perturbed calibration); None: as recorded.
 
     Raises:
         BagError: unreadable or empty bag, missing or ambiguous topics, a bag that is no regular file or
@@ -315,7 +317,8 @@ def run_replay(bag_path: str | Path, output_dir: str | Path, cfg: VoConfig | Non
                 if stop.requested:  # a signal arrived during the previous frame: all its outputs are written
                     raise Interrupted(stop.signum)
                 ahead = next_frame if lookahead and pace is None and next_frame is not None else None
-                handled = handler.handle(frame_input(bag, frame), None if ahead is None else frame_input(bag, ahead),
+                handled = handler.handle(frame_input(bag, frame, camera_info_edit),
+                                         None if ahead is None else frame_input(bag, ahead, camera_info_edit),
                                          HARDWARE_ID)
                 result, problem, outputs = handled.result, handled.problem, handled.outputs
                 if problem is not None:
@@ -455,10 +458,15 @@ class _Progress:
             self._bar = None
 
 
-def frame_input(bag: bagio.CameraBag, frame: bagio.BagFrame) -> FrameInput:
-    """A bag frame as the frame handler takes it (the same rule as vo_node's frames)."""
+def frame_input(bag: bagio.CameraBag, frame: bagio.BagFrame,
+                camera_info_edit: Callable[[Any], Any] | None = None) -> FrameInput:
+    """A bag frame as the frame handler takes it (the same rule as vo_node's frames); ``camera_info_edit``
+    replaces the frame's CameraInfo by what it returns for it (the benchmark's perturbed calibration)."""
     filed = "its log time" if frame.image_msg is None else "its header stamp clamped to a ROS time"
-    return FrameInput(frame.stamp_ns, frame.image_msg, bag.image_is_compressed, frame.camera_info_msg, frame.problem,
+    info = frame.camera_info_msg
+    if camera_info_edit is not None and info is not None:
+        info = camera_info_edit(info)
+    return FrameInput(frame.stamp_ns, frame.image_msg, bag.image_is_compressed, info, frame.problem,
                       f"recorded at {frame.stamp_ns} ns, {filed}" if frame.problem is not None else "",
                       no_camera_info=_no_camera_info(bag))
 

@@ -169,6 +169,10 @@ def test_a_record_is_replaced_only_by_a_run_of_the_same_commit(tmp_path: Path) -
     (["--suite", "subset", "--baseline", "/nonexistent/x.json", "--no-record"], "--baseline /nonexistent/x.json"),
     (["--suite", "subset", "--families", "nope", "--no-record"], "unknown families nope"),
     (["--suite", "subset", "--jobs", "0", "--no-record"], "--jobs must be at least 1"),
+    (["--perturb", "0.001"], "--perturb is an option of --suite distribution and subset"),
+    (["--suite", "subset", "--perturb", "0", "--no-record"], "--perturb 0: a focal length change must be"),
+    (["--suite", "subset", "--perturb", "0.001", "0.5", "--no-record"], "--perturb 0.5:"),
+    (["--suite", "subset", "--ablate", "--perturb", "0.001", "--no-record"], "leave --set, --baseline and --perturb"),
 ])
 def test_bad_arguments_are_one_line_errors_before_anything_runs(args: list[str], text: str,
                                                                 capsys: pytest.CaptureFixture[str]) -> None:
