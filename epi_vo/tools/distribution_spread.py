@@ -70,8 +70,9 @@ def spread(runs: Mapping[float, Sequence[dt.SequenceResult]]) -> dict[str, dict[
     return out
 
 
-def _f(v: float) -> str:
-    return dt.fmt(v, 2)
+def _f(v: float | None) -> str:
+    # a record's JSON holds a failed (infinite) figure as null
+    return dt.fmt(math.inf if v is None else v, 2)
 
 
 def spread_table(data: Mapping[str, Mapping[str, Any]]) -> str:

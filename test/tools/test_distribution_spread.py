@@ -14,6 +14,7 @@ import pytest
 from epi_vo.core.camera import CameraModel
 from epi_vo.io import tum
 from epi_vo.tools import distribution_table as dt
+from epi_vo.tools.bench_record import jsonable
 from epi_vo.tools.benchmark import BenchRow
 from epi_vo.tools.distribution_spread import spread, spread_compare, spread_table
 from epi_vo.tools.perturb import scaled_focal
@@ -93,6 +94,9 @@ def test_the_pooled_figures_are_compared_only_with_the_same_perturbations() -> N
     before = {"spread": spread({0.0: [_result("orbit", 0, 1.0)], 1e-3: [_result("orbit", 0, 1.2)]})}
     text = spread_compare(before, after)
     assert "| orbit | 1.10 -> 1.50 |" in text and "| 0 -> 1 |" in text
+    failed = jsonable({"spread": spread({0.0: [_result("orbit", 0, math.nan)], 1e-3: [_result("orbit", 0, 1.0)]})})
+    # a failed figure is null in a record
+    assert "| orbit | 1.10 -> fail | 1.18 -> fail | 0 -> 1 |" in spread_compare(before, failed)
     other = {"spread": spread({0.0: [_result("orbit", 0, 1.0)], -1e-3: [_result("orbit", 0, 1.2)]})}
     assert "are not this run's" in spread_compare(other, after)
     assert "no run-to-run spread" in spread_compare({}, after)
