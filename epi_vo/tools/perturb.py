@@ -9,15 +9,12 @@ twins (``--perturb``) and prints how far each family's figures move (docs/distri
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Callable
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
-
-# The CameraInfo fields the pipeline reads (epi_vo.core.camera.CameraModel.from_camera_info and its cache).
-_FIELDS = ("width", "height", "distortion_model", "d", "binning_x", "binning_y", "roi")
 
 
 def scaled_focal(rel: float) -> Callable[[Any], Any]:
@@ -35,7 +32,8 @@ def scaled_focal(rel: float) -> Callable[[Any], Any]:
         k = np.asarray(msg.k, dtype=np.float64).reshape(9).copy()
         k[0] *= factor
         k[4] *= factor
-        fields = {name: getattr(msg, name) for name in _FIELDS if hasattr(msg, name)}
-        return SimpleNamespace(**fields, k=k)
+        edited = copy.copy(msg)  # every other field as recorded (rclpy's and rosbags' messages alike)
+        edited.k = k
+        return edited
 
     return edit
