@@ -6,6 +6,7 @@ Every process here gets ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and this test's 
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -72,17 +73,18 @@ def _play(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]:
 
 
 @pytest.fixture(scope="module")
-def offline(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[int, np.ndarray]]:
+def offline(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[int, Any]]:
     """Odometry of the offline replay of the same bag, by topic and stamp: vo/odometry (VO units: the position
     held) and vo/odometry/vo_units (the motion)."""
     out = tmp_path_factory.mktemp("offline")
     return {"vo/odometry": replay_odometry(BAG, out),
-            "vo/odometry/vo_units": replay_odometry(BAG, out, "/vo/odometry/vo_units", run=False)}
+            "vo/odometry/vo_units": replay_odometry(BAG, out, "/vo/odometry/vo_units", run=False),
+            "frames": {r["stamp_ns"]: r for r in map(json.loads, (out / "frames.jsonl").read_text().splitlines())}}
 
 
 
 @pytest.mark.parametrize("rate", ["1.0", "0"])
-def test_live_playback_equals_offline_replay(ros: RosSession, offline: dict[str, dict[int, np.ndarray]],
+def test_live_playback_equals_offline_replay(ros: RosSession, offline: dict[str, dict[int, Any]],
                                             rate: str) -> None:
     """At the bag's rate, and at rate 0 (as fast as the node's subscription acknowledges: frames wait in
     its queue, and with ``process_every_frame`` the next one is decoded and tracked into while the current
@@ -108,7 +110,8 @@ def test_live_playback_equals_offline_replay(ros: RosSession, offline: dict[str,
                                     ("vo/odometry/vo_units", probe.odom_vo_units, vo_frames)):
             for msg in msgs:
                 stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
-                np.testing.assert_allclose(odom_pose(msg), offline[topic][stamp], atol=1e-6)
+                assert np.allclose(odom_pose(msg), offline[topic][stamp], rtol=0.0, atol=1e-6), \
+                    _first_difference(probe, offline, topic)
                 assert (msg.header.frame_id, msg.child_frame_id) == frames
                 cov = np.asarray(msg.pose.covariance).reshape(6, 6)
                 assert np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0)
@@ -126,6 +129,26 @@ def test_live_playback_equals_offline_replay(ros: RosSession, offline: dict[str,
                                        by_stamp[(ps.header.stamp.sec, ps.header.stamp.nanosec)], atol=1e-9)
     finally:
         probe.close()
+
+
+def _first_difference(probe: Probe, offline: dict[str, Any], topic: str) -> str:
+    """Where the live odometry on ``topic`` first parts from the offline replay's, with what the node and the
+    replay said of that frame and of every frame before it (their state and reason)."""
+    msgs = probe.odom if topic == "vo/odometry" else probe.odom_vo_units
+    live = {}
+    for status in probe.frame_statuses():
+        values = {kv.key: kv.value for kv in status.values}
+        live[int(values["stamp_ns"])] = (f"{status.message} (dropped {values.get('dropped_frames')}, waiting for "
+                                         f"camera_info {values.get('waiting_for_camera_info')})")
+    lines = []
+    for msg in sorted(msgs, key=lambda m: (m.header.stamp.sec, m.header.stamp.nanosec)):
+        stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+        rec = offline["frames"].get(stamp, {})
+        lines.append(f"{stamp}: live {odom_pose(msg).round(6).tolist()} '{live.get(stamp)}'; offline "
+                     f"{offline[topic][stamp].round(6).tolist()} {rec.get('state')} '{rec.get('reason')}'")
+        if not np.allclose(odom_pose(msg), offline[topic][stamp], rtol=0.0, atol=1e-6):
+            break
+    return f"{topic}: live and offline part at the last frame below\n" + "\n".join(lines)
 
 
 MOUNT_XYZ, MOUNT_RPY = (0.2, -0.05, 0.4), (0.03, 0.26, -0.1)  # a camera pitched 15 deg down, off centre
