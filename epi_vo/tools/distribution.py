@@ -40,7 +40,14 @@ from epi_vo.tools import distribution_table as dt
 from epi_vo.tools.bench_record import RecordHeader, jsonable, load_now, repo_root, write_record
 from epi_vo.tools.benchmark import METRIC_VARIANTS, BenchRow, bench_epi_vo, bench_reference, row_dict
 from epi_vo.tools.distribution_compare import compare, load_baseline
-from epi_vo.tools.distribution_spread import spread, spread_compare, spread_table
+from epi_vo.tools.distribution_spread import (
+    real_spread,
+    real_spread_compare,
+    real_spread_table,
+    spread,
+    spread_compare,
+    spread_table,
+)
 from epi_vo.tools.gt_check import GroundTruthCheck, check_ground_truth
 
 REAL_CLIPS = ("kitti06_0-50", "tello_semicircle_206f")
@@ -111,6 +118,7 @@ class RealTask:
     gt: Path
     cfg: VoConfig
     reference: bool = True
+    focal_rel: float = 0.0  # a twin run: camera_info's focal length scaled by 1 + focal_rel
 
 
 def bench_real(task: RealTask) -> list[BenchRow]:
@@ -119,13 +127,23 @@ def bench_real(task: RealTask) -> list[BenchRow]:
         check: GroundTruthCheck | None = check_ground_truth(task.bag, tum.read_tum(task.gt))
     except EpiVoError:
         check = None
-    rows = [bench_epi_vo(task.name, task.bag, task.gt, task.cfg, checked=check)]
+    rows = [bench_epi_vo(task.name, task.bag, task.gt, task.cfg, checked=check, focal_rel=task.focal_rel)]
     for label, values in METRIC_VARIANTS.get(task.name, ()):
         rows.append(bench_epi_vo(task.name, task.bag, task.gt, dataclasses.replace(task.cfg, **values),
-                                 f"epi_vo[{label}]", checked=check))
+                                 f"epi_vo[{label}]", checked=check, focal_rel=task.focal_rel))
     if task.reference:
         rows.append(bench_reference(task.name, task.bag, task.gt))
     return rows
+
+
+def real_tasks(clips: Sequence[tuple[str, Path, Path]], cfg: VoConfig, reference: bool,
+               perturb: Sequence[float] = ()) -> list[RealTask]:
+    """Every clip as recorded (with the reference pipeline when ``reference``), then every clip again per
+    perturbation (epi_vo alone), in that order: ``run_distribution`` reads the results back by it."""
+    tasks = [RealTask(name, bag, gt, cfg, reference) for name, bag, gt in clips]
+    for rel in perturb:
+        tasks += [RealTask(name, bag, gt, cfg, False, rel) for name, bag, gt in clips]
+    return tasks
 
 
 def _run_task(task: SequenceTask | RealTask) -> dt.SequenceResult | list[BenchRow]:
@@ -207,7 +225,7 @@ def run_distribution(suite: str, params: str | None, *, families: Sequence[str] 
     for rel in perturb:
         tasks += [SequenceTask(s.family, s.seed, s.path, s.info, (), cfg, False, rel) for s in rendered.sequences]
     clips = real_clips(Path(data_dir) if data_dir else None) if real else []
-    tasks += [RealTask(name, bag, gt, cfg, reference) for name, bag, gt in clips]
+    tasks += real_tasks(clips, cfg, reference, perturb)
     bench_started = time.perf_counter()
     print(f"benchmarking {len(rendered.sequences)} sequences and {len(clips)} real clips in {jobs} processes ...",
           file=sys.stderr, flush=True)
@@ -216,7 +234,11 @@ def run_distribution(suite: str, params: str | None, *, families: Sequence[str] 
     seq_results = [r for r in results[:n_main] if isinstance(r, dt.SequenceResult)]
     twins = [r for r in results[n_main:] if isinstance(r, dt.SequenceResult)]
     runs = {0.0: seq_results} | {rel: twins[i * n_main:(i + 1) * n_main] for i, rel in enumerate(perturb)}
-    real_rows = [row for r in results if isinstance(r, list) for row in r]
+    real_results = [r for r in results if isinstance(r, list)]
+    n_real = len(clips)
+    real_rows = [row for r in real_results[:n_real] for row in r]
+    real_runs = {0.0: real_rows} | {rel: [row for r in real_results[(i + 1) * n_real:(i + 2) * n_real] for row in r]
+                                    for i, rel in enumerate(perturb)}
     bench_s = time.perf_counter() - bench_started
     stats = dt.family_stats(seq_results)
     goals = dt.targets(stats, seq_results, real_rows)
@@ -250,10 +272,15 @@ def run_distribution(suite: str, params: str | None, *, families: Sequence[str] 
         data["spread"] = spread_data
         body.append("### Run-to-run spread under a calibration nobody could tell apart\n\n"
                     + spread_table(spread_data))
+        if real_rows:
+            data["real_spread"] = real_spread(real_runs)
+            body.append(real_spread_table(data["real_spread"]))
     if before is not None:
         body.append(f"### Against the baseline {baseline}\n\n" + compare(before, jsonable(data)))
         if perturb:
             body.append(spread_compare(before, jsonable(data)))
+            if real_rows:
+                body.append(real_spread_compare(before, jsonable(data)))
     body.append(READING)
     printed = "\n\n".join(body)
     print(printed)

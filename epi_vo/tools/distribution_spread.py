@@ -115,3 +115,77 @@ def spread_compare(before: Mapping[str, Any] | None, after: Mapping[str, Any]) -
         lines.append(f"| {family} | {_f(p['median'])} -> {_f(q['median'])} | {_f(p['p90'])} -> {_f(q['p90'])} | "
                      f"{len(b[family]['flipping'])} -> {len(d['flipping'])} |")
     return "Pooled over the runs, before -> after:\n\n" + "\n".join(lines)
+
+
+def _spread(v: float | None) -> str:
+    # no spread (fewer than two runs with a figure): not a failure
+    return "–" if v is None or math.isnan(v) else dt.fmt(v, 2)
+
+
+def _real_key(row: Any) -> str:
+    return f"{row.bag} {row.pipeline}"
+
+
+def real_spread(runs: Mapping[float, Sequence[Any]]) -> dict[str, dict[str, Any]]:
+    """Per real clip and epi_vo pipeline ("<clip> <pipeline>"): {"runs": [{"focal_rel", "ate_percent",
+    "ate_se3_percent"}], "median": the median ATE % over the runs, "spread": the largest minus the smallest
+    finite one}. ``runs`` maps each perturbation (0.0: as recorded) to that run's rows (``BenchRow``); the
+    reference pipeline, run once, is left out."""
+    rels = sorted(runs, key=lambda r: (r != 0.0, r))
+    out: dict[str, dict[str, Any]] = {}
+    for rel in rels:
+        for row in runs[rel]:
+            if not row.pipeline.startswith(dt.EPI_VO):
+                continue
+            entry = out.setdefault(_real_key(row), {"runs": []})
+            entry["runs"].append({"focal_rel": rel, "ate_percent": float(row.ate_percent),
+                                  "ate_se3_percent": float(row.ate_se3_percent)})
+    for entry in out.values():
+        ates = [r["ate_percent"] for r in entry["runs"]]
+        judged = sorted(math.inf if math.isnan(a) else a for a in ates)
+        entry["median"] = judged[len(judged) // 2] if len(judged) % 2 else 0.5 * (judged[len(judged) // 2 - 1]
+                                                                                   + judged[len(judged) // 2])
+        finite = [a for a in ates if math.isfinite(a)]
+        entry["spread"] = max(finite) - min(finite) if len(finite) >= 2 else math.nan
+    return out
+
+
+def real_spread_table(data: Mapping[str, Mapping[str, Any]]) -> str:
+    """Markdown: each real clip's ATE % (and SE3 ATE % where it is in metres) per run, their median and spread."""
+    if not data:
+        return ""
+    rels = [float(r["focal_rel"]) for r in next(iter(data.values()))["runs"]]
+    head = ["clip, pipeline"] + [f"focal {'recorded' if rel == 0 else f'{rel:+.2%}'}" for rel in rels]
+    head += ["median", "spread"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for key, d in data.items():
+        cells = []
+        for r in d["runs"]:
+            se3 = r.get("ate_se3_percent")
+            ate = r["ate_percent"]
+            cells.append(_f(None if ate is None or math.isnan(ate) else ate)
+                         + ("" if se3 is None or math.isnan(se3) else f" (SE3 {_f(se3)})"))
+        lines.append("| " + " | ".join([key, *cells, _f(d["median"]), _spread(d["spread"])]) + " |")
+    return ("The real clips under the same twins: ATE % of path (Sim3) per run (SE3 ATE % where the output "
+            "is in metres), their median and spread.\n\n" + "\n".join(lines))
+
+
+def real_spread_compare(before: Mapping[str, Any] | None, after: Mapping[str, Any]) -> str:
+    """Markdown: each real clip's median ATE % over the runs before -> after, when both records have them
+    with the same perturbations."""
+    b = (before or {}).get("real_spread") or {}
+    a = after.get("real_spread") or {}
+    if not a:
+        return ""
+    if not b:
+        return "The baseline has no real clips' twins to compare with."
+    rels_b = [float(r["focal_rel"]) for r in next(iter(b.values()))["runs"]]
+    rels_a = [float(r["focal_rel"]) for r in next(iter(a.values()))["runs"]]
+    if rels_b != rels_a:
+        return f"The baseline's real-clip perturbations {rels_b} are not this run's {rels_a}: no comparison."
+    lines = ["| clip, pipeline | median ATE % over the runs | spread |", "|---|---|---|"]
+    for key, d in a.items():
+        if key in b:
+            lines.append(f"| {key} | {_f(b[key]['median'])} -> {_f(d['median'])} | {_spread(b[key]['spread'])} -> "
+                         f"{_spread(d['spread'])} |")
+    return "Real clips over the runs, before -> after:\n\n" + "\n".join(lines)

@@ -4,6 +4,7 @@ apart (epi_vo.tools.perturb), replayed (run_replay's camera_info_edit) and summa
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 from types import SimpleNamespace
@@ -12,11 +13,20 @@ import numpy as np
 import pytest
 
 from epi_vo.core.camera import CameraModel
+from epi_vo.core.config import VoConfig
 from epi_vo.io import tum
 from epi_vo.tools import distribution_table as dt
 from epi_vo.tools.bench_record import jsonable
 from epi_vo.tools.benchmark import BenchRow
-from epi_vo.tools.distribution_spread import spread, spread_compare, spread_table
+from epi_vo.tools.distribution import real_tasks
+from epi_vo.tools.distribution_spread import (
+    real_spread,
+    real_spread_compare,
+    real_spread_table,
+    spread,
+    spread_compare,
+    spread_table,
+)
 from epi_vo.tools.perturb import scaled_focal
 from epi_vo.tools.replay import run_replay
 
@@ -100,3 +110,40 @@ def test_the_pooled_figures_are_compared_only_with_the_same_perturbations() -> N
     other = {"spread": spread({0.0: [_result("orbit", 0, 1.0)], -1e-3: [_result("orbit", 0, 1.2)]})}
     assert "are not this run's" in spread_compare(other, after)
     assert "no run-to-run spread" in spread_compare({}, after)
+
+
+def _real_row(clip: str, pipeline: str, ate: float, se3: float = math.nan) -> BenchRow:
+    return dataclasses.replace(BenchRow(clip, pipeline, 51, 100.0, ate, 0.1, 2.0, 5.0, 0, 3.0), ate_se3_percent=se3)
+
+
+def test_real_clips_are_run_again_under_every_perturbation_without_the_reference() -> None:
+    clips = [("kitti", Path("k/bag"), Path("k/gt")), ("tello", Path("t/bag"), Path("t/gt"))]
+    tasks = real_tasks(clips, VoConfig(), True, (1e-3, -1e-3))
+    assert [(t.name, t.focal_rel, t.reference) for t in tasks] == [
+        ("kitti", 0.0, True), ("tello", 0.0, True), ("kitti", 1e-3, False), ("tello", 1e-3, False),
+        ("kitti", -1e-3, False), ("tello", -1e-3, False)]
+
+
+def test_each_real_clip_gets_its_runs_their_median_and_spread() -> None:
+    runs = {0.0: [_real_row("kitti", "epi_vo", 0.15), _real_row("kitti", "epi_vo[ground_plane]", 0.39, 0.61),
+                  _real_row("kitti", "reference", 4.0)],
+            1e-3: [_real_row("kitti", "epi_vo", 0.16), _real_row("kitti", "epi_vo[ground_plane]", 0.47, 0.70)],
+            -1e-3: [_real_row("kitti", "epi_vo", 0.20), _real_row("kitti", "epi_vo[ground_plane]", math.nan)]}
+    data = real_spread(runs)
+    assert set(data) == {"kitti epi_vo", "kitti epi_vo[ground_plane]"}  # the reference runs once: no spread
+    plain = data["kitti epi_vo"]
+    assert [r["focal_rel"] for r in plain["runs"]] == [0.0, -1e-3, 1e-3]
+    assert plain["median"] == pytest.approx(0.16) and plain["spread"] == pytest.approx(0.05)
+    gp = data["kitti epi_vo[ground_plane]"]
+    assert gp["median"] == pytest.approx(0.47)  # the failed run counts as the worst
+    assert gp["spread"] == pytest.approx(0.08)  # of the runs with a figure
+    table = real_spread_table(data)
+    assert "| kitti epi_vo[ground_plane] | 0.39 (SE3 0.61) | fail | 0.47 (SE3 0.70) | 0.47 | 0.08 |" in table
+    before = jsonable({"real_spread": real_spread({0.0: [_real_row("kitti", "epi_vo", 0.15)],
+                                                   -1e-3: [_real_row("kitti", "epi_vo", 0.15)],
+                                                   1e-3: [_real_row("kitti", "epi_vo", 0.30)]})})
+    text = real_spread_compare(before, jsonable({"real_spread": data}))
+    assert "| kitti epi_vo | 0.15 -> 0.16 | 0.15 -> 0.05 |" in text
+    assert "no comparison" in real_spread_compare(
+        jsonable({"real_spread": real_spread({0.0: [_real_row("kitti", "epi_vo", 0.15)]})}), {"real_spread": data})
+    assert real_spread_compare({}, {"real_spread": data}) == "The baseline has no real clips' twins to compare with."
