@@ -170,6 +170,11 @@ def run_node(make_node: Callable[[], Node], program: str, help_text: str, args: 
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RCLError:
+        # Ctrl-C (or launch's SIGINT) shut the context down while the executor was making its wait set: rcl
+        # says the context is not valid. A stop like the others; any other rcl error is raised.
+        if rclpy.ok():
+            raise
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
