@@ -38,46 +38,15 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from rclpy.context import Context
 
-# Domains 50-99 for the test suite (the experiments of people at the machine use lower ones; Fast DDS on
-# Linux accepts 0-232). A test process claims one by holding an exclusive lock on a file named for it in
-# the temp directory for as long as it lives, so concurrent test runs on one machine never share a domain
-# (the kernel drops the lock when the process ends, however it ends).
+# Domains 50-99 for the test suite (the experiments of people at the machine use lower ones). Fast DDS
+# on Linux accepts 0-232; two concurrent runs collide only when their pids agree modulo 50.
 DOMAIN_ID_BASE = 50
 DOMAIN_ID_SPAN = 50
-_claimed: dict[int, int] = {}  # domain id -> the open lock file's descriptor, held until this process ends
-
-
-def claim_domain_id(start: int, lock_dir: Path | None = None) -> tuple[int, int]:
-    """The first domain id from ``DOMAIN_ID_BASE + start`` on (wrapping in the span) whose lock file no
-    other process holds, and the descriptor of that lock (the claim lasts while it is open).
-
-    Raises:
-        RuntimeError: every domain id of the span is held.
-    """
-    import fcntl
-    import tempfile
-
-    folder = Path(tempfile.gettempdir()) if lock_dir is None else lock_dir
-    for k in range(DOMAIN_ID_SPAN):
-        domain_id = DOMAIN_ID_BASE + (start + k) % DOMAIN_ID_SPAN
-        fd = os.open(folder / f"epi_vo_test_ros_domain_{domain_id}.lock", os.O_CREAT | os.O_RDWR, 0o666)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            os.close(fd)
-            continue
-        return domain_id, fd
-    raise RuntimeError(f"every ROS_DOMAIN_ID {DOMAIN_ID_BASE}-{DOMAIN_ID_BASE + DOMAIN_ID_SPAN - 1} is held by "
-                       "another test process on this machine")
 
 
 def pick_domain_id() -> int:
-    """This test process's ROS_DOMAIN_ID: claimed once (``claim_domain_id``, starting from the pid's
-    place in the span), the same for every session of the process."""
-    if not _claimed:
-        domain_id, fd = claim_domain_id(os.getpid() % DOMAIN_ID_SPAN)
-        _claimed[domain_id] = fd
-    return next(iter(_claimed))
+    """A ROS_DOMAIN_ID for this test process, from its pid."""
+    return DOMAIN_ID_BASE + os.getpid() % DOMAIN_ID_SPAN
 
 
 @dataclass(frozen=True)
