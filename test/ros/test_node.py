@@ -67,7 +67,7 @@ class Probe(ProbeBase):
         return [s for a in self.diag for s in a.status if s.name.endswith(f": {concern}")]
 
 
-def _calibrate(probe: Probe) -> None:
+def _calibrate(probe: Probe) -> Any:
     """Give the node the bag's calibration before playback: a copy of its first camera_info, stamped one frame
     period before the first image, acknowledged by the node.
 
@@ -90,6 +90,7 @@ def _calibrate(probe: Probe) -> None:
     pub.publish(info)
     # Acknowledged: the node's reader has matched this publisher and holds the message.
     assert pub.wait_for_all_acked(Duration(seconds=WAIT_S))
+    return pub
 
 
 def _play(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]:
@@ -151,6 +152,41 @@ def test_live_playback_equals_offline_replay(ros: RosSession, offline: dict[str,
             p, q = ps.pose.position, ps.pose.orientation
             np.testing.assert_allclose([p.x, p.y, p.z, q.x, q.y, q.z, q.w],
                                        by_stamp[(ps.header.stamp.sec, ps.header.stamp.nanosec)], atol=1e-9)
+    finally:
+        probe.close()
+
+
+def test_images_ahead_of_their_late_camera_info_take_the_calibration_received(
+        ros: RosSession, offline: dict[str, dict[int, np.ndarray]]) -> None:
+    """What the live tests rely on (``_calibrate``): with the bag's calibration received, the first images,
+    whose own camera_info comes only after the node has processed them (a reader that discovered its publisher
+    late), are processed with it: every pose is the offline replay's. Without it they are rejected (no
+    camera_info yet) and tracking starts later."""
+    from sensor_msgs.msg import CompressedImage
+
+    n = bag_frame_count(BAG)
+    frames = bag_frames_rclpy(BAG, n)
+    probe = Probe(ros, "probe_late_info")
+    try:
+        with NodeProcess(ros.env, *PLAYBACK_ARGS) as node:
+            assert probe.wait_for_node(), node.proc.stderr
+            pub_info = _calibrate(probe)
+            pub_img = probe.node.create_publisher(CompressedImage, "camera/image_raw/compressed", probe.qos)
+            assert probe.spin_until(lambda: pub_img.get_subscription_count() > 0)
+            for img, _ in frames[:2]:
+                pub_img.publish(img)
+            # Their camera_info only once the node has processed both (a frame status each).
+            assert probe.spin_until(lambda: len(probe.frame_statuses()) >= 2), node.proc.stderr
+            for i, (img, info) in enumerate(frames):
+                pub_info.publish(info)
+                if i >= 2:
+                    pub_img.publish(img)
+            assert probe.spin_until(lambda: len(probe.odom) >= n), len(probe.odom)
+        assert len(probe.odom) == n
+        for msg in probe.odom:
+            stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+            np.testing.assert_allclose(odom_pose(msg), offline["vo/odometry"][stamp], atol=1e-6)
+        assert not any("no camera_info" in st.message for st in probe.frame_statuses())
     finally:
         probe.close()
 
