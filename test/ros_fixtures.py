@@ -344,3 +344,33 @@ def bag_frames_rclpy(bag: Path, n: int, shift_s: int = 0) -> list[tuple[Any, Any
                 break
             frames.append((conv(f.image_msg, CompressedImage), conv(f.camera_info_msg, CameraInfo)))
     return frames
+
+
+def send_calibration(probe: ProbeBase, bag: Path, timeout_s: float = PROBE_WAIT_S) -> Any:
+    """Give a VO node the bag's calibration before the bag is played into it: a copy of the bag's first
+    camera_info, stamped one frame period before its first image, published reliably until the node
+    acknowledged it; the publisher (on ``camera/camera_info``) is returned.
+
+    What the node promises: an image waits for the first camera_info at most 2 s (NO_CAMERA_INFO_WAIT_S) or
+    30 images, and is then rejected for having none; once one has been received, an image waits
+    camera_info_wait_s for its own and then takes the latest one received. The player's camera_info reaches
+    the node only once the node's side of discovery of the player has completed, which on a loaded machine can
+    be seconds after the images do: the first frames were rejected and tracking started later than in the
+    offline replay (frame 1 held at identity instead of at its rotation). With the bag's own calibration
+    received, such a frame is processed with it, as offline: for a bag whose calibration is constant the
+    outputs are the replay's whenever the player's copy arrives.
+    """
+    from rclpy.duration import Duration
+    from sensor_msgs.msg import CameraInfo
+
+    from epi_vo.io.msgconv import stamp_to_ns
+
+    (img0, info), (img1, _) = bag_frames_rclpy(bag, 2)
+    stamp_ns = 2 * stamp_to_ns(img0.header.stamp) - stamp_to_ns(img1.header.stamp)
+    info.header.stamp.sec, info.header.stamp.nanosec = divmod(stamp_ns, 10**9)
+    pub = probe.node.create_publisher(CameraInfo, "camera/camera_info", probe.qos)
+    assert probe.spin_until(lambda: pub.get_subscription_count() > 0, timeout_s)
+    pub.publish(info)
+    # Acknowledged: the node's reader has matched this publisher and holds the message.
+    assert pub.wait_for_all_acked(Duration(seconds=timeout_s))
+    return pub

@@ -24,6 +24,7 @@ from ros_fixtures import (
     odom_pose,
     rclpy_session,
     replay_odometry,
+    send_calibration,
 )
 
 REPO = Path(__file__).resolve().parents[2]
@@ -33,7 +34,6 @@ PLAYBACK_ARGS = ["-p", "image_transport:=compressed", "-p", "process_every_frame
 # Bound on every wait for another process (node start-up, outputs, a service): generous, because a loaded
 # machine is slow, not broken. The tests wait on the condition itself; the bound matters only on failure.
 WAIT_S = 120.0
-FRAME_PERIOD_NS = 66_666_667  # the bag's frame period (15 Hz)
 
 
 @pytest.fixture(scope="module")
@@ -67,32 +67,6 @@ class Probe(ProbeBase):
         return [s for a in self.diag for s in a.status if s.name.endswith(f": {concern}")]
 
 
-def _calibrate(probe: Probe) -> Any:
-    """Give the node the bag's calibration before playback: a copy of its first camera_info, stamped one frame
-    period before the first image, acknowledged by the node.
-
-    What the node promises: an image waits for the first camera_info at most 2 s (NO_CAMERA_INFO_WAIT_S) or
-    30 images and is then rejected for having none; once one has been received, an image waits
-    camera_info_wait_s for its own and then takes the latest one received. The player's camera_info reaches
-    the node only once the node's side of discovery of the player has completed, which on a loaded machine can
-    be seconds after its images did: the first frames were rejected, tracking started a frame later than the
-    offline replay (frame 1 held at identity instead of at its 0.6 deg rotation). With the bag's own
-    calibration already received, such a frame is processed with it, as offline; the calibration is constant
-    over the bag, so the outputs are the replay's whenever the player's copy arrives."""
-    from rclpy.duration import Duration
-    from sensor_msgs.msg import CameraInfo
-
-    (_, info), = bag_frames_rclpy(BAG, 1)
-    stamp_ns = info.header.stamp.sec * 10**9 + info.header.stamp.nanosec - FRAME_PERIOD_NS
-    info.header.stamp.sec, info.header.stamp.nanosec = divmod(stamp_ns, 10**9)
-    pub = probe.node.create_publisher(CameraInfo, "camera/camera_info", probe.qos)
-    assert probe.spin_until(lambda: pub.get_subscription_count() > 0)
-    pub.publish(info)
-    # Acknowledged: the node's reader has matched this publisher and holds the message.
-    assert pub.wait_for_all_acked(Duration(seconds=WAIT_S))
-    return pub
-
-
 def _play(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "epi_vo.cli", "play", str(BAG), *args], env=env,
                           capture_output=True, text=True, timeout=2 * WAIT_S)
@@ -119,7 +93,7 @@ def test_live_playback_equals_offline_replay(ros: RosSession, offline: dict[str,
     try:
         with NodeProcess(ros.env, *PLAYBACK_ARGS) as node:
             assert probe.wait_for_node(), node.proc.stderr
-            _calibrate(probe)
+            send_calibration(probe, BAG)
             played = _play(ros.env, "--rate", rate)
             assert played.returncode == 0, played.stderr
             assert probe.spin_until(lambda: len(probe.odom) >= n and len(probe.frame_statuses()) >= n
@@ -158,7 +132,7 @@ def test_live_playback_equals_offline_replay(ros: RosSession, offline: dict[str,
 
 def test_images_ahead_of_their_late_camera_info_take_the_calibration_received(
         ros: RosSession, offline: dict[str, dict[int, np.ndarray]]) -> None:
-    """What the live tests rely on (``_calibrate``): with the bag's calibration received, the first images,
+    """What the live tests rely on (``send_calibration``): with the bag's calibration received, the first images,
     whose own camera_info comes only after the node has processed them (a reader that discovered its publisher
     late), are processed with it: every pose is the offline replay's. Without it they are rejected (no
     camera_info yet) and tracking starts later."""
@@ -170,7 +144,7 @@ def test_images_ahead_of_their_late_camera_info_take_the_calibration_received(
     try:
         with NodeProcess(ros.env, *PLAYBACK_ARGS) as node:
             assert probe.wait_for_node(), node.proc.stderr
-            pub_info = _calibrate(probe)
+            pub_info = send_calibration(probe, BAG)
             pub_img = probe.node.create_publisher(CompressedImage, "camera/image_raw/compressed", probe.qos)
             assert probe.spin_until(lambda: pub_img.get_subscription_count() > 0)
             for img, _ in frames[:2]:
@@ -218,7 +192,7 @@ def test_live_playback_equals_offline_replay_with_a_mounted_camera(ros: RosSessi
     try:
         with NodeProcess(ros.env, *PLAYBACK_ARGS, "--params-file", str(params)) as node:
             assert probe.wait_for_node(), node.proc.stderr
-            _calibrate(probe)
+            send_calibration(probe, BAG)
             played = _play(ros.env, "--rate", "0")
             assert played.returncode == 0, played.stderr
             assert probe.spin_until(lambda: len(probe.odom) >= n and len(probe.odom_vo_units) >= n), len(probe.odom)
