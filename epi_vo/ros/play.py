@@ -18,11 +18,7 @@ the image topic (sensor_msgs/Image or CompressedImage) and its camera_info, the 
   are published as the recorded bytes themselves, once rosbags has checked they decode: tf2_msgs has no
   PyPI wheel, so its rclpy class may be missing (then /tf and /tf_static are not played, and the summary
   says so); the publisher needs the class only for its type.
-- All topics are merged in the bag's order (log time), one schedule for all; of an image and a camera_info
-  logged at the same time, the camera_info goes first. The run's first camera_info is awaited (bounded)
-  until every subscriber acknowledged it before any image goes out: a subscriber's side of discovery can
-  complete seconds after the player's, and a VO node holds an image only so long for a first camera_info
-  (``epi_vo.io.frame_queue``) before rejecting it, so it would start a frame later than the offline replay.
+- All topics are merged in the bag's order (log time), one schedule for all.
 - Timing follows the bag's log time relative to the first message, on a monotonic clock, divided by
   ``rate``; ``rate`` 0 publishes as fast as possible, still in bag order. With ``clock``,
   rosgraph_msgs/Clock carrying the message's log time is published on /clock before each message.
@@ -47,7 +43,6 @@ import math
 import signal
 import threading
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType, TracebackType
@@ -103,10 +98,6 @@ _SUBSCRIBER_POLL_S = 0.01
 # After the image topic is matched, how long to give the camera_info and wheel subscribers (usually the same
 # node, discovered a moment later) so that they start together.
 _CAMERA_INFO_GRACE_S = 0.5
-# Bound on the wait for the subscribers' acknowledgement of the run's first camera_info, before the first image
-# goes out. A live subscriber acknowledges as soon as its side of discovery completes (seconds on a loaded
-# machine); only a subscriber that died without unmatching makes the player wait this long, once per run.
-_FIRST_CAMERA_INFO_ACK_S = 30.0
 
 
 class Reliability(enum.Enum):
@@ -383,7 +374,7 @@ class BagPlayer:
         start = time.monotonic()  # wall time of the pass's first message; shifted by pauses
         since_ack: dict[str, int] = {}  # messages published per topic since the last acknowledgement wait
         covered_ns = 0  # bag time of this pass already added to self._bag_ns
-        for message in self._camera_info_first(self.bag.messages()):
+        for message in self.bag.messages():
             if first_log_ns is None:
                 first_log_ns = message.log_time_ns
             elapsed_bag_ns = message.log_time_ns - first_log_ns
@@ -403,26 +394,6 @@ class BagPlayer:
             self._bag_ns += elapsed_bag_ns - covered_ns
             covered_ns = elapsed_bag_ns
 
-    def _camera_info_first(self, messages: Iterator[BagMessage]) -> Iterator[BagMessage]:
-        """``messages`` with each image followed by a camera_info of the same log time swapped with it."""
-        image_topic, info_topic = self.bag.image_topic, self.bag.camera_info_topic
-        held: BagMessage | None = None  # an image, until the next message shows whether its camera_info follows
-        for message in messages:
-            if held is not None:
-                if message.topic == info_topic and message.log_time_ns == held.log_time_ns:
-                    yield message
-                    yield held
-                    held = None
-                    continue
-                yield held
-                held = None
-            if message.topic == image_topic:
-                held = message
-            else:
-                yield message
-        if held is not None:
-            yield held
-
     def _publish(self, message: BagMessage, since_ack: dict[str, int]) -> float:
         """Publish /clock (option) and the message; return the seconds spent waiting for acknowledgements."""
         waited_s = 0.0
@@ -441,13 +412,6 @@ class BagPlayer:
             self._first_publish = now
         self._last_publish = now
         self._counts[message.topic] += 1
-        if message.topic == self.bag.camera_info_topic and self._counts[message.topic] == 1:
-            started = time.monotonic()  # the run's first camera_info: acknowledged before any image (module doc)
-            if not publisher.wait_for_all_acked(Duration(seconds=_FIRST_CAMERA_INFO_ACK_S)):
-                self._node.get_logger().warning(
-                    f"{publisher.topic_name}: subscribers did not acknowledge the first camera_info within "
-                    f"{_FIRST_CAMERA_INFO_ACK_S:g} s; their first images may go without one")
-            waited_s += time.monotonic() - started
         return waited_s + self._flow_control(publisher, message.topic, since_ack)
 
     def _message(self, message: BagMessage) -> Any:

@@ -297,9 +297,7 @@ def test_player_corrupt_message_is_a_bag_error(ros: RosSession, tmp_path: Path) 
             with pytest.raises(BagError, match=r"cannot deserialise a sensor_msgs/msg/CameraInfo on "
                                                r"/cam0/camera_info at log time 5050000000 ns"):
                 player.play()
-            # What came before the bad message was published: the first frame's camera_info and image; the
-            # second image is logged with the bad camera_info, so it goes after it and is not published.
-            assert (player.summary().camera_infos, player.summary().images) == (1, 1)
+            assert player.summary().images == 2  # what came before the bad message was published
     finally:
         node.destroy_node()
 
@@ -541,49 +539,3 @@ def test_play_feeds_a_wheel_odometry_node_metres(ros: RosSession) -> None:
     assert "1027 on /robot4/odom" in played.stdout, played.stdout
     steps = np.linalg.norm(np.diff(np.array(positions), axis=0), axis=1)
     assert 0.9 * GROUND_ROBOT_PATH_M < float(steps.sum()) < 1.1 * GROUND_ROBOT_PATH_M, float(steps.sum())
-
-
-class _Recording:
-    """A publisher that records, in one list shared by all, what is published on it and the acknowledgement
-    waits (what the subscribers saw first is in that order: a topic's samples go out in publication order)."""
-
-    def __init__(self, publisher: Any, events: list[tuple[str, str, int | None]]) -> None:
-        self._publisher, self._events = publisher, events
-
-    def publish(self, msg: Any) -> None:
-        self._events.append(("publish", self._publisher.topic_name, _stamp_ns(msg.header.stamp)))
-        self._publisher.publish(msg)
-
-    def wait_for_all_acked(self, timeout: Any) -> bool:
-        self._events.append(("acked", self._publisher.topic_name, None))
-        return bool(self._publisher.wait_for_all_acked(timeout))
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._publisher, name)
-
-
-def test_the_first_camera_info_is_acknowledged_before_any_image(ros: RosSession, bag_images: BagImages) -> None:
-    """A subscriber's side of discovery can complete seconds after the player's: the run's first camera_info
-    is published (ahead of its image, logged at the same time) and acknowledged before the first image, so a
-    VO node never holds the first image waiting for a calibration still on its way (it would reject it and
-    start a frame later than the offline replay). Every image then follows its own camera_info."""
-    import rclpy
-
-    from epi_vo.ros.play import BagPlayer, PlayOptions
-
-    n = len(bag_images.stamps_ns)
-    node = rclpy.create_node("player_info_first", context=ros.context)
-    events: list[tuple[str, str, int | None]] = []
-    try:
-        with BagPlayer(node, BAG, PlayOptions(rate=0.0, start_delay_s=0.0)) as player:
-            for topic, publisher in list(player._publishers.items()):
-                player._publishers[topic] = _Recording(publisher, events)
-            summary = player.play()
-    finally:
-        node.destroy_node()
-    assert (summary.images, summary.camera_infos) == (n, n)
-    info, image = "/camera/camera_info", "/camera/image_raw/compressed"
-    assert events[:3] == [("publish", info, bag_images.stamps_ns[0]), ("acked", info, None),
-                          ("publish", image, bag_images.stamps_ns[0])]
-    published = [(topic, stamp) for kind, topic, stamp in events if kind == "publish"]
-    assert published == [(topic, stamp) for stamp in bag_images.stamps_ns for topic in (info, image)]
