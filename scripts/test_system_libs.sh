@@ -33,6 +33,6 @@ assert not bad, bad
 print("test_system_libs: OpenCV", cv2.__version__, "numpy", numpy.__version__, "scipy", scipy.__version__)
 PY
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
-export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( ($$ % 90) + 10 ))}
+[[ -n "${ROS_DOMAIN_ID:-}" ]] || { source scripts/ros_domain.sh && claim_ros_domain_id; }
 exec "$VENV/bin/python" -m pytest -p no:cacheprovider -rs test/tools/test_bag_accuracy.py test/core/test_polish.py \
   test/tools/test_golden.py "$@"

@@ -38,15 +38,78 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from rclpy.context import Context
 
-# Domains 50-99 for the test suite (the experiments of people at the machine use lower ones). Fast DDS
-# on Linux accepts 0-232; two concurrent runs collide only when their pids agree modulo 50.
-DOMAIN_ID_BASE = 50
-DOMAIN_ID_SPAN = 50
+# Domains 50-99 for the test suite (the experiments of people at the machine use lower ones); Fast DDS on Linux
+# accepts 0-232. A session (.ci/run, a helper) hands its own range in EPI_VO_TEST_DOMAIN_IDS ("LO-HI").
+DOMAIN_IDS_ENV = "EPI_VO_TEST_DOMAIN_IDS"
+DEFAULT_DOMAIN_IDS = range(50, 100)
+# Every process that starts DDS for the tests claims its domain id with an exclusive flock on a file of its
+# own in this directory (scripts/ros_domain.sh does the same for .ci/run and scripts/test.sh), held until the
+# process ends: two concurrent sessions (two pytest runs, xdist workers, .ci/run beside a helper's tests)
+# never share a domain, where a pid modulo the range can agree. The kernel drops the lock of a process that
+# dies, so a crashed run leaves nothing claimed.
+DOMAIN_LOCK_DIR_ENV = "EPI_VO_ROS_DOMAIN_LOCKS"
+
+
+class DomainIdError(RuntimeError):
+    """No ROS_DOMAIN_ID of the range is free, or the range is unusable."""
+
+
+def domain_id_range(text: str | None = None) -> range:
+    """The ids the test suite may claim: ``EPI_VO_TEST_DOMAIN_IDS`` ("LO-HI", inclusive, within 0-232)."""
+    text = os.environ.get(DOMAIN_IDS_ENV, "") if text is None else text
+    if not text.strip():
+        return DEFAULT_DOMAIN_IDS
+    lo, sep, hi = text.partition("-")
+    try:
+        ids = range(int(lo), int(hi if sep else lo) + 1)
+    except ValueError:
+        ids = range(0)
+    if not ids or ids.start < 0 or ids.stop > 233:
+        msg = f"{DOMAIN_IDS_ENV}={text!r} is not a range LO-HI of ROS domain ids within 0-232"
+        raise DomainIdError(msg)
+    return ids
+
+
+def domain_lock_dir() -> Path:
+    """Where domain ids are claimed: ``EPI_VO_ROS_DOMAIN_LOCKS``, else ``$TMPDIR`` (or /tmp)/epi_vo_ros_domains."""
+    path = os.environ.get(DOMAIN_LOCK_DIR_ENV) or str(Path(os.environ.get("TMPDIR") or "/tmp") / "epi_vo_ros_domains")
+    return Path(path)
+
+
+def claim_domain_id(ids: range | None = None, lock_dir: Path | None = None,
+                    start: int | None = None) -> tuple[int, int]:
+    """Claim a free domain id of ``ids`` (default ``domain_id_range()``) under ``lock_dir``: the first free one
+    from ``start`` (default: from the pid) on, wrapping. Returns the id and the open file descriptor that holds
+    the claim (closing it, or the process ending, frees the id). DomainIdError when every id is taken."""
+    import fcntl
+
+    ids = domain_id_range() if ids is None else ids
+    lock_dir = domain_lock_dir() if lock_dir is None else lock_dir
+    lock_dir.mkdir(parents=True, exist_ok=True)
+    first = os.getpid() if start is None else start
+    for k in range(len(ids)):
+        domain_id = ids[(first + k) % len(ids)]
+        fd = os.open(lock_dir / f"ros_domain_{domain_id}.lock", os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            continue
+        return domain_id, fd
+    msg = (f"every ROS domain id {ids.start}-{ids.stop - 1} is claimed by another test session (locks in "
+           f"{lock_dir}); set {DOMAIN_IDS_ENV}=LO-HI to a free range")
+    raise DomainIdError(msg)
+
+
+_claimed: int | None = None  # this process's domain id, claimed once and held until it ends
 
 
 def pick_domain_id() -> int:
-    """A ROS_DOMAIN_ID for this test process, from its pid."""
-    return DOMAIN_ID_BASE + os.getpid() % DOMAIN_ID_SPAN
+    """This test process's ROS_DOMAIN_ID: claimed (``claim_domain_id``) at the first call, the same after."""
+    global _claimed
+    if _claimed is None:
+        _claimed, _fd = claim_domain_id()  # the descriptor stays open: the claim lasts as long as the process
+    return _claimed
 
 
 @dataclass(frozen=True)
@@ -281,3 +344,33 @@ def bag_frames_rclpy(bag: Path, n: int, shift_s: int = 0) -> list[tuple[Any, Any
                 break
             frames.append((conv(f.image_msg, CompressedImage), conv(f.camera_info_msg, CameraInfo)))
     return frames
+
+
+def send_calibration(probe: ProbeBase, bag: Path, timeout_s: float = PROBE_WAIT_S) -> Any:
+    """Give a VO node the bag's calibration before the bag is played into it: a copy of the bag's first
+    camera_info, stamped one frame period before its first image, published reliably until the node
+    acknowledged it; the publisher (on ``camera/camera_info``) is returned.
+
+    What the node promises: an image waits for the first camera_info at most 2 s (NO_CAMERA_INFO_WAIT_S) or
+    30 images, and is then rejected for having none; once one has been received, an image waits
+    camera_info_wait_s for its own and then takes the latest one received. The player's camera_info reaches
+    the node only once the node's side of discovery of the player has completed, which on a loaded machine can
+    be seconds after the images do: the first frames were rejected and tracking started later than in the
+    offline replay (frame 1 held at identity instead of at its rotation). With the bag's own calibration
+    received, such a frame is processed with it, as offline: for a bag whose calibration is constant the
+    outputs are the replay's whenever the player's copy arrives.
+    """
+    from rclpy.duration import Duration
+    from sensor_msgs.msg import CameraInfo
+
+    from epi_vo.io.msgconv import stamp_to_ns
+
+    (img0, info), (img1, _) = bag_frames_rclpy(bag, 2)
+    stamp_ns = 2 * stamp_to_ns(img0.header.stamp) - stamp_to_ns(img1.header.stamp)
+    info.header.stamp.sec, info.header.stamp.nanosec = divmod(stamp_ns, 10**9)
+    pub = probe.node.create_publisher(CameraInfo, "camera/camera_info", probe.qos)
+    assert probe.spin_until(lambda: pub.get_subscription_count() > 0, timeout_s)
+    pub.publish(info)
+    # Acknowledged: the node's reader has matched this publisher and holds the message.
+    assert pub.wait_for_all_acked(Duration(seconds=timeout_s))
+    return pub

@@ -29,6 +29,7 @@ from ros_fixtures import (
     odom_pose,
     rclpy_session,
     replay_odometry,
+    send_calibration,
 )
 
 from epi_vo.io.msgconv import stamp_to_ns
@@ -196,6 +197,7 @@ def test_configure_activate_deactivate_cleanup_shutdown(ros: RosSession,
             # Activate: the whole bag, as the plain node and the offline replay give it.
             assert probe.change(Transition.TRANSITION_ACTIVATE)
             assert probe.state() == "active"
+            send_calibration(probe, BAG)  # the first frames are not rejected if the player's camera_info is late
             _play(ros.env)
             assert probe.spin_until(lambda: len(probe.odom) >= n and len(probe.odom_vo_units) >= n
                                     and len(probe.frame_statuses()) >= n), len(probe.odom)
@@ -240,6 +242,7 @@ def test_configure_activate_deactivate_cleanup_shutdown(ros: RosSession,
             before, statuses_before = len(probe.odom), len(probe.frame_statuses())
             assert len(probe.odom_vo_units) == before
             assert probe.spin_until(lambda: probe.node.count_publishers("/vo/odometry") == 1)
+            send_calibration(probe, BAG)
             _play(ros.env)
             assert probe.spin_until(lambda: len(probe.odom) >= before + n and len(probe.odom_vo_units) >= before + n
                                     and len(probe.frame_statuses()) >= statuses_before + n), len(probe.odom)

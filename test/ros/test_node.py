@@ -25,6 +25,7 @@ from ros_fixtures import (
     odom_pose,
     rclpy_session,
     replay_odometry,
+    send_calibration,
 )
 
 REPO = Path(__file__).resolve().parents[2]
@@ -94,6 +95,7 @@ def test_live_playback_equals_offline_replay(ros: RosSession, offline: dict[str,
     try:
         with NodeProcess(ros.env, *PLAYBACK_ARGS) as node:
             assert probe.wait_for_node(), node.proc.stderr
+            send_calibration(probe, BAG)
             played = _play(ros.env, "--rate", rate)
             assert played.returncode == 0, played.stderr
             assert probe.spin_until(lambda: len(probe.odom) >= n and len(probe.frame_statuses()) >= n
@@ -151,6 +153,41 @@ def _first_difference(probe: Probe, offline: dict[str, Any], topic: str) -> str:
     return f"{topic}: live and offline part at the last frame below\n" + "\n".join(lines)
 
 
+def test_images_ahead_of_their_late_camera_info_take_the_calibration_received(
+        ros: RosSession, offline: dict[str, dict[int, np.ndarray]]) -> None:
+    """What the live tests rely on (``send_calibration``): with the bag's calibration received, the first images,
+    whose own camera_info comes only after the node has processed them (a reader that discovered its publisher
+    late), are processed with it: every pose is the offline replay's. Without it they are rejected (no
+    camera_info yet) and tracking starts later."""
+    from sensor_msgs.msg import CompressedImage
+
+    n = bag_frame_count(BAG)
+    frames = bag_frames_rclpy(BAG, n)
+    probe = Probe(ros, "probe_late_info")
+    try:
+        with NodeProcess(ros.env, *PLAYBACK_ARGS) as node:
+            assert probe.wait_for_node(), node.proc.stderr
+            pub_info = send_calibration(probe, BAG)
+            pub_img = probe.node.create_publisher(CompressedImage, "camera/image_raw/compressed", probe.qos)
+            assert probe.spin_until(lambda: pub_img.get_subscription_count() > 0)
+            for img, _ in frames[:2]:
+                pub_img.publish(img)
+            # Their camera_info only once the node has processed both (a frame status each).
+            assert probe.spin_until(lambda: len(probe.frame_statuses()) >= 2), node.proc.stderr
+            for i, (img, info) in enumerate(frames):
+                pub_info.publish(info)
+                if i >= 2:
+                    pub_img.publish(img)
+            assert probe.spin_until(lambda: len(probe.odom) >= n), len(probe.odom)
+        assert len(probe.odom) == n
+        for msg in probe.odom:
+            stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+            np.testing.assert_allclose(odom_pose(msg), offline["vo/odometry"][stamp], atol=1e-6)
+        assert not any("no camera_info" in st.message for st in probe.frame_statuses())
+    finally:
+        probe.close()
+
+
 MOUNT_XYZ, MOUNT_RPY = (0.2, -0.05, 0.4), (0.03, 0.26, -0.1)  # a camera pitched 15 deg down, off centre
 
 
@@ -178,6 +215,7 @@ def test_live_playback_equals_offline_replay_with_a_mounted_camera(ros: RosSessi
     try:
         with NodeProcess(ros.env, *PLAYBACK_ARGS, "--params-file", str(params)) as node:
             assert probe.wait_for_node(), node.proc.stderr
+            send_calibration(probe, BAG)
             played = _play(ros.env, "--rate", "0")
             assert played.returncode == 0, played.stderr
             assert probe.spin_until(lambda: len(probe.odom) >= n and len(probe.odom_vo_units) >= n), len(probe.odom)
