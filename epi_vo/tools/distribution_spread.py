@@ -12,6 +12,7 @@ compares the pooled figures with a baseline record that has them.
 from __future__ import annotations
 
 import math
+import statistics
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -142,9 +143,7 @@ def real_spread(runs: Mapping[float, Sequence[Any]]) -> dict[str, dict[str, Any]
                                   "ate_se3_percent": float(row.ate_se3_percent)})
     for entry in out.values():
         ates = [r["ate_percent"] for r in entry["runs"]]
-        judged = sorted(math.inf if math.isnan(a) else a for a in ates)
-        entry["median"] = judged[len(judged) // 2] if len(judged) % 2 else 0.5 * (judged[len(judged) // 2 - 1]
-                                                                                   + judged[len(judged) // 2])
+        entry["median"] = statistics.median(math.inf if math.isnan(a) else a for a in ates)  # a failed run: the worst
         finite = [a for a in ates if math.isfinite(a)]
         entry["spread"] = max(finite) - min(finite) if len(finite) >= 2 else math.nan
     return out
