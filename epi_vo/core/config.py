@@ -266,6 +266,10 @@ class VoConfig:
         0.025, "radial distortion the calibration may leave undeclared (1 sigma of k1, normalised image "
         "coordinates): its effect on every pose, grown coherently along the path in the pose covariance "
         "(0: the lens model taken as exact)", 0.0, 1.0)
+    rotation_bias_from_map: bool = _knob(
+        True, "take the keyframe steps' rotation error beyond their noise, as the map's points measure it against "
+        "E's rotation on every frame, as an error the steps share, grown along the path in the pose covariance "
+        "(off: the steps' errors independent)")
     lost_position_variance: float = _knob(1.0e4, "position variance reported when no pose can be justified",
                                           1.0, 1.0e12)
     lost_rotation_variance: float = _knob(1.0e2, "rotation variance (rad^2) reported when no pose can be justified "

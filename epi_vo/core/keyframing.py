@@ -231,7 +231,7 @@ def metric_step(state: TrackState, motion: mo.Motion, kf: Keyframe, X_cur: F64, 
     T_w_c[:3, 3] = origin + d
     state = dataclasses.replace(state, window=state.window.cleared(), T_w_c=T_w_c,
                                 cov_w_c=state.map_scale.metric_covariance(state.scale, state.cov_w_c, factor, d),
-                                calib=state.calib.rescaled(factor))
+                                calib=state.calib.rescaled(factor), rotation_bias=state.rotation_bias.rescaled(factor))
     return state, X_cur * factor, t, step_scale, True
 
 

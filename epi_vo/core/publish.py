@@ -3,7 +3,7 @@
 ``Observed`` gathers what the stages measured this frame (each value from the stage that measured it);
 ``publish`` books the frame in the tracking state, guards the held pose, composes the published pose and
 covariance (the held position's 'unknown' variance, the scale source's systematic error, the calibration's
-error) and renders the notes to the ``reason``.
+error, the rotation error the keyframe steps share) and renders the notes to the ``reason``.
 """
 
 from __future__ import annotations
@@ -108,7 +108,7 @@ def publish(state: TrackState, cfg: VoConfig, stamp_ns: int, tracking: TrackingS
     kf = state.kf
     if has_pose and tracking is TrackingState.TRACKING and kf is not None and not state.scale.established:
         cov[:3, :3] += state.map_scale.since_keyframe(T_out[:3, 3] - kf.T_w_kf[:3, 3])
-    cov += state.calib.cov()
+    cov += state.calib.cov() + state.rotation_bias.cov()
     cov = covm.floored(cov)
     timings = {**timings, "total": (time.perf_counter() - t_start) * 1e3}
     o = observed

@@ -3,7 +3,8 @@
 ``epi_vo.core.step`` takes a ``TrackState`` and a frame and returns the state after the frame (and the
 frame's record); nothing else persists between frames. Its parts are frozen values too: the keyframe and
 its map (``Keyframe``), the scale source (``scale``), the windowed map (``window``), the motion stage's
-memory (``motion``), the covariance's scale and calibration terms (``map_scale``, ``calib``), the
+memory (``motion``), the covariance's scale, calibration and shared rotation terms (``map_scale``, ``calib``,
+``rotation_bias``), the
 hand-over to a new map (``handover``), the recent keyframes and the last tracked frame a lost frame is
 found again against (``recent``, ``last_seen``). Arrays held here are never changed in place: a new state holds
 new arrays.
@@ -26,6 +27,7 @@ from epi_vo.core.map_scale import MapScaleCovariance
 from epi_vo.core.motion import MotionMemory
 from epi_vo.core.patches import PatchTemplates, patch_templates
 from epi_vo.core.relocalise import Recent
+from epi_vo.core.rotation_bias_cov import RotationBias
 from epi_vo.core.wheel_odometry import WheelOdometry
 from epi_vo.core.window import WindowedMap
 
@@ -111,6 +113,7 @@ class TrackState:
     handover: Handover
     map_scale: MapScaleCovariance
     calib: CalibrationError
+    rotation_bias: RotationBias
     window: WindowedMap
     patches: PatchTemplates | None  # KLT tracks refined against their first image (None: off)
     index: int = 0  # the next frame's index (every frame gets one, skipped ones too)
@@ -142,5 +145,6 @@ def initial_state(cfg: VoConfig) -> TrackState:
                       map_scale=MapScaleCovariance(cfg.scale_drift_per_keyframe),
                       calib=CalibrationError((cfg.focal_length_rel_sigma, cfg.principal_point_sigma_px,
                                               cfg.principal_point_sigma_px, cfg.radial_distortion_k1_sigma)),
+                      rotation_bias=RotationBias(cfg.rotation_bias_from_map),
                       window=WindowedMap.create(cfg.ba_window_keyframes, cfg.ba_every_keyframes, cfg.pixel_noise_px),
                       patches=patch_templates(cfg))

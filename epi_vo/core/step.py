@@ -299,7 +299,11 @@ def _track(state: TrackState, kf: Keyframe, frame: Frame, env: StepEnv, t_start:
                                                              (stamp_ns - kf.stamp_ns) * 1e-9,
                                                              est.median_parallax_deg)
     state, step_cov = _step_covariance(state, cfg, kf, motion, T_w_c[:3, 3] - state.last_pos_w, noise_ratio)
-    state = dataclasses.replace(state, calib=_calibration(state, kf, motion, rows, xn_cur, camera))
+    moved = motion.state is TrackingState.TRACKING
+    state = dataclasses.replace(state, calib=_calibration(state, kf, motion, rows, xn_cur, camera),
+                                rotation_bias=state.rotation_bias.tracked(
+                                    kf.index, kf.T_w_kf, motion.R_cur_kf, motion.t_cur_kf,
+                                    motion.rotation_excess if moved else None))
     state = dataclasses.replace(state, fail_count=0, T_w_c=T_w_c, cov_w_c=cov_w_c, last_pos_w=T_w_c[:3, 3].copy(),
                                 T_cur_kf_prev=T_cur_kf, tracks=tracks_now)
     if motion.state is TrackingState.TRACKING:

@@ -16,6 +16,7 @@ from epi_vo.core.frame import TrackingState
 from epi_vo.core.motion.initialize import initialize
 from epi_vo.core.motion.map_check import PNP_MIN_POINTS, map_disagrees
 from epi_vo.core.motion.record import Motion, MotionContext, MotionEstimate, has_map, residual_sq, with_inliers
+from epi_vo.core.rotation_bias_cov import map_rotation_excess
 
 F64 = NDArray[np.float64]
 Mask = NDArray[np.bool_]
@@ -76,11 +77,15 @@ def track_with_map(cfg: VoConfig, ctx: MotionContext, R: F64, t_dir: F64 | None,
             scale_part = covm.shared_scale_part(-R.T @ t0, scale_var)
             pose = covm.tracked_since_keyframe(cov, scale_part, ctx.noise_sq, one_image=ctx.tracked,
                                                residual_sq=residual_sq(cfg, ctx, R, t_dir, inl))
+            excess = None
+            if cfg.rotation_bias_from_map:  # what the map's points say of E's rotation, beyond the noise
+                Xd, xd = X[has_depth], xn_cur[has_depth]
+                excess = map_rotation_excess(R, t0, Xd, xd, map_sigma(cfg, ctx, R, t0, Xd, xd), pose[3:, 3:])
             if plane:  # fused with the map: no separable scale part
                 cov, pose = with_map_information(cfg, ctx, R, t0, X[has_depth], xn_cur[has_depth], cov, pose)
-                return est.gave(Motion(TrackingState.TRACKING, R, t0, cov, inl, cov_pose=pose))
+                return est.gave(Motion(TrackingState.TRACKING, R, t0, cov, inl, cov_pose=pose, rotation_excess=excess))
             return est.gave(Motion(TrackingState.TRACKING, R, t0, cov, inl, shared_scale_var=scale_var,
-                                   from_essential=True, cov_pose=pose))
+                                   from_essential=True, cov_pose=pose, rotation_excess=excess))
         # E's consensus was taken by something moving: the map's points, from the previous pose, decide.
         assert why is not None
         est = est.noted(why)
@@ -149,11 +154,7 @@ def with_map_information(cfg: VoConfig, ctx: MotionContext, R: F64, t: F64, X: F
     accurate where E's ridge is long), so each fused one also takes the Gauss-Newton step d from E's pose
     to that fusion as d d^T: how far the published pose may be, not the fusion's precision at a pose that
     is not the fusion's."""
-    fx = ctx.kf.camera.K[0, 0]
-    rms = geo.reprojection_rms(R, t, X, xn)
-    sigma_n = MAP_INFO_SIGMA_FACTOR * max(rms if rms is not None else cfg.pixel_noise_px / fx,
-                                          geo.PNP_MIN_SIGMA_PX / fx)
-    normal = geo.map_normal_equations(R, t, X, xn, sigma_n)
+    normal = geo.map_normal_equations(R, t, X, xn, map_sigma(cfg, ctx, R, t, X, xn))
     if normal is None:
         return cov, pose
     info, grad = normal
@@ -162,3 +163,11 @@ def with_map_information(cfg: VoConfig, ctx: MotionContext, R: F64, t: F64, X: F
         fused = geo.fuse(P, info)
         out.append(P if fused is None else fused + np.outer(fused @ grad, fused @ grad))
     return out[0], out[1]
+
+
+def map_sigma(cfg: VoConfig, ctx: MotionContext, R: F64, t: F64, X: F64, xn: F64) -> float:
+    """The noise (normalised units) of the map points' reprojections at the pose: what their own residuals
+    show (RMS per axis, at least PNP_MIN_SIGMA_PX), MAP_INFO_SIGMA_FACTOR more for their depths."""
+    fx = ctx.kf.camera.K[0, 0]
+    rms = geo.reprojection_rms(R, t, X, xn)
+    return MAP_INFO_SIGMA_FACTOR * max(rms if rms is not None else cfg.pixel_noise_px / fx, geo.PNP_MIN_SIGMA_PX / fx)

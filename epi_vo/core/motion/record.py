@@ -45,6 +45,9 @@ class Motion:
     # The pose's covariance at the image noise its tracks gathered since the keyframe (``MotionContext``:
     # ``noise_sq``); ``cov_rel`` is at ``pixel_noise_px``, as the twist takes it. None: ``cov_rel``.
     cov_pose: F64 | None = None
+    # E's rotation off the one the map's points give, beyond both estimates' noise (keyframe frame;
+    # ``rotation_bias_cov``); None: not measured.
+    rotation_excess: F64 | None = None
 
 
 def is_finite(m: Motion) -> bool:
