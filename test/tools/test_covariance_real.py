@@ -31,3 +31,21 @@ def test_the_tello_clips_position_covariance_is_consistent_after_a_held_start() 
     row = bench_epi_vo(TELLO.name, TELLO / "bag", TELLO / "groundtruth_tum.txt", VoConfig())
     assert row.nees_frames > 150
     assert math.isfinite(row.nees_pos) and 1.0 <= row.nees_pos <= 6.0, f"position NEES {row.nees_pos:.3g}"
+
+
+KITTI = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "kitti06_0-50"
+
+
+def test_the_kitti_drives_position_covariance_covers_its_steps_shared_rotation_error() -> None:
+    """A forward drive: each keyframe step's E reads part of its turn as a sideways direction of travel, the
+    same way step after step, and the map's points (with depths, where a rotation and a sideways translation
+    differ) measure it (``rotation_bias_cov``). Carried as an error the steps share, it moves the later
+    positions through the lever arm: the position NEES was 12.9 with the steps' errors independent. The
+    rotation (86.6, 120.8 before) is still far over-confident: not this test's."""
+    if not ((KITTI / "bag").is_dir() and (KITTI / "groundtruth_tum.txt").is_file()):
+        pytest.skip(f"{KITTI} not present")
+    logging.getLogger("epi_vo").setLevel(logging.ERROR)
+    row = bench_epi_vo(KITTI.name, KITTI / "bag", KITTI / "groundtruth_tum.txt", VoConfig())
+    assert row.nees_frames > 40
+    assert math.isfinite(row.nees_pos) and 1.0 <= row.nees_pos <= 6.0, f"position NEES {row.nees_pos:.3g}"
+    assert row.nees_rot < 100.0, f"rotation NEES {row.nees_rot:.3g}"
