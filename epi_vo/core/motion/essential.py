@@ -168,6 +168,6 @@ def with_map_information(cfg: VoConfig, ctx: MotionContext, R: F64, t: F64, X: F
 def map_sigma(cfg: VoConfig, ctx: MotionContext, R: F64, t: F64, X: F64, xn: F64) -> float:
     """The noise (normalised units) of the map points' reprojections at the pose: what their own residuals
     show (RMS per axis, at least PNP_MIN_SIGMA_PX), MAP_INFO_SIGMA_FACTOR more for their depths."""
-    fx = ctx.kf.camera.K[0, 0]
+    fx = float(ctx.kf.camera.K[0, 0])
     rms = geo.reprojection_rms(R, t, X, xn)
     return MAP_INFO_SIGMA_FACTOR * max(rms if rms is not None else cfg.pixel_noise_px / fx, geo.PNP_MIN_SIGMA_PX / fx)
