@@ -581,8 +581,16 @@ def draw_fast(tr: np.random.Generator, scn: np.random.Generator) -> Drawn:
 def draw_handheld(tr: np.random.Generator, scn: np.random.Generator) -> Drawn:
     """A phone carried through a room (1-3 of its walls plain plaster), walking 0.4-1 m/s and turning 30-100
     deg towards a side, with hand shake: 0.5-2.5 deg at 2-8 Hz, a 1-3 cm step bob."""
-    fam = FAMILIES["handheld"]
-    T = fam.duration_s
+    return _handheld(FAMILIES["handheld"].duration_s, tr, scn)
+
+
+def draw_handheld_hd(tr: np.random.Generator, scn: np.random.Generator) -> Drawn:
+    """``draw_handheld``'s walk with a phone's own video: 1280x720 at 30 frames a second. The same hand shake
+    moves the image four times as many pixels as at 320 px wide, and blurs it as many."""
+    return _handheld(FAMILIES["handheld_hd"].duration_s, tr, scn)
+
+
+def _handheld(T: float, tr: np.random.Generator, scn: np.random.Generator) -> Drawn:
     cam_h, speed = float(tr.uniform(1.3, 1.7)), float(tr.uniform(0.4, 1.0))
     sweep = float(tr.uniform(30.0, 100.0)) * DEG * float(tr.choice([-1.0, 1.0]))
     shake = [wave(tr, float(tr.uniform(0.5, 2.5)) * DEG, T, (2.0, 8.0), 4) for _ in range(3)]
@@ -680,5 +688,7 @@ FAMILIES: dict[str, Family] = {f.name: f for f in (
            envelope=FaultEnvelope(exposure_ms=(8.0, 30.0))),
     Family("handheld", draw_handheld, "a phone carried through a room with plain walls, hand shake", (320, 240),
            15.0, 100, 0.4, envelope=FaultEnvelope(exposure_ms=(5.0, 25.0), overlay_probability=0.8)),
+    Family("handheld_hd", draw_handheld_hd, "a phone's 1280x720 video carried through a room, hand shake",
+           (1280, 720), 30.0, 100, 0.4, envelope=FaultEnvelope(exposure_ms=(5.0, 25.0), overlay_probability=0.8)),
     Family("long_loop", draw_long_loop, "one full loop around a block", (320, 240), 10.0, 120, 1.0),
 )}

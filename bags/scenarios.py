@@ -2,8 +2,8 @@
 """The scenario distribution: families x seeds of rendered sequences with exact ground truth, cached.
 
 Each family (bags/scenario_families.py: forward, sideways, orbit, planar_wall, floor_wall, floor_robot,
-road, pure_rotation, low_parallax, static_mover, moving_mover, fast, handheld, long_loop) draws per seed
-its scene (layout, textures, how much texture the floor has), its trajectory within the family's
+road, pure_rotation, low_parallax, static_mover, moving_mover, fast, handheld, handheld_hd, long_loop) draws
+per seed its scene (layout, textures, how much texture the floor has), its trajectory within the family's
 envelope, and the camera's faults (bags/camera_faults.py: noise, motion blur, gain and vignetting, JPEG,
 rolling shutter, dropped frames and stamp jitter, a burnt-in timestamp, a slightly wrong CameraInfo).
 Rendering is make_bags' renderer; a sequence is deterministic per (family, seed, profile) on the same

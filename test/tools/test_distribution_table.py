@@ -71,3 +71,19 @@ def test_family_statistics_apply_each_figure_where_it_means_something() -> None:
     tables = dt.family_tables(stats, results)
     assert "| road | 480x360 | epi_vo | 1.50 / 2.30 / 2.50 |" in tables
     assert "| pure_rotation | reference | 30 / 30 / 30 | – |" in tables
+
+
+def test_the_handheld_target_is_judged_at_every_handheld_resolution() -> None:
+    """A phone's 1280x720 video is judged against the same target as the 320 px family: a pose on 97 % of the
+    frames and at most a keyframe in four, each family on its own seeds."""
+    def seqs(family: str, size: tuple[int, int], pose: float, keyframes: int) -> list[dt.SequenceResult]:
+        return [dt.SequenceResult(family, s, s / 8, size, False,
+                                  (row(tracked_percent=pose, keyframes=keyframes, frames=40),))
+                for s in range(3)]
+
+    results = seqs("handheld", (320, 240), 100.0, 8) + seqs("handheld_hd", (1280, 720), 80.0, 24)
+    goals = {t.what.split(":")[0]: t for t in dt.targets(dt.family_stats(results), results, [])
+             if "keyframe in 4" in t.what}
+    assert set(goals) == {"handheld", "handheld_hd"}
+    assert goals["handheld"].met is True and goals["handheld"].measured == "100.0 % (100.0), 0.20 (0.20)"
+    assert goals["handheld_hd"].met is False and goals["handheld_hd"].measured == "80.0 % (80.0), 0.60 (0.60)"
