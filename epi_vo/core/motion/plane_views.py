@@ -20,12 +20,13 @@ F64 = NDArray[np.float64]
 # A decomposition's plane this close (deg) to one seen from the first view is the same plane: the true
 # plane's normal stays put in the keyframe's frame within the normals' noise (a few tenths of a degree).
 PLANE_NORMAL_AGREE_DEG = 1.5
-# The first view's normals are the ones a later view's are judged against, so they must be determined as
-# well as the baseline allows: the first view is kept once the next view's normals are no better determined
-# than by this ratio of variances (the first view's noise then at most two thirds of the drift's). While the
-# baseline still grows by half or more between frames (a normal's variance falls with the square of the
-# parallax), the first view is replaced by the next: at a fraction of a degree of parallax its normals are a few
-# degrees off the plane's, and every later view would seem to move.
+# The first view's normals are the ones every later view's are judged against. A first view whose normals'
+# standard deviation exceeds a third of PLANE_NORMAL_AGREE_DEG may put the true plane outside that agreement
+# for every later view (at a fraction of a degree of parallax its normals are a few degrees off the plane's);
+# it is replaced by the next view when that one fixes them much better, its variance less than the first's
+# by this ratio (the baseline still growing by half or more: a normal's variance falls with the square of the
+# parallax). Once the next view is not much better, more baseline would not determine the first view's
+# normals further (a scene not quite one plane, noise growing with the baseline): it is kept.
 PLANE_ANCHOR_VAR_RATIO = 2.0
 # Frames an initialisation on a plane with two valid decompositions waits for a view that tells them apart;
 # then the one more points pass the gates is taken (as without the wait).
@@ -77,7 +78,8 @@ def plane_by_views(cfg: VoConfig, ctx: MotionContext, H: F64, in_h: NDArray[np.b
         est = remembering(PlaneViews(kf.stamp_ns, tuple(s.normal for s in valid), 1, held, sigma_deg, False))
         return est.noted(note(Decision.PLANE_WAIT_FIRST, n=len(valid), max_wait=PLANE_MAX_WAIT)), PlaneVerdict.WAIT, \
             None, hold
-    if not pending.anchored and pending.sigma_deg**2 > PLANE_ANCHOR_VAR_RATIO * sigma_deg**2:
+    if (not pending.anchored and pending.sigma_deg > PLANE_NORMAL_AGREE_DEG / 3.0
+            and pending.sigma_deg**2 > PLANE_ANCHOR_VAR_RATIO * sigma_deg**2):
         # (False when either is unknown: the first view is kept as it is.)
         est = remembering(PlaneViews(kf.stamp_ns, tuple(s.normal for s in valid), 1, held, sigma_deg, False))
         return est.noted(note(Decision.PLANE_WAIT_UNDETERMINED, n=len(valid), sigma=pending.sigma_deg,
