@@ -71,9 +71,11 @@ def plane_by_views(cfg: VoConfig, ctx: MotionContext, H: F64, in_h: NDArray[np.b
     last = np.eye(3) if first_view or pending is None else pending.held
     held = min((s.R for s in valid), key=lambda R: rotation_angle_deg(last.T @ R))
     hold = (held, max(max(rotation_angle_deg(s.R), rotation_angle_deg(held.T @ s.R)) for s in valid))
-    H_n = np.linalg.solve(kf.camera.K, H @ kf.camera.K)
-    sigma = geo.normal_sigma_deg(H_n, kf.xn[ctx.rows][in_h], ctx.xn_cur[in_h], [s.normal for s in valid])
-    sigma_deg = math.nan if sigma is None else sigma
+    sigma_deg = math.nan
+    if first_view or pending is None or not pending.anchored:
+        H_n = np.linalg.solve(kf.camera.K, H @ kf.camera.K)
+        sigma = geo.normal_sigma_deg(H_n, kf.xn[ctx.rows][in_h], ctx.xn_cur[in_h], [s.normal for s in valid])
+        sigma_deg = math.nan if sigma is None else sigma
     if first_view or pending is None:
         est = remembering(PlaneViews(kf.stamp_ns, tuple(s.normal for s in valid), 1, held, sigma_deg, False))
         return est.noted(note(Decision.PLANE_WAIT_FIRST, n=len(valid), max_wait=PLANE_MAX_WAIT)), PlaneVerdict.WAIT, \
@@ -82,8 +84,8 @@ def plane_by_views(cfg: VoConfig, ctx: MotionContext, H: F64, in_h: NDArray[np.b
             and pending.sigma_deg**2 > PLANE_ANCHOR_VAR_RATIO * sigma_deg**2):
         # (False when either is unknown: the first view is kept as it is.)
         est = remembering(PlaneViews(kf.stamp_ns, tuple(s.normal for s in valid), 1, held, sigma_deg, False))
-        return est.noted(note(Decision.PLANE_WAIT_UNDETERMINED, n=len(valid), sigma=pending.sigma_deg,
-                              now=sigma_deg)), PlaneVerdict.WAIT, None, hold
+        return est.noted(note(Decision.PLANE_WAIT_UNDETERMINED, n=len(valid), first_sd=pending.sigma_deg,
+                              next_sd=sigma_deg)), PlaneVerdict.WAIT, None, hold
     normals, waited = pending.normals, pending.waited
     with np.errstate(invalid="ignore"):
         dist = [min(math.degrees(math.acos(min(1.0, abs(float(s.normal @ n))))) for n in normals) for s in valid]
