@@ -62,6 +62,7 @@ class Decision(enum.Enum):
     FOCAL_SUSPECT_MAP_DECIDES = "focal_suspect_map_decides"  # a rotation under another focal length; map decides
     FOCAL_SUSPECT_ROTATION = "focal_suspect_rotation"  # ... no map: taken as that rotation, position held
     PLANE_WAIT_FIRST = "plane_wait_first"  # two valid solutions of H: waiting for a second view
+    PLANE_WAIT_UNDETERMINED = "plane_wait_undetermined"  # the next view fixes the normals far better: first now
     PLANE_WAIT = "plane_wait"  # still waiting (``waited`` of ``max_wait``)
     PLANE_KEPT_NORMAL = "plane_kept_normal"  # the view told the plane apart
     PLANE_WAIT_GAVE_UP = "plane_wait_gave_up"  # no view did: the one most points pass the gates

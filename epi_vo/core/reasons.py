@@ -124,6 +124,9 @@ _TEXT: dict[Decision, str | Callable[[Details], str]] = {
                                                "held",
     Decision.PLANE_WAIT_FIRST: "planar scene: {n} decompositions of H fit; waiting for a view that tells the plane "
                                "apart (1/{max_wait}), pose held",
+    Decision.PLANE_WAIT_UNDETERMINED: "planar scene: {n} decompositions of H fit; their normals were known to "
+                                      "{first_sd:.1f} deg, now to {next_sd:.1f}: this view is taken as the first, "
+                                      "pose held",
     Decision.PLANE_WAIT: "planar scene: {n} decompositions of H fit ({best:.1f} / {runner:.1f} deg from the first "
                          "view's planes); waiting for a view that tells the plane apart ({waited}/{max_wait}), pose "
                          "held",

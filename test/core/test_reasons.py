@@ -14,7 +14,8 @@ DETAILS = dict(text="operator reset", seconds=4.9331, problem="bad image", note=
                gain=1.6, n=12, need=25, movers=3, region=(1, 2, 30, 40), spread=0.25, fraction=0.75, n_moving=5,
                rh=0.5, parallax=0.3, angle=2.0, rotation=1.0, direction=20.0, off=12, n_e=100, stat=30.0, moved=0.02,
                turned=1.0, ratio=0.95, parallax_focal=0.05, max_wait=10, best=0.4, runner=2.9, views=2, waited=2,
-               rotation_sigma_deg=0.5, direction_sigma_deg=18.7, plane=False, kf=7)
+               rotation_sigma_deg=0.5, direction_sigma_deg=18.7, plane=False, kf=7,
+               first_sd=0.8, next_sd=0.3)
 
 
 @pytest.mark.parametrize("decision", list(Decision))

@@ -7,6 +7,7 @@
   of a pose on map points;
 * ``camera_error``: a rotation fitted with the focal length and radial distortion a calibration may have
   wrong;
+* ``plane_normal``: how well a homography's decompositions fix the plane's normal;
 * ``gric``: Torr's model selection between a model and its special case (a homography and a rotation);
 * ``triangulation``: triangulation through its gates, scale of a direction from map points;
 * ``common``: homogeneous coordinates, cross-product matrix, ray depths, nearest rotation, reprojection
@@ -48,6 +49,7 @@ from epi_vo.core.geometry.models import (
     score_static,
     transfer_errors_sq,
 )
+from epi_vo.core.geometry.plane_normal import homography_covariance, normal_covariance, normal_sigma_deg
 from epi_vo.core.geometry.pose import (
     PNP_MIN_SIGMA_PX,
     PlanarSolution,
@@ -102,12 +104,15 @@ __all__ = [
     "fuse",
     "gric",
     "homogeneous",
+    "homography_covariance",
     "homography_solutions",
     "map_information",
     "map_normal_equations",
     "map_step",
     "nearest_plane_motion",
     "nearest_rotation",
+    "normal_covariance",
+    "normal_sigma_deg",
     "parallax_deg",
     "polish_essential",
     "polish_homography",

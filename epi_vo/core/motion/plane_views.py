@@ -20,6 +20,14 @@ F64 = NDArray[np.float64]
 # A decomposition's plane this close (deg) to one seen from the first view is the same plane: the true
 # plane's normal stays put in the keyframe's frame within the normals' noise (a few tenths of a degree).
 PLANE_NORMAL_AGREE_DEG = 1.5
+# The first view's normals are the ones every later view's are judged against. A first view whose normals'
+# standard deviation exceeds a third of PLANE_NORMAL_AGREE_DEG may put the true plane outside that agreement
+# for every later view (at a fraction of a degree of parallax its normals are a few degrees off the plane's);
+# it is replaced by the next view when that one fixes them much better, its variance less than the first's
+# by this ratio (the baseline still growing by half or more: a normal's variance falls with the square of the
+# parallax). Once the next view is not much better, more baseline would not determine the first view's
+# normals further (a scene not quite one plane, noise growing with the baseline): it is kept.
+PLANE_ANCHOR_VAR_RATIO = 2.0
 # Frames an initialisation on a plane with two valid decompositions waits for a view that tells them apart;
 # then the one more points pass the gates is taken (as without the wait).
 PLANE_MAX_WAIT = 10
@@ -63,10 +71,21 @@ def plane_by_views(cfg: VoConfig, ctx: MotionContext, H: F64, in_h: NDArray[np.b
     last = np.eye(3) if first_view or pending is None else pending.held
     held = min((s.R for s in valid), key=lambda R: rotation_angle_deg(last.T @ R))
     hold = (held, max(max(rotation_angle_deg(s.R), rotation_angle_deg(held.T @ s.R)) for s in valid))
+    sigma_deg = math.nan
+    if first_view or pending is None or not pending.anchored:
+        H_n = np.linalg.solve(kf.camera.K, H @ kf.camera.K)
+        sigma = geo.normal_sigma_deg(H_n, kf.xn[ctx.rows][in_h], ctx.xn_cur[in_h], [s.normal for s in valid])
+        sigma_deg = math.nan if sigma is None else sigma
     if first_view or pending is None:
-        est = remembering(PlaneViews(kf.stamp_ns, tuple(s.normal for s in valid), 1, held))
+        est = remembering(PlaneViews(kf.stamp_ns, tuple(s.normal for s in valid), 1, held, sigma_deg, False))
         return est.noted(note(Decision.PLANE_WAIT_FIRST, n=len(valid), max_wait=PLANE_MAX_WAIT)), PlaneVerdict.WAIT, \
             None, hold
+    if (not pending.anchored and pending.sigma_deg > PLANE_NORMAL_AGREE_DEG / 3.0
+            and pending.sigma_deg**2 > PLANE_ANCHOR_VAR_RATIO * sigma_deg**2):
+        # (False when either is unknown: the first view is kept as it is.)
+        est = remembering(PlaneViews(kf.stamp_ns, tuple(s.normal for s in valid), 1, held, sigma_deg, False))
+        return est.noted(note(Decision.PLANE_WAIT_UNDETERMINED, n=len(valid), first_sd=pending.sigma_deg,
+                              next_sd=sigma_deg)), PlaneVerdict.WAIT, None, hold
     normals, waited = pending.normals, pending.waited
     with np.errstate(invalid="ignore"):
         dist = [min(math.degrees(math.acos(min(1.0, abs(float(s.normal @ n))))) for n in normals) for s in valid]
@@ -79,6 +98,6 @@ def plane_by_views(cfg: VoConfig, ctx: MotionContext, H: F64, in_h: NDArray[np.b
     if waited >= PLANE_MAX_WAIT:
         return est.noted(note(Decision.PLANE_WAIT_GAVE_UP, max_wait=PLANE_MAX_WAIT)), PlaneVerdict.FALLBACK, None, \
             hold
-    est = remembering(PlaneViews(pending.kf_stamp_ns, normals, waited + 1, held))
+    est = remembering(PlaneViews(pending.kf_stamp_ns, normals, waited + 1, held, pending.sigma_deg, True))
     return est.noted(note(Decision.PLANE_WAIT, n=len(valid), best=best, runner=runner, waited=waited + 1,
                           max_wait=PLANE_MAX_WAIT)), PlaneVerdict.WAIT, None, hold

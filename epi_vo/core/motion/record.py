@@ -84,12 +84,16 @@ class MotionContext:
 @dataclass(frozen=True)
 class PlaneViews:
     """An ambiguous planar initialisation: the keyframe, its valid solutions' plane normals at the first
-    view, the frames waited since and the orientation held at the last of them (``plane_views``)."""
+    view, the frames waited since and the orientation held at the last of them (``plane_views``); the first
+    view's normals' largest standard deviation (deg, nan when unknown), and whether a later view found them
+    determined (until then the first view is replaced by each later one)."""
 
     kf_stamp_ns: int
     normals: tuple[F64, ...]
     waited: int
     held: F64
+    sigma_deg: float = math.nan
+    anchored: bool = True
 
 
 @dataclass(frozen=True)
