@@ -73,7 +73,7 @@ def plane_by_views(cfg: VoConfig, ctx: MotionContext, H: F64, in_h: NDArray[np.b
     hold = (held, max(max(rotation_angle_deg(s.R), rotation_angle_deg(held.T @ s.R)) for s in valid))
     sigma_deg = math.nan
     if first_view or pending is None or not pending.anchored:
-        H_n = np.linalg.solve(kf.camera.K, H @ kf.camera.K)
+        H_n = np.asarray(np.linalg.solve(kf.camera.K, H @ kf.camera.K), dtype=np.float64)
         sigma = geo.normal_sigma_deg(H_n, kf.xn[ctx.rows][in_h], ctx.xn_cur[in_h], [s.normal for s in valid])
         sigma_deg = math.nan if sigma is None else sigma
     if first_view or pending is None:
