@@ -58,8 +58,11 @@ def plane_by_views(cfg: VoConfig, ctx: MotionContext, H: F64, in_h: NDArray[np.b
     kf = ctx.kf
     sols = geo.homography_solutions(H, kf.camera.K, kf.xn[ctx.rows], ctx.xn_cur, in_h,
                                     cfg.max_reprojection_error_px, cfg.min_triangulation_angle_deg)
-    valid = [s for s in sols if s.tri.positive_depth_ratio >= cfg.min_positive_depth_ratio
-             and s.n_good >= cfg.min_triangulated]
+    # Valid: the decomposition puts the points in front of both cameras. Not how many of them pass the
+    # triangulation gates: at low parallax the true solution passes few (its rays meet under small angles)
+    # while the wrong one sees them under larger angles and passes them all, so a count gate would
+    # leave the wrong solution alone to be taken without a second view.
+    valid = [s for s in sols if s.tri.positive_depth_ratio >= cfg.min_positive_depth_ratio]
 
     def remembering(views: PlaneViews | None) -> MotionEstimate:
         return est.but(memory=dataclasses.replace(est.memory, plane_views=views))
