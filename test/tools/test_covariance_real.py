@@ -14,9 +14,19 @@ from pathlib import Path
 import pytest
 
 from epi_vo.core.config import VoConfig
-from epi_vo.tools.benchmark import bench_epi_vo
+from epi_vo.tools.benchmark import BenchRow, bench_epi_vo
 
-TELLO = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "tello_semicircle_206f"
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+TELLO = DATA / "tello_semicircle_206f"
+KITTI = DATA / "kitti06_0-50"
+
+
+def bench_clip(clip: Path) -> BenchRow:
+    """The benchmark's row of epi_vo on a real clip with the default parameters (skipped when absent)."""
+    if not ((clip / "bag").is_dir() and (clip / "groundtruth_tum.txt").is_file()):
+        pytest.skip(f"{clip} not present")
+    logging.getLogger("epi_vo").setLevel(logging.ERROR)
+    return bench_epi_vo(clip.name, clip / "bag", clip / "groundtruth_tum.txt", VoConfig())
 
 
 @pytest.mark.xfail(strict=True, reason="issue 41 open: the held start's motion is now estimated from the parallax "
@@ -25,15 +35,9 @@ def test_the_tello_clips_position_covariance_is_consistent_after_a_held_start() 
     """Before: the pre-map "unknown" 1e4 was carried into the map, position NEES 0.01 (a real error
     divided by 1e4 for the whole run). The map now starts from its estimate plus the motion the held time
     allowed (the map's first speed over it), and the NEES is in 1-6."""
-    if not ((TELLO / "bag").is_dir() and (TELLO / "groundtruth_tum.txt").is_file()):
-        pytest.skip(f"{TELLO} not present")
-    logging.getLogger("epi_vo").setLevel(logging.ERROR)
-    row = bench_epi_vo(TELLO.name, TELLO / "bag", TELLO / "groundtruth_tum.txt", VoConfig())
+    row = bench_clip(TELLO)
     assert row.nees_frames > 150
     assert math.isfinite(row.nees_pos) and 1.0 <= row.nees_pos <= 6.0, f"position NEES {row.nees_pos:.3g}"
-
-
-KITTI = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "kitti06_0-50"
 
 
 def test_the_kitti_drives_position_covariance_covers_its_steps_shared_rotation_error() -> None:
@@ -42,10 +46,7 @@ def test_the_kitti_drives_position_covariance_covers_its_steps_shared_rotation_e
     differ) measure it (``rotation_bias_cov``). Carried as an error the steps share, it moves the later
     positions through the lever arm: the position NEES was 12.9 with the steps' errors independent. The
     rotation (86.6, 120.8 before) is still far over-confident: not this test's."""
-    if not ((KITTI / "bag").is_dir() and (KITTI / "groundtruth_tum.txt").is_file()):
-        pytest.skip(f"{KITTI} not present")
-    logging.getLogger("epi_vo").setLevel(logging.ERROR)
-    row = bench_epi_vo(KITTI.name, KITTI / "bag", KITTI / "groundtruth_tum.txt", VoConfig())
+    row = bench_clip(KITTI)
     assert row.nees_frames > 40
     assert math.isfinite(row.nees_pos) and 1.0 <= row.nees_pos <= 6.0, f"position NEES {row.nees_pos:.3g}"
     assert row.nees_rot < 100.0, f"rotation NEES {row.nees_rot:.3g}"
